@@ -1,0 +1,30 @@
+"""Analysis: observability, Monte Carlo, mounting-error studies."""
+
+from .montecarlo import monte_carlo as monte_carlo
+from .mounting import (
+    MountingBudget as MountingBudget,
+)
+from .mounting import (
+    MountingTables as MountingTables,
+)
+from .mounting import (
+    mounting_error_budget as mounting_error_budget,
+)
+from .mounting import (
+    mounting_error_tables as mounting_error_tables,
+)
+from .observability import (
+    ObservabilityReport as ObservabilityReport,
+)
+from .observability import (
+    analyse_jacobian as analyse_jacobian,
+)
+from .observability import (
+    cramer_rao as cramer_rao,
+)
+from .observability import (
+    format_combination as format_combination,
+)
+from .observability import (
+    observability as observability,
+)

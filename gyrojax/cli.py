@@ -1,0 +1,396 @@
+"""The ``gyrojax`` command: simulate, fit, observability, montecarlo, effects, demo.
+
+Engineering units at this edge (deg/h, arcsec, deg); SI inside. Bad input prints one line naming
+the field, the value and the fix, and exits with status 2. ``--json FILE`` writes machine-readable
+output atomically; ``--json -`` prints it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+EXIT_USAGE = 2
+
+
+class UsageError(Exception):
+    """Bad user input: printed as one line, exit status 2."""
+
+
+def _rig_and_conditions(args, record=None):
+    from .models.esg import SCHEMES, ESGConditions, ESGRig
+
+    if args.rig != "esg":
+        raise UsageError(f"--rig {args.rig!r} is not available yet; rigs: esg")
+    conds = dict(record.conditions) if record is not None else {}
+    scheme = getattr(args, "scheme", None) or conds.get("scheme")
+    lat = getattr(args, "latitude", None)
+    lat = lat if lat is not None else conds.get("latitude_deg")
+    if scheme is None:
+        raise UsageError(f"--scheme is required (one of {', '.join(SCHEMES)}); the record does "
+                         "not carry it")
+    if scheme not in SCHEMES:
+        raise UsageError(f"--scheme {scheme!r} is unknown; use one of {', '.join(SCHEMES)}")
+    if lat is None:
+        raise UsageError("--latitude DEG is required; the record does not carry latitude_deg")
+    lat = float(lat)
+    if not -89.0 <= lat <= 89.0:
+        raise UsageError(f"--latitude {lat} is outside [-89, 89] deg; give degrees North")
+    base = getattr(args, "base_param", "eps") or "eps"
+    rig = ESGRig.for_scheme(scheme, lat, base_param=base)
+    return rig, ESGConditions.from_scheme(scheme, lat), scheme, lat
+
+
+def _parse_effects(text, rig):
+    if not text:
+        return ()
+    effects = tuple(e.strip() for e in text.split(",") if e.strip())
+    known = rig.param_space.effects
+    for e in effects:
+        if e not in known:
+            raise UsageError(f"--effects: unknown effect {e!r}; this rig has {', '.join(known)}")
+    return effects
+
+
+def _parse_sets(items, space):
+    """``NAME=VALUE`` in display units (deg/h, arcsec, deg)."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise UsageError(f"--set {item!r}: expected NAME=VALUE, e.g. --set m11=0.15")
+        name, val = item.split("=", 1)
+        name = name.strip()
+        if name not in space:
+            raise UsageError(f"--set: unknown parameter {name!r}; valid: {', '.join(space.names)}")
+        try:
+            out[name] = space[name].from_display(float(val))
+        except ValueError:
+            raise UsageError(f"--set {name}={val!r}: value must be a number in "
+                             f"{space[name].display_unit}") from None
+    return out
+
+
+def _emit_json(obj, dest):
+    from .io import write_json
+
+    if dest == "-":
+        print(json.dumps(obj, indent=2, default=lambda o: np.asarray(o).tolist()))
+    elif dest:
+        write_json(obj, dest)
+        print(f"wrote {dest}", file=sys.stderr)
+
+
+def _load(args, channels):
+    from .io import RecordFileError, load_record
+
+    try:
+        return load_record(args.record, channels=channels)
+    except RecordFileError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _positive(name, value):
+    if value is None or not np.isfinite(value) or value <= 0:
+        raise UsageError(f"{name} {value} must be a positive number")
+    return value
+
+
+# -- commands ------------------------------------------------------------------------------
+def cmd_simulate(args):
+    import jax
+
+    from . import units
+    from .simulate import simulate
+
+    rig, cond, scheme, lat = _rig_and_conditions(args)
+    _positive("--hours", args.hours)
+    _positive("--sample", args.sample)
+    if args.noise_arcsec < 0:
+        raise UsageError(f"--noise-arcsec {args.noise_arcsec} must be >= 0")
+    n = int(round(args.hours * 3600 / args.sample)) + 1
+    if n < 3:
+        raise UsageError(f"--hours {args.hours} with --sample {args.sample} s gives {n} samples; "
+                         "need at least 3")
+    space = rig.param_space
+    default = {"m11": 0.15, "m12": -0.15, "m21": 0.15, "m22": -0.075, "mc1": 0.15, "mc2": -0.15}
+    given = {k: space[k].from_display(v) for k, v in default.items()} | \
+        _parse_sets(args.set, space)
+    params = space.make(given | {"alpha10": args.alpha0[0] * units.DEG,
+                                 "alpha20": args.alpha0[1] * units.DEG} if args.alpha0 else given)
+    ts = np.arange(n) * args.sample
+    out = Path(args.out)
+    if out.suffix.lower() not in (".nc", ".csv"):
+        raise UsageError(f"--out {args.out!r}: use a .nc or .csv file name")
+    rec = simulate(rig, params, cond, ts, key=jax.random.key(args.seed),
+                   noise_std=args.noise_arcsec * units.ARCSEC,
+                   attrs={"latitude_deg": lat, "scheme": scheme, "rig": "esg",
+                          "noise_arcsec": args.noise_arcsec, "seed": args.seed})
+    if not np.all(np.isfinite(np.asarray(rec.y))):
+        raise UsageError("the simulation left the model's domain (gimbal lock, cos alpha2 = 0); "
+                         "shorten --hours or change --alpha0/--scheme")
+    from .io import save_record
+
+    save_record(rec, out)
+    print(f"wrote {out}: {n} samples over {args.hours} h, scheme {scheme}, latitude {lat} deg")
+    print(space.table(params, names=[k for k in space.names if float(params[k]) != space[k].null]))
+    _emit_json({"record": str(out), "samples": n, "parameters": {
+        k: {"value": float(space[k].to_display(v)), "unit": space[k].display_unit}
+        for k, v in params.items()}}, args.json)
+
+
+def cmd_fit(args):
+    from .estimate import fit
+
+    rec0 = _load(args, ("alpha1", "alpha2"))
+    rig, cond, scheme, lat = _rig_and_conditions(args, rec0)
+    effects = _parse_effects(args.effects, rig)
+    report = fit(rig, rec0, cond, effects=effects, method=args.method,
+                 noise_std=None if args.noise_arcsec is None else args.noise_arcsec * 4.84813681e-6)
+    print(f"# fit of {args.record} ({rec0.n_samples} samples), rig esg, scheme {scheme}, "
+          f"latitude {lat} deg, method {args.method}, effects {list(effects) or 'none'}")
+    print(report.table())
+    print(f"residual RMS {report.to_json()['residual_rms_arcsec']:.4g} arcsec; "
+          f"converged: {report.converged}")
+    _emit_json(report.to_json() | {"rig": "esg", "scheme": scheme, "latitude_deg": lat,
+                                   "effects": list(effects)}, args.json)
+
+
+def cmd_observability(args):
+    from . import units
+    from .analysis.observability import observability
+
+    rig, cond, scheme, lat = _rig_and_conditions(args)
+    effects = _parse_effects(args.effects, rig)
+    space = rig.param_space
+    params = space.make({n: 0.01 for n in rig.drift_names} |
+                        {"alpha10": args.alpha0[0] * units.DEG,
+                         "alpha20": args.alpha0[1] * units.DEG})
+    n = int(round(args.hours * 3600 / args.sample)) + 1
+    ts = np.arange(n) * args.sample
+    if args.method == "regression":
+        from .estimate._fit import _linear_names
+
+        free = _linear_names(rig, effects)
+    else:
+        free = space.free_names(effects)
+    rep = observability(rig, params, cond, ts, free=free, method=args.method,
+                        exact_tol=args.exact_tol, weak_tol=args.weak_tol)
+    print(f"# observability: scheme {scheme}, latitude {lat} deg, alpha0 {args.alpha0} deg, "
+          f"{args.hours} h, method {args.method}, base parameters {args.base_param}")
+    print(rep.summary())
+    _emit_json(rep.to_json() | {"scheme": scheme, "latitude_deg": lat}, args.json)
+
+
+def cmd_montecarlo(args):
+    import jax
+
+    from .analysis.mounting import mounting_error_budget, mounting_error_tables
+
+    if args.rig != "esg":
+        raise UsageError(f"--rig {args.rig!r} is not available yet; rigs: esg")
+    lat = args.latitude if args.latitude is not None else 55.75
+    if args.study == "tables":
+        tab = mounting_error_tables(lat)
+        print(f"# Tables 2 and 3 (latitude {lat} deg, drifts 0.01, Euler dchi = 1', theta = 10')")
+        print(tab.markdown())
+        _emit_json(tab.to_json(), args.json)
+    else:
+        if args.draws < 1:
+            raise UsageError(f"--draws {args.draws} must be >= 1")
+        bud = mounting_error_budget(jax.random.key(args.seed), args.draws, lat,
+                                    noise_arcsec=args.noise_arcsec, alpha20_deg=args.alpha20,
+                                    chunk_size=args.chunk_size, progress="budget")
+        print(f"# Monte Carlo error budget: {args.draws} draws per scheme, dchi ~ N(0, 1'), "
+              f"theta ~ N(0, 10'), noise {args.noise_arcsec}\", alpha2(0) = {args.alpha20} deg; "
+              "RMS drift error in deg/h")
+        print(bud.markdown())
+        _emit_json(bud.to_json(), args.json)
+
+
+def cmd_effects(args):
+    from .models import RIGS
+
+    if args.rig not in RIGS:
+        raise UsageError(f"--rig {args.rig!r} is not available yet; rigs: {', '.join(RIGS)}")
+    space = RIGS[args.rig]().param_space
+    print(f"rig {args.rig}: nominal parameters {', '.join(space.nominal_names())}")
+    for e in space.effects:
+        ps = [space[n] for n in space.effect_names(e)]
+        print(f"  {e}: " + ", ".join(f"{p.name} [{p.display_unit}, null {p.to_display(p.null):g}]"
+                                     for p in ps))
+    _emit_json({"rig": args.rig, "nominal": list(space.nominal_names()),
+                "effects": {e: list(space.effect_names(e)) for e in space.effects}}, args.json)
+
+
+def cmd_demo(args):
+    """Fit the built-in example record: regression, Gauss-Newton, Kalman; observability."""
+    from .analysis.observability import observability
+    from .estimate import fit
+    from .io import load_record
+
+    path = Path(__file__).parent / "data" / "esg_equatorial_24h.csv"
+    meta = json.loads(path.with_suffix(".json").read_text())
+    rec = load_record(path, conditions={"scheme": meta["scheme"],
+                                        "latitude_deg": meta["latitude_deg"]})
+    rig, cond, scheme, lat = _rig_and_conditions(
+        argparse.Namespace(rig="esg", scheme=None, latitude=None, base_param="eps"), rec)
+    space = rig.param_space
+    truth = {k: space[k].from_display(v["value"]) for k, v in meta["parameters"].items()}
+    print(f"# gyrojax demo: built-in record {path.name} ({rec.n_samples} samples, 24 h, "
+          f"scheme {scheme}, latitude {lat} deg, 1 arcsec noise)")
+    effects = ("base_misalignment",)
+    summary = {}
+    for method in ("regression", "gauss-newton", "kalman"):
+        rep = fit(rig, rec, cond, effects=effects, method=method)
+        print(f"\n## {method}: residual RMS {rep.to_json()['residual_rms_arcsec']:.3f} arcsec")
+        print(f"{'parameter':<10} {'estimate':>12} {'stderr':>10} {'truth':>12} {'error':>10}  unit")
+        for n in rep.free:
+            if n not in truth and not n.startswith("alpha"):
+                continue
+            p = space[n]
+            tv = truth.get(n, None)
+            est = float(p.to_display(rep.params[n]))
+            se = rep.stderr.get(n)
+            se = float(p.to_display(se)) if se is not None else float("nan")
+            tvd = float(p.to_display(tv)) if tv is not None else float("nan")
+            print(f"{n:<10} {est:12.5f} {se:10.2g} {tvd:12.5f} {est - tvd:10.2g}  {p.display_unit}")
+        summary[method] = rep.to_json()
+    rep = observability(rig, space.make(truth), cond, rec.t,
+                        free=("alpha10", "alpha20", *rig.regression_names))
+    print("\n## observability of drift + rotor tilt + base misalignment in this test")
+    print(rep.summary())
+    summary["observability"] = rep.to_json()
+    if args.plot:
+        from .plots import plot_fit
+
+        plot_fit(rig, rec, cond, fit(rig, rec, cond, effects=effects, method="gauss-newton"),
+                 args.plot)
+        print(f"wrote {args.plot}")
+    _emit_json(summary, args.json)
+
+
+# -- parser --------------------------------------------------------------------------------
+def _common(p, *, record=False, scheme=True):
+    if record:
+        p.add_argument("record", help="record file (.nc or .csv; t in s, alpha1 alpha2 in rad)")
+    p.add_argument("--rig", default="esg", help="rig name (default esg; see DESIGN.md)")
+    if scheme:
+        p.add_argument("--scheme", help="mounting scheme: polar, equatorial, horizontal, vertical "
+                                        "(default: from the record's attributes)")
+        p.add_argument("--latitude", type=float,
+                       help="test-site latitude in degrees North (default: from the record)")
+        p.add_argument("--base-param", default="eps", choices=["eps", "eps_free", "rotvec", "euler"],
+                       help="base-misalignment parametrization (default eps: eps = u x dchi, "
+                            "normal to u, 2 components)")
+    p.add_argument("--json", metavar="FILE", help="write machine-readable output ('-' = stdout)")
+
+
+def _alpha0(text):
+    try:
+        a = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected two numbers 'A1,A2' in deg") from None
+    if len(a) != 2:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected two numbers 'A1,A2' in deg")
+    return a
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="gyrojax",
+        description="Differentiable estimation for gyroscope and INS bench tests. Engineering units "
+                    "at the command line (deg/h, arcsec, deg); SI in files.")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("demo", help="fit the built-in example record (the main job)")
+    p.add_argument("--plot", metavar="PNG", help="save trajectory/residual figure")
+    p.add_argument("--json", metavar="FILE", help="write the fits and observability report")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("simulate", help="simulate a bench test to a record file")
+    _common(p)
+    p.add_argument("--out", required=True, help="output record (.nc or .csv)")
+    p.add_argument("--hours", type=float, default=24.0, help="test length in h (default 24)")
+    p.add_argument("--sample", type=float, default=60.0, help="sampling interval in s (default 60)")
+    p.add_argument("--noise-arcsec", type=float, default=1.0,
+                   help="white angle-noise std in arcsec (default 1)")
+    p.add_argument("--alpha0", type=_alpha0, default=[0.0, 0.0],
+                   help="initial gimbal angles 'A1,A2' in deg (default 0,0)")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE",
+                   help="parameter in display units, repeatable (m11=0.15 deg/h, theta1=600 arcsec,"
+                        " eps2=60 arcsec ...); defaults: drifts of +-0.15 deg/h")
+    p.add_argument("--seed", type=int, default=0, help="PRNG seed for the noise (default 0)")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("fit", help="identify drift (and effects) from a record")
+    _common(p, record=True)
+    p.add_argument("--effects", default="",
+                   help="comma-separated effects to estimate: rotor_tilt, base_misalignment, "
+                        "drift_transient (default none)")
+    p.add_argument("--method", default="gauss-newton",
+                   choices=["regression", "gauss-newton", "levenberg-marquardt", "kalman"],
+                   help="estimator (default gauss-newton on the exact model)")
+    p.add_argument("--noise-arcsec", type=float,
+                   help="angle noise for --method kalman (default: estimated)")
+    p.set_defaults(func=cmd_fit)
+
+    p = sub.add_parser("observability", help="which parameters a test design can identify")
+    _common(p)
+    p.add_argument("--effects", default="rotor_tilt,base_misalignment",
+                   help="effects whose parameters join the drifts (default rotor_tilt,"
+                        "base_misalignment)")
+    p.add_argument("--alpha0", type=_alpha0, default=[0.0, 0.0],
+                   help="initial gimbal angles 'A1,A2' in deg (default 0,0)")
+    p.add_argument("--hours", type=float, default=24.0, help="test length in h (default 24)")
+    p.add_argument("--sample", type=float, default=60.0, help="sampling interval in s (default 60)")
+    p.add_argument("--method", default="regression", choices=["regression", "trajectory"],
+                   help="sensitivity: regression design A (linear model, the spec's check) or "
+                        "trajectory Jacobian of the exact model (default regression)")
+    p.add_argument("--exact-tol", type=float, default=1e-6,
+                   help="relative singular value below which a direction is unobservable")
+    p.add_argument("--weak-tol", type=float, default=1e-3,
+                   help="relative singular value below which it is weakly observable")
+    p.set_defaults(func=cmd_observability)
+
+    p = sub.add_parser("montecarlo", help="mounting-error tables and Monte Carlo error budgets")
+    p.add_argument("--rig", default="esg", help="rig name (default esg)")
+    p.add_argument("--study", default="tables", choices=["tables", "budget"],
+                   help="tables: the paper's Tables 2-3; budget: random mounting errors")
+    p.add_argument("--latitude", type=float, help="latitude in deg North (default 55.75)")
+    p.add_argument("--draws", type=int, default=1000, help="draws per scheme (budget)")
+    p.add_argument("--noise-arcsec", type=float, default=1.0, help="angle noise (budget)")
+    p.add_argument("--alpha20", type=float, default=30.0,
+                   help="initial alpha2 in deg (budget; default 30, where all parameters are "
+                        "observable in the equatorial scheme)")
+    p.add_argument("--chunk-size", type=int, default=512, help="draws per compiled batch")
+    p.add_argument("--seed", type=int, default=0, help="PRNG seed")
+    p.add_argument("--json", metavar="FILE", help="write results ('-' = stdout)")
+    p.set_defaults(func=cmd_montecarlo)
+
+    p = sub.add_parser("effects", help="list a rig's catalogue of effects")
+    p.add_argument("--rig", default="esg", help="rig name (default esg)")
+    p.add_argument("--json", metavar="FILE", help="write the catalogue")
+    p.set_defaults(func=cmd_effects)
+    return ap
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        args.func(args)
+    except UsageError as exc:
+        print(f"gyrojax {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except ValueError as exc:  # validation errors from the library name the field and the fix
+        print(f"gyrojax {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,53 @@
+"""Estimators: integral regression, Gauss-Newton/LM, square-root Kalman filter, spiral fit."""
+
+from ._fit import METHODS as METHODS
+from ._fit import FitReport as FitReport
+from ._fit import fit as fit
+from .kalman import (
+    ESGFilterResult as ESGFilterResult,
+)
+from .kalman import (
+    KalmanResult as KalmanResult,
+)
+from .kalman import (
+    esg_augmented_filter as esg_augmented_filter,
+)
+from .kalman import (
+    rts_smoother as rts_smoother,
+)
+from .kalman import (
+    square_root_filter as square_root_filter,
+)
+from .least_squares import (
+    FitResult as FitResult,
+)
+from .least_squares import (
+    fit_trajectory as fit_trajectory,
+)
+from .least_squares import (
+    trajectory_jacobian as trajectory_jacobian,
+)
+from .regression import (
+    RegressionResult as RegressionResult,
+)
+from .regression import (
+    integral_regression as integral_regression,
+)
+from .regression import (
+    regression_design as regression_design,
+)
+from .spiral import (
+    SpiralResult as SpiralResult,
+)
+from .spiral import (
+    fit_spiral as fit_spiral,
+)
+from .spiral import (
+    invert_spiral as invert_spiral,
+)
+from .spiral import (
+    spiral_parameters as spiral_parameters,
+)
+from .spiral import (
+    spiral_trajectory as spiral_trajectory,
+)

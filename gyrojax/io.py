@@ -1,0 +1,227 @@
+"""BenchRecord <-> NetCDF / CSV files, validated at the boundary, written atomically.
+
+Contract (DESIGN.md): time ``t`` in s, strictly increasing (first CSV column); one column or
+variable per channel in SI units; test conditions as NetCDF attributes (CSV: command-line options).
+Every problem raises :class:`RecordFileError` naming the file, the field or line, the value and the
+fix. Files are written to a temporary file in the target folder and renamed, so a failed write never
+leaves a half file.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .record import BenchRecord, freeze
+
+__all__ = ["RecordFileError", "load_record", "save_record", "validate_samples", "atomic_write",
+           "write_json"]
+
+MIN_SAMPLES = 3
+
+
+class RecordFileError(ValueError):
+    """A record file or array failed validation; the message names the problem and the fix."""
+
+
+def validate_samples(t, y, channels: Sequence[str], *, source: str = "record",
+                     min_samples: int = MIN_SAMPLES):
+    """Check time and channel arrays; returns them as float64 numpy arrays."""
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    if t.ndim != 1:
+        raise RecordFileError(f"{source}: t must be one-dimensional, got shape {t.shape}")
+    if y.ndim != 2 or y.shape != (t.shape[0], len(channels)):
+        raise RecordFileError(f"{source}: channels have shape {y.shape}, expected "
+                              f"({t.shape[0]}, {len(channels)}) for channels {list(channels)}")
+    if t.shape[0] < min_samples:
+        raise RecordFileError(f"{source}: {t.shape[0]} samples is too few; a bench test needs at "
+                              f"least {min_samples} samples (record longer or sample faster)")
+    bad_t = np.where(~np.isfinite(t))[0]
+    if bad_t.size:
+        raise RecordFileError(f"{source}: t has non-finite value {t[bad_t[0]]} at sample "
+                              f"{bad_t[0]}; remove or fill that sample")
+    steps = np.diff(t)
+    bad = np.where(steps <= 0)[0]
+    if bad.size:
+        i = int(bad[0])
+        raise RecordFileError(f"{source}: t must be strictly increasing but t[{i}]={t[i]} and "
+                              f"t[{i + 1}]={t[i + 1]}; sort the samples and drop duplicates")
+    for j, name in enumerate(channels):
+        badc = np.where(~np.isfinite(y[:, j]))[0]
+        if badc.size:
+            i = int(badc[0])
+            raise RecordFileError(f"{source}: channel {name!r} has non-finite value {y[i, j]} at "
+                                  f"sample {i} (t={t[i]}); gyrojax does not drop samples silently "
+                                  "— remove or interpolate them before fitting")
+    return t, y
+
+
+def _check_channels(channels, expected, source):
+    if expected is None:
+        return
+    missing = [c for c in expected if c not in channels]
+    if missing:
+        raise RecordFileError(f"{source}: missing channel(s) {missing}; found {list(channels)}. "
+                              f"This rig needs columns {list(expected)} (SI units)")
+
+
+def load_record(path, *, channels: Sequence[str] | None = None,
+                conditions: Mapping | None = None) -> BenchRecord:
+    """Read a BenchRecord from ``.nc`` or ``.csv``.
+
+    **Arguments:**
+    - `path`: the file.
+    - `channels`: channel names the caller needs (e.g. ``rig.channels``); others are ignored,
+      missing ones are an error. ``None`` keeps every column after ``t``.
+    - `conditions`: test conditions to set or override (CSV files carry none).
+
+    **Raises:** :class:`RecordFileError` with the file, the problem and the fix.
+    """
+    path = Path(path)
+    src = str(path)
+    if not path.exists():
+        raise RecordFileError(f"{src}: no such file; check the path (relative paths are taken from "
+                              f"{os.getcwd()})")
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        t, cols, names, attrs = _read_csv(path)
+    elif suffix in (".nc", ".nc4", ".netcdf"):
+        t, cols, names, attrs = _read_netcdf(path)
+    else:
+        raise RecordFileError(f"{src}: unknown file type {suffix!r}; use .nc (NetCDF) or .csv")
+    _check_channels(names, channels, src)
+    keep = list(channels) if channels is not None else names
+    y = np.stack([cols[names.index(c)] for c in keep], axis=-1)
+    t, y = validate_samples(t, y, keep, source=src)
+    attrs = dict(attrs) | dict(conditions or {})
+    return BenchRecord(t, y, tuple(keep), freeze(attrs))
+
+
+def _read_csv(path: Path):
+    with open(path, newline="") as fh:
+        reader = csv.reader(fh)
+        try:
+            header = next(reader)
+        except StopIteration:
+            raise RecordFileError(f"{path}: the file is empty; expected a header row "
+                                  "'t,<channel>,...' and data rows") from None
+        header = [h.strip() for h in header]
+        if not header or header[0] != "t":
+            raise RecordFileError(f"{path}: line 1: the first column must be 't' (time in s), "
+                                  f"got {header[:1]}; add a header row 't,<channel>,...'")
+        rows = []
+        for lineno, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(header):
+                raise RecordFileError(f"{path}: line {lineno}: {len(row)} columns but the header has "
+                                      f"{len(header)} ({','.join(header)}); fix the row")
+            try:
+                rows.append([float(c) for c in row])
+            except ValueError:
+                bad = next(c for c in row if not _is_float(c))
+                raise RecordFileError(f"{path}: line {lineno}: non-numeric value {bad!r}; every "
+                                      "data cell must be a number in SI units") from None
+    if not rows:
+        raise RecordFileError(f"{path}: no data rows after the header")
+    data = np.asarray(rows, dtype=float)
+    names = header[1:]
+    return data[:, 0], [data[:, j + 1] for j in range(len(names))], names, {}
+
+
+def _is_float(s) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def _read_netcdf(path: Path):
+    import xarray as xr
+
+    try:
+        ds = xr.load_dataset(path, engine="h5netcdf")
+    except Exception as exc:  # noqa: BLE001 - report any backend failure as a file error
+        raise RecordFileError(f"{path}: cannot be read as NetCDF ({type(exc).__name__}: {exc}); "
+                              "is the file complete and written by xarray/netCDF4?") from None
+    if "t" not in ds.coords and "t" not in ds.variables:
+        raise RecordFileError(f"{path}: no time coordinate 't'; name the time axis 't' (seconds)")
+    t = np.asarray(ds["t"].values, dtype=float)
+    names = [str(v) for v in ds.data_vars if ds[v].dims == ("t",)]
+    cols = [np.asarray(ds[v].values, dtype=float) for v in names]
+    attrs = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in ds.attrs.items()}
+    return t, cols, names, attrs
+
+
+def atomic_write(path, write_fn):
+    """Call ``write_fn(tmp_path)`` then rename over ``path``; the temp file is removed on error."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write_fn(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def save_record(record: BenchRecord, path) -> Path:
+    """Write a (single, unbatched) record to ``.nc`` or ``.csv`` atomically."""
+    path = Path(path)
+    if record.t.ndim != 1:
+        raise ValueError(f"save_record: record is batched (t.shape={record.t.shape}); save one "
+                         "record per file (record[i])")
+    t = np.asarray(record.t)
+    y = np.asarray(record.y)
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        def write(tmp):
+            with open(tmp, "w", newline="") as fh:
+                w = csv.writer(fh)
+                w.writerow(["t", *record.channels])
+                for i in range(t.shape[0]):
+                    w.writerow([repr(float(t[i])), *(repr(float(v)) for v in y[i])])
+    elif suffix in (".nc", ".nc4", ".netcdf"):
+        import xarray as xr
+
+        ds = xr.Dataset({c: ("t", y[:, j]) for j, c in enumerate(record.channels)},
+                        coords={"t": ("t", t, {"units": "s"})})
+        for c in record.channels:
+            ds[c].attrs["units"] = "SI"
+        ds.attrs.update({k: (v if isinstance(v, (int, float, str)) else json.dumps(v))
+                         for k, v in record.conditions.items()})
+
+        def write(tmp):
+            ds.to_netcdf(tmp, engine="h5netcdf")
+    else:
+        raise ValueError(f"{path}: unknown file type {suffix!r}; use .nc or .csv")
+    atomic_write(path, write)
+    return path
+
+
+def write_json(obj, path) -> Path:
+    """Write JSON atomically (NumPy/JAX scalars and arrays converted)."""
+
+    def default(o):
+        arr = np.asarray(o)
+        return arr.item() if arr.ndim == 0 else arr.tolist()
+
+    text = json.dumps(obj, indent=2, default=default)
+
+    def write(tmp):
+        with open(tmp, "w") as fh:
+            fh.write(text + "\n")
+
+    atomic_write(path, write)
+    return Path(path)

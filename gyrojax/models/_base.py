@@ -1,0 +1,50 @@
+"""The rig interface shared by every instrument model."""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+
+from ..params import ParameterSpace
+
+
+class AbstractRig(eqx.Module):
+    """A bench-test rig: equations of motion and measurement of one instrument on its stand.
+
+    A rig is configuration only (static fields); numbers live in the parameter dict (see
+    `gyrojax.params`) and in the rig's conditions module (latitude, mounting, schedule...).
+
+    Time inside a rig may be normalized: ``internal_time = t_seconds * rig.time_scale``.
+    """
+
+    @property
+    @abc.abstractmethod
+    def param_space(self) -> ParameterSpace:
+        """Every parameter the rig knows, nominal ones and effect groups with null values."""
+
+    @property
+    @abc.abstractmethod
+    def channels(self) -> tuple[str, ...]:
+        """Names of the measured channels (the BenchRecord columns)."""
+
+    @property
+    @abc.abstractmethod
+    def time_scale(self) -> float:
+        """Internal time units per second."""
+
+    @abc.abstractmethod
+    def initial_state(self, params, conditions):
+        """State at the first sample time."""
+
+    @abc.abstractmethod
+    def vector_field(self, t, state, params, conditions):
+        """d state / d internal time."""
+
+    @abc.abstractmethod
+    def observe(self, t, state, params, conditions):
+        """Measured channels (noise-free) at internal time ``t``."""
+
+    @abc.abstractmethod
+    def conditions_from_record(self, record):
+        """The rig's conditions module read from a record's attributes."""

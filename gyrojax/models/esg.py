@@ -1,0 +1,328 @@
+"""Non-contact (electrostatic) gyro in a two-axis gyrostabilizer — spec ``esg-drift.md`` (seed 000).
+
+Conventions (spec §2-§3): normalized time ``tau = U t`` (``U`` = Earth's sidereal rate, so one
+sidereal day is ``2 pi``); drift coefficients ``m`` are normalized torques, ``drift[deg/h] =
+15.0411 m``; angles in rad. Frames: ``eta`` geographic ENU; ``zeta`` the stabilizer base
+(``C_eta_zeta = R3(chi3) R2(chi2) R1(chi1)``, Table 1 gives the nominal ``chi`` of the four
+mounting schemes); ``x`` the platform (``C_zeta_x = R1(alpha1) R2(alpha2)``). State: the gimbal angles
+``alpha = (alpha1, alpha2)``; they are also the measured channels.
+
+Parameters (names as in the spec):
+
+| group | names | unit (report) |
+|---|---|---|
+| nominal | ``alpha10 alpha20`` (first-sample angles), ``m11 ... mc2`` | rad (deg), 1 (deg/h) |
+| ``rotor_tilt`` | ``theta1 theta2`` (spin-axis non-perpendicularity, §3.4) | rad (arcsec) |
+| ``base_misalignment`` | ``eps*`` or ``dchi1..3`` by ``base_param`` (§3.5-3.6) | rad (arcsec) |
+| ``drift_transient`` | ``dm11_0 ... dmc2_0`` (``m0 - m*``), ``k_tr`` (law 7.4) | 1 (deg/h), 1/tau (1/h) |
+
+``base_param`` chooses how the base misalignment is parametrized:
+
+- ``"eps"`` (default): ``eps = u_zeta x dchi`` constrained normal to ``u`` (spec §8.2): two free
+  components, the third (``eps_dependent``) solved from ``eps . u = 0``; the base is rotated exactly
+  by ``dchi = eps x u``.
+- ``"eps_free"``: the paper's (6.9), all three ``eps`` free and acting additively on the Earth-rate
+  vector (``u + eps``, ``g`` unchanged): for observability studies of the uncostrained form.
+- ``"rotvec"``: ``dchi`` a small rotation vector in base components (exact rotation of ``u`` and ``g``).
+- ``"euler"``: ``dchi`` Euler-angle increments, ``chi = chi* + dchi`` (the reading behind Tables 2-3).
+
+``order="first"`` gives the paper's first-order model (3.1): the exact model linearized in the
+mounting errors (``theta`` and the base parameters) with the ``O(m dchi)`` effect on ``g`` dropped.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import units
+from ..earth import earth_rate_unit_enu, gravity_unit_enu
+from ..params import Param, ParameterSpace, param
+from ..rotations import euler321_to_matrix, rot1, rot2, rotvec_to_matrix, skew
+from ._base import AbstractRig
+
+__all__ = ["ESGRig", "ESGConditions", "SCHEMES", "scheme_angles", "DRIFT_NAMES"]
+
+U = units.EARTH_RATE
+DRIFT_NAMES = ("m11", "m12", "m21", "m22", "mc1", "mc2")
+_M_FACTOR = 1.0 / units.EARTH_RATE_DEG_PER_HOUR  # normalized m per deg/h
+SCHEMES = ("polar", "equatorial", "horizontal", "vertical")
+
+
+def scheme_angles(scheme: str, latitude):
+    """Nominal base angles ``(chi1, chi2, chi3)`` of Table 1 (rad) for a scheme name."""
+    half = jnp.pi / 2
+    lat = jnp.asarray(latitude, dtype=float)
+    table = {
+        "polar": (0.0, lat - half, -half),
+        "equatorial": (0.0, -lat, half),
+        "horizontal": (0.0, -half, -half),
+        "vertical": (0.0, 0.0, 0.0),
+    }
+    if scheme not in table:
+        raise ValueError(f"unknown mounting scheme {scheme!r}; use one of {', '.join(SCHEMES)}")
+    return jnp.stack([jnp.asarray(a, dtype=float) + 0.0 * lat for a in table[scheme]])
+
+
+class ESGConditions(eqx.Module):
+    """Test conditions of the ESG rig: latitude (rad) and nominal base angles ``chi`` (rad).
+
+    Both are arrays, so conditions batch with ``vmap`` (e.g. over the four schemes).
+    """
+
+    latitude: jax.Array
+    chi: jax.Array
+
+    @staticmethod
+    def from_scheme(scheme: str, latitude_deg: float) -> ESGConditions:
+        lat = jnp.asarray(latitude_deg * units.DEG, dtype=float)
+        if not (-90.0 < float(latitude_deg) < 90.0):
+            raise ValueError(f"latitude {latitude_deg} deg is outside (-90, 90); give --latitude "
+                             "in degrees North")
+        return ESGConditions(lat, scheme_angles(scheme, lat))
+
+    def base_vectors(self):
+        """Nominal ``u_zeta`` (unit Earth rate) and ``g_zeta`` (unit gravity) in base components."""
+        c = euler321_to_matrix(self.chi)
+        return c.T @ earth_rate_unit_enu(self.latitude), c.T @ gravity_unit_enu()
+
+
+def _default_dependent(u_zeta) -> int:
+    """Index of the eps component solved from eps . u = 0: the one with the largest |u_i|."""
+    return int(np.argmax(np.abs(np.asarray(u_zeta))))
+
+
+class ESGRig(AbstractRig):
+    """The non-contact gyro in a two-axis gyrostabilizer (spec esg-drift §5).
+
+    **Arguments:**
+    - `base_param`: ``"eps"`` | ``"eps_free"`` | ``"rotvec"`` | ``"euler"`` (see module docstring).
+    - `eps_dependent`: for ``base_param="eps"``, the index (0, 1, 2) of the eps component fixed by
+      ``eps . u = 0``; build with :meth:`for_scheme` to choose it from the scheme.
+    - `order`: ``"exact"`` (model 5.1) or ``"first"`` (model 3.1).
+    """
+
+    base_param: Literal["eps", "eps_free", "rotvec", "euler"] = eqx.field(static=True,
+                                                                        default="eps")
+    eps_dependent: int = eqx.field(static=True, default=2)
+    order: Literal["exact", "first"] = eqx.field(static=True, default="exact")
+
+    def __check_init__(self):
+        if self.base_param not in ("eps", "eps_free", "rotvec", "euler"):
+            raise ValueError(f"base_param={self.base_param!r}; use 'eps', 'eps_free', 'rotvec' "
+                             "or 'euler'")
+        if self.order not in ("exact", "first"):
+            raise ValueError(f"order={self.order!r}; use 'exact' or 'first'")
+        if self.eps_dependent not in (0, 1, 2):
+            raise ValueError(f"eps_dependent={self.eps_dependent}; use 0, 1 or 2")
+
+    @staticmethod
+    def for_scheme(scheme: str, latitude_deg: float = 55.75, **kwargs) -> ESGRig:
+        """A rig whose constrained ``eps`` drops the component along ``u`` for this scheme."""
+        u, _ = ESGConditions.from_scheme(scheme, latitude_deg).base_vectors()
+        kwargs.setdefault("eps_dependent", _default_dependent(u))
+        return ESGRig(**kwargs)
+
+    # -- parameters ------------------------------------------------------------------------
+    @property
+    def base_names(self) -> tuple[str, ...]:
+        if self.base_param == "eps":
+            return tuple(f"eps{i + 1}" for i in range(3) if i != self.eps_dependent)
+        if self.base_param == "eps_free":
+            return ("eps1", "eps2", "eps3")
+        return ("dchi1", "dchi2", "dchi3")
+
+    @property
+    def param_space(self) -> ParameterSpace:
+        return _param_space(self.base_param, self.base_names)
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return ("alpha1", "alpha2")
+
+    @property
+    def time_scale(self) -> float:
+        return U
+
+    def conditions_from_record(self, record) -> ESGConditions:
+        c = record.conditions
+        missing = [k for k in ("latitude_deg", "scheme") if k not in c]
+        if missing:
+            raise ValueError(f"record lacks the condition(s) {missing}; give --latitude DEG and "
+                             "--scheme NAME (or store them as NetCDF attributes)")
+        return ESGConditions.from_scheme(str(c["scheme"]), float(c["latitude_deg"]))
+
+    # -- physics ---------------------------------------------------------------------------
+    def _eps_vector(self, params, u_zeta):
+        names = self.base_names
+        if self.base_param == "eps_free":
+            return jnp.stack([params[n] for n in names])
+        comps = [None, None, None]
+        free = [i for i in range(3) if i != self.eps_dependent]
+        for i, n in zip(free, names):
+            comps[i] = params[n]
+        d = self.eps_dependent
+        comps[d] = -sum(u_zeta[i] * comps[i] for i in free) / u_zeta[d]
+        return jnp.stack(comps)
+
+    def actual_base_vectors(self, params, conditions, *, rotate_gravity: bool = True):
+        """``u_zeta`` and ``g_zeta`` in the actual (misaligned) base frame."""
+        u0, g0 = conditions.base_vectors()
+        if self.base_param == "euler":
+            dchi = jnp.stack([params[n] for n in self.base_names])
+            c = euler321_to_matrix(conditions.chi + dchi)
+            u, g = c.T @ earth_rate_unit_enu(conditions.latitude), c.T @ gravity_unit_enu()
+            return (u, g) if rotate_gravity else (u, g0)
+        if self.base_param == "eps_free":
+            return u0 + self._eps_vector(params, u0), g0
+        if self.base_param == "eps":
+            dchi = jnp.cross(self._eps_vector(params, u0), u0)
+        else:
+            dchi = jnp.stack([params[n] for n in self.base_names])
+        r = rotvec_to_matrix(dchi)
+        return r.T @ u0, (r.T @ g0 if rotate_gravity else g0)
+
+    def _drift(self, params, tau):
+        decay = jnp.exp(-params["k_tr"] * tau)
+        return [params[n] + params[f"d{n}_0"] * decay for n in DRIFT_NAMES]
+
+    def _exact_rates(self, alpha, m, theta, u_zeta, g_zeta):
+        a1, a2 = alpha[0], alpha[1]
+        c_zx = rot1(a1) @ rot2(a2)
+        u = c_zx.T @ u_zeta
+        g = c_zx.T @ g_zeta
+        e = rotvec_to_matrix(jnp.stack([theta[0], theta[1], jnp.zeros_like(theta[0])]))[:, 2]
+        m11, m12, m21, m22, mc1, mc2 = m
+        cosg = -jnp.dot(g, e)
+        eg = jnp.cross(e, g)
+        torque = ((m11 - 2 * m12 * cosg) * eg + (m21 - 2 * m22 * cosg) * jnp.cross(e, eg)
+                  + jnp.stack([mc1, mc2, jnp.zeros_like(mc1)]))
+        v = torque - jnp.dot(torque, e) * e - jnp.cross(u, e)
+        s2, c2 = jnp.sin(a2), jnp.cos(a2)
+        a1dot = v[1] / (s2 * e[0] - c2 * e[2])
+        a2dot = (v[0] + a1dot * s2 * e[1]) / e[2]
+        return jnp.stack([a1dot, a2dot])
+
+    def initial_state(self, params, conditions):
+        return jnp.stack([params["alpha10"], params["alpha20"]])
+
+    def vector_field(self, t, state, params, conditions):
+        """$d\\alpha/d\\tau$ of the exact precessional model (spec §5.1) or of (3.1)."""
+        m = self._drift(params, t)
+        theta = jnp.stack([params["theta1"], params["theta2"]])
+        if self.order == "exact":
+            u, g = self.actual_base_vectors(params, conditions)
+            return self._exact_rates(state, m, theta, u, g)
+        # first order in the mounting errors (3.1): tangent of the exact model at zero error,
+        # with the O(m dchi) effect of dchi on g dropped (gravity stays nominal).
+        _, g0 = conditions.base_vectors()
+        errs = {n: params[n] for n in ("theta1", "theta2", *self.base_names)}
+
+        def rates(e):
+            p = dict(params) | e
+            u, _ = self.actual_base_vectors(p, conditions, rotate_gravity=False)
+            return self._exact_rates(state, m, jnp.stack([p["theta1"], p["theta2"]]), u, g0)
+
+        zeros = jax.tree.map(jnp.zeros_like, errs)
+        f0, df = jax.jvp(rates, (zeros,), (errs,))
+        return f0 + df
+
+    def observe(self, t, state, params, conditions):
+        return state
+
+    # -- the linear-in-parameters form (6.1) used by regression and the Kalman filter ---------
+    @property
+    def drift_names(self) -> tuple[str, ...]:
+        """The drift coefficients; ``d{name}_0`` are their start-up transients (law 7.4)."""
+        return DRIFT_NAMES
+
+    @property
+    def regression_names(self) -> tuple[str, ...]:
+        """Parameters ``p`` of the linear model (6.1): drift, rotor tilt, base misalignment."""
+        return (*DRIFT_NAMES, "theta1", "theta2", *self.base_names)
+
+    def regression_terms(self, alpha, conditions):
+        """``c(alpha)`` (2,) and ``F(alpha)`` (2, k) of $\\alpha' = c + F p$ (spec (6.7), (6.10)).
+
+        Written out from the spec (with the corrected ``f18``) rather than differentiated: it is
+        the hot path of the regression; tests check it against the autodiff tangent of the exact
+        model. ``alpha`` may carry leading batch axes.
+        """
+        u_zeta, g_zeta = conditions.base_vectors()
+        a1, a2 = alpha[..., 0], alpha[..., 1]
+        s1, c1, s2, c2 = jnp.sin(a1), jnp.cos(a1), jnp.sin(a2), jnp.cos(a2)
+        t2 = s2 / c2
+        # platform axes in base components (spec §3.3)
+        x1 = jnp.stack([c2, s1 * s2, -c1 * s2], axis=-1)
+        x2 = jnp.stack([jnp.zeros_like(a1), c1, s1], axis=-1)
+        x3 = jnp.stack([s2, -s1 * c2, c1 * c2], axis=-1)
+        u1, u2, u3 = x1 @ u_zeta, x2 @ u_zeta, x3 @ u_zeta
+        g1, g2, g3 = x1 @ g_zeta, x2 @ g_zeta, x3 @ g_zeta
+        z, o = jnp.zeros_like(a1), jnp.ones_like(a1)
+        row1 = [-g1 / c2, -2 * g1 * g3 / c2, g2 / c2, 2 * g2 * g3 / c2, z, -o / c2,
+                z, (u3 - u1 * t2) / c2]
+        row2 = [-g2, -2 * g2 * g3, -g1, -2 * g1 * g3, o, z, u1 * t2 - u3, z]
+        # eps columns (6.10): -x1/cos(alpha2) and -x2 in base components
+        f_eps1 = -x1 / c2[..., None]
+        f_eps2 = -x2
+        if self.base_param == "eps_free":
+            b1, b2 = f_eps1, f_eps2
+        elif self.base_param == "eps":
+            d = self.eps_dependent
+            free = [i for i in range(3) if i != d]
+            # eps_d = -(sum_i u_i eps_i) / u_d  ->  column_i - u_i / u_d column_d
+            b1 = jnp.stack([f_eps1[..., i] - u_zeta[i] / u_zeta[d] * f_eps1[..., d]
+                            for i in free], axis=-1)
+            b2 = jnp.stack([f_eps2[..., i] - u_zeta[i] / u_zeta[d] * f_eps2[..., d]
+                            for i in free], axis=-1)
+        else:
+            # eps = u x dchi = skew(u) dchi  (rotation vector); Euler increments through J
+            jac = skew(u_zeta)
+            if self.base_param == "euler":
+                c1x, s1x = jnp.cos(conditions.chi[0]), jnp.sin(conditions.chi[0])
+                c2x, s2x = jnp.cos(conditions.chi[1]), jnp.sin(conditions.chi[1])
+                jac = jac @ jnp.array([[1.0, 0.0, -s2x], [0.0, c1x, s1x * c2x],
+                                       [0.0, -s1x, c1x * c2x]])
+            b1, b2 = f_eps1 @ jac, f_eps2 @ jac
+        f = jnp.stack([jnp.concatenate([jnp.stack(row1, -1), b1], -1),
+                       jnp.concatenate([jnp.stack(row2, -1), b2], -1)], axis=-2)
+        c = jnp.stack([-u1 / c2, -u2], axis=-1)
+        return c, f
+
+
+def _drift_param(name, effect=None, scale=0.01, description=""):
+    return Param(name=name, unit="1", display_unit="deg/h", display_factor=_M_FACTOR, scale=scale,
+                 null=0.0, effect=effect, description=description)
+
+
+_DRIFT_DESC = {
+    "m11": "conservative drift, first harmonic", "m12": "conservative drift, second harmonic",
+    "m21": "non-conservative drift, first harmonic", "m22": "non-conservative drift, 2nd harmonic",
+    "mc1": "case-fixed drift about platform axis x1", "mc2": "case-fixed drift about axis x2",
+}
+
+
+def _param_space(base_param: str, base_names: tuple[str, ...]) -> ParameterSpace:
+    ps = [
+        param("alpha10", "rad", "deg", units.ARCMIN, description="alpha1 at the first sample"),
+        param("alpha20", "rad", "deg", units.ARCMIN, description="alpha2 at the first sample"),
+        *[_drift_param(n, description=_DRIFT_DESC[n]) for n in DRIFT_NAMES],
+        param("theta1", "rad", "arcsec", 10 * units.ARCMIN, effect="rotor_tilt",
+              description="spin-axis tilt about platform x1"),
+        param("theta2", "rad", "arcsec", 10 * units.ARCMIN, effect="rotor_tilt",
+              description="spin-axis tilt about platform x2"),
+    ]
+    what = {"eps": "eps = u x dchi (normal to u)", "eps_free": "eps (Earth-rate error, free)",
+            "rotvec": "dchi base rotation vector", "euler": "dchi Euler-angle increment"}[base_param]
+    ps += [param(n, "rad", "arcsec", units.ARCMIN, effect="base_misalignment",
+                 description=f"{what}, component {n[-1]}") for n in base_names]
+    ps += [_drift_param(f"d{n}_0", "drift_transient", 0.02, f"start-up excess of {n} (m0 - m*)")
+           for n in DRIFT_NAMES]
+    ps.append(Param(name="k_tr", unit="1/tau", display_unit="1/h",
+                    display_factor=1.0 / (U * units.HOUR), scale=1.0, null=1.0,
+                    effect="drift_transient", description="decay rate of the start-up transient"))
+    return ParameterSpace(tuple(ps))

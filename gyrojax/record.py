@@ -1,0 +1,86 @@
+"""The BenchRecord data contract: sample times, measured channels, test conditions.
+
+A record is an ``equinox.Module`` so a stack of records (leading batch axes on ``t`` and ``y``)
+passes through ``vmap`` and ``jit``. Conditions (latitude, mounting scheme, ...) are static
+metadata, stored as a sorted tuple of ``(key, value)`` pairs so that records are hashable.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+
+class BenchRecord(eqx.Module):
+    """A bench test record.
+
+    **Fields:**
+    - `t`: sample times in s, shape ``(..., n)``, strictly increasing.
+    - `y`: measurements, shape ``(..., n, c)``, SI units (rad, rad/s, m/s^2).
+    - `channels`: the ``c`` channel names (``("alpha1", "alpha2")`` for the ESG rig).
+    - `attrs`: test conditions as a sorted tuple of ``(key, value)``; read them with
+      :attr:`conditions`.
+    """
+
+    t: Float[Array, "*batch n"]
+    y: Float[Array, "*batch n c"]
+    channels: tuple[str, ...] = eqx.field(static=True)
+    attrs: tuple = eqx.field(static=True, default=())
+
+    def __check_init__(self):
+        if self.y.shape[-1] != len(self.channels):
+            raise ValueError(
+                f"BenchRecord: y has {self.y.shape[-1]} channels (last axis) but channels names "
+                f"{len(self.channels)}: {self.channels}; give one name per column")
+        if self.y.shape[:-1] != self.t.shape:
+            raise ValueError(f"BenchRecord: y.shape {self.y.shape} does not match t.shape "
+                             f"{self.t.shape} (expected y.shape == t.shape + (n_channels,))")
+
+    @staticmethod
+    def create(t, channels: Mapping[str, object], conditions: Mapping | None = None):
+        """Build a record from a time vector and a mapping ``name -> samples``."""
+        names = tuple(channels)
+        y = jnp.stack([jnp.asarray(channels[k], dtype=float) for k in names], axis=-1)
+        return BenchRecord(jnp.asarray(t, dtype=float), y, names, freeze(conditions or {}))
+
+    @property
+    def conditions(self) -> dict:
+        return dict(self.attrs)
+
+    @property
+    def n_samples(self) -> int:
+        return self.t.shape[-1]
+
+    def channel(self, name: str):
+        try:
+            return self.y[..., self.channels.index(name)]
+        except ValueError:
+            raise KeyError(f"record has no channel {name!r}; it has {self.channels}") from None
+
+    def with_conditions(self, **kwargs) -> BenchRecord:
+        return BenchRecord(self.t, self.y, self.channels, freeze(self.conditions | kwargs))
+
+    def __getitem__(self, index) -> BenchRecord:
+        """Select one record out of a batch (``records[i]``)."""
+        return BenchRecord(self.t[index], self.y[index], self.channels, self.attrs)
+
+    def slice(self, start: int, stop: int | None = None) -> BenchRecord:
+        """Samples ``start:stop`` along the time axis."""
+        return BenchRecord(self.t[..., start:stop], self.y[..., start:stop, :], self.channels,
+                           self.attrs)
+
+
+def freeze(mapping: Mapping) -> tuple:
+    """Sorted tuple of (key, value) with numpy scalars made plain Python (hashable)."""
+    out = []
+    for k, v in sorted(mapping.items()):
+        if isinstance(v, np.generic):
+            v = v.item()
+        elif isinstance(v, (list, np.ndarray)):
+            v = tuple(np.asarray(v).tolist())
+        out.append((str(k), v))
+    return tuple(out)

@@ -1,0 +1,69 @@
+"""Elementary rotations, small rotations and Euler sequences.
+
+All matrices are right-handed and *active*. For frames ``a`` and ``b``, ``mat_ab`` has as its columns
+the axes of ``b`` written in ``a``, so ``vec_a = mat_ab @ vec_b``.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+
+def rot1(a):
+    """Rotation by ``a`` about axis 1."""
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(a), jnp.zeros_like(a)
+    return jnp.stack([jnp.stack([o, z, z]), jnp.stack([z, c, -s]), jnp.stack([z, s, c])])
+
+
+def rot2(a):
+    """Rotation by ``a`` about axis 2."""
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(a), jnp.zeros_like(a)
+    return jnp.stack([jnp.stack([c, z, s]), jnp.stack([z, o, z]), jnp.stack([-s, z, c])])
+
+
+def rot3(a):
+    """Rotation by ``a`` about axis 3."""
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(a), jnp.zeros_like(a)
+    return jnp.stack([jnp.stack([c, -s, z]), jnp.stack([s, c, z]), jnp.stack([z, z, o])])
+
+
+def skew(v):
+    """Cross-product matrix: ``skew(v) @ w == cross(v, w)``."""
+    z = jnp.zeros_like(v[0])
+    return jnp.stack([jnp.stack([z, -v[2], v[1]]), jnp.stack([v[2], z, -v[0]]),
+                      jnp.stack([-v[1], v[0], z])])
+
+
+def rotvec_to_matrix(v):
+    """Rotation matrix of the rotation vector ``v`` (Rodrigues), smooth and differentiable at 0."""
+    v = jnp.asarray(v)
+    a2 = jnp.dot(v, v)
+    small = a2 < 1e-8
+    a2s = jnp.where(small, 1.0, a2)
+    a = jnp.sqrt(a2s)
+    # sin(a)/a and (1 - cos a)/a^2 with Taylor branches near zero
+    s = jnp.where(small, 1.0 - a2 / 6.0 + a2**2 / 120.0, jnp.sin(a) / a)
+    c = jnp.where(small, 0.5 - a2 / 24.0 + a2**2 / 720.0, (1.0 - jnp.cos(a)) / a2s)
+    k = skew(v)
+    return jnp.eye(3) + s * k + c * (k @ k)
+
+
+def euler321_to_matrix(chi):
+    """``R3(chi3) @ R2(chi2) @ R1(chi1)`` for ``chi = (chi1, chi2, chi3)``: yaw, then pitch, then roll."""
+    return rot3(chi[2]) @ rot2(chi[1]) @ rot1(chi[0])
+
+
+def euler321_increment_to_rotvec(chi, dchi_euler):
+    """Small rotation vector (in the rotated frame's components) produced by Euler-angle increments.
+
+    For ``C = R3(chi3) R2(chi2) R1(chi1)``, ``C(chi + d) ~= C(chi) Rot(J d)`` with
+    $J = \\begin{pmatrix}1&0&-\\sin\\chi_2\\\\0&\\cos\\chi_1&\\sin\\chi_1\\cos\\chi_2\\\\
+    0&-\\sin\\chi_1&\\cos\\chi_1\\cos\\chi_2\\end{pmatrix}$ (spec esg-drift §3.5).
+    """
+    c1, s1 = jnp.cos(chi[0]), jnp.sin(chi[0])
+    c2, s2 = jnp.cos(chi[1]), jnp.sin(chi[1])
+    jac = jnp.array([[1.0, 0.0, -s2], [0.0, c1, s1 * c2], [0.0, -s1, c1 * c2]])
+    return jac @ dchi_euler

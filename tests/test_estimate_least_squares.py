@@ -1,0 +1,78 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import DRIFTS, TS_24H, design
+
+import gyrojax as gj
+from gyrojax import units
+from gyrojax.analysis.observability import cramer_rao
+from gyrojax.estimate import fit_trajectory, trajectory_jacobian
+
+
+def test_trajectory_gradient_matches_finite_differences():
+    rig, cond, p = design("vertical", theta1=5 * units.ARCMIN, eps1=units.ARCMIN)
+    ts = TS_24H[:361]
+    names = ("m11", "mc2", "theta1", "eps1", "alpha20")
+    jac = trajectory_jacobian(rig, p, cond, ts, names)
+    run = jax.jit(lambda q: gj.integrate(rig, q, cond, ts, rtol=1e-13, atol=1e-15))
+    for j, n in enumerate(names):
+        # step large against the solver's 1e-13 error, small against the O(h^2) curvature
+        h = 1e-3 * rig.param_space[n].scale
+        yp, ym = run(p | {n: p[n] + h}), run(p | {n: p[n] - h})
+        fd = ((yp - ym) / (2 * h)).reshape(-1)
+        rel = float(jnp.linalg.norm(jac[:, j] - fd) / jnp.linalg.norm(fd))
+        assert rel < 1e-5, (n, rel)  # jac itself is from rtol=1e-10 solves
+
+
+@pytest.fixture(scope="module")
+def gn_monte_carlo():
+    """Gauss-Newton on the exact model: equatorial, alpha2(0) = 30 deg, 24 h, 1-min samples,
+    1 arcsec noise, drifts + base misalignment (10 free parameters), 100 noise draws."""
+    rig, cond, truth = design("equatorial", alpha0_deg=(0, 30), eps2=units.ARCMIN,
+                              eps3=-units.ARCMIN)
+    free = ("alpha10", "alpha20", *DRIFTS, "eps2", "eps3")
+    sigma = units.ARCSEC
+    keys = jax.random.split(jax.random.key(42), 100)
+
+    def one(k):
+        rec = gj.simulate(rig, truth, cond, TS_24H, key=k, noise_std=sigma)
+        res = fit_trajectory(rig, rec, cond, truth, free=free, throw=False)
+        return res.values, res.stderr, res.converged
+
+    vals, ses, conv = jax.jit(jax.vmap(one))(keys)
+    jac = trajectory_jacobian(rig, truth, cond, TS_24H, free)
+    crlb = np.sqrt(np.diag(np.asarray(cramer_rao(jac, sigma))))
+    true = np.array([float(truth[n]) for n in free])
+    return np.asarray(vals), np.asarray(ses), np.asarray(conv), crlb, true, free
+
+
+def test_gauss_newton_reaches_cramer_rao_bound(gn_monte_carlo):
+    vals, ses, conv, crlb, true, free = gn_monte_carlo
+    assert conv.all()
+    rmse = np.sqrt(np.mean((vals - true) ** 2, axis=0))
+    ratio = rmse / crlb
+    assert np.all(np.abs(ratio - 1) < 0.2), dict(zip(free, ratio.round(3)))
+
+
+def test_gauss_newton_standard_errors_match_scatter(gn_monte_carlo):
+    vals, ses, conv, crlb, true, free = gn_monte_carlo
+    scatter = vals.std(axis=0)
+    mean_se = ses.mean(axis=0)
+    assert np.all(np.abs(mean_se / scatter - 1) < 0.2), dict(zip(free, (mean_se / scatter).round(3)))
+    np.testing.assert_allclose(mean_se, crlb, rtol=0.05)  # the noise estimate is unbiased
+
+
+def test_levenberg_marquardt_agrees_and_bad_input():
+    rig, cond, truth = design("vertical")
+    ts = TS_24H[:481]
+    rec = gj.simulate(rig, truth, cond, ts, key=jax.random.key(1), noise_std=units.ARCSEC)
+    start = truth | {n: truth[n] * 1.2 for n in DRIFTS}
+    free = ("alpha10", "alpha20", *DRIFTS)
+    gn = fit_trajectory(rig, rec, cond, start, free=free)
+    lm = fit_trajectory(rig, rec, cond, start, free=free, method="levenberg-marquardt")
+    np.testing.assert_allclose(gn.values, lm.values, rtol=1e-5, atol=1e-9)
+    with pytest.raises(ValueError, match="method='newton'"):
+        fit_trajectory(rig, rec, cond, start, free=free, method="newton")
+    with pytest.raises(ValueError, match="unknown parameter name"):
+        fit_trajectory(rig, rec, cond, start, free=("m99",))

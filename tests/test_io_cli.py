@@ -1,0 +1,118 @@
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+from helpers import TS_24H, design
+
+import gyrojax as gj
+from gyrojax import units
+from gyrojax.cli import main
+from gyrojax.io import RecordFileError, load_record, save_record
+
+
+@pytest.fixture(scope="module")
+def record():
+    rig, cond, p = design("equatorial", alpha0_deg=(0, 30))
+    return gj.simulate(rig, p, cond, TS_24H[:121], key=jax.random.key(0),
+                       noise_std=units.ARCSEC, attrs={"scheme": "equatorial", "latitude_deg": 55.75})
+
+
+@pytest.mark.parametrize("suffix", [".nc", ".csv"])
+def test_roundtrip(tmp_path, record, suffix):
+    path = save_record(record, tmp_path / f"rec{suffix}")
+    back = load_record(path, channels=("alpha1", "alpha2"))
+    np.testing.assert_array_equal(back.t, record.t)
+    np.testing.assert_array_equal(back.y, record.y)  # repr() floats and NetCDF are lossless
+    if suffix == ".nc":
+        assert back.conditions["scheme"] == "equatorial"
+        assert back.conditions["latitude_deg"] == 55.75
+    assert [p.name for p in tmp_path.iterdir()] == [f"rec{suffix}"]  # no temp files left
+
+
+def _write(tmp_path, text, name="bad.csv"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("text,match", [
+    ("t,alpha1,alpha2\n0,0,0\n60,nan,0\n120,0,0\n", "non-finite value nan at sample 1"),
+    ("t,alpha1,alpha2\n0,0,0\n60,0,0\n30,0,0\n", "strictly increasing but t\\[1\\]=60.0"),
+    ("t,alpha1,alpha2\n0,0,0\n60,0,0\n", "2 samples is too few"),
+    ("t,alpha1,alpha2\n0,0,0\n60,0\n120,0,0\n", "line 3: 2 columns but the header has 3"),
+    ("t,alpha1,alpha2\n0,0,0\n60,0,x\n120,0,0\n", "line 3: non-numeric value 'x'"),
+    ("time,alpha1\n0,0\n", "first column must be 't'"),
+    ("t,alpha1\n0,0\n60,0\n120,0\n", "missing channel\\(s\\) \\['alpha2'\\]"),
+])
+def test_bad_files_give_clear_errors(tmp_path, text, match):
+    p = _write(tmp_path, text)
+    with pytest.raises(RecordFileError, match=match) as info:
+        load_record(p, channels=("alpha1", "alpha2"))
+    assert str(p) in str(info.value)
+
+
+def test_missing_and_unknown_files(tmp_path):
+    with pytest.raises(RecordFileError, match="no such file"):
+        load_record(tmp_path / "nope.csv")
+    with pytest.raises(RecordFileError, match="unknown file type '.txt'"):
+        load_record(_write(tmp_path, "x", "a.txt"))
+    with pytest.raises(RecordFileError, match="cannot be read as NetCDF"):
+        load_record(_write(tmp_path, "not netcdf", "a.nc"))
+
+
+def test_failed_write_leaves_nothing(tmp_path, record):
+    batched = jax.tree.map(lambda x: np.stack([x, x]), record)
+    with pytest.raises(ValueError, match="batched"):
+        save_record(batched, tmp_path / "x.nc")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
+    rec = tmp_path / "sim.nc"
+    assert main(["simulate", "--scheme", "vertical", "--latitude", "55.75", "--hours", "12",
+                 "--noise-arcsec", "1", "--set", "m11=0.3", "--set", "theta1=300",
+                 "--out", str(rec)]) == 0
+    out = tmp_path / "fit.json"
+    assert main(["fit", str(rec), "--effects", "rotor_tilt", "--json", str(out)]) == 0
+    fit = json.loads(out.read_text())
+    assert fit["converged"] is True
+    assert fit["parameters"]["m11"]["unit"] == "deg/h"
+    assert fit["parameters"]["m11"]["value"] == pytest.approx(0.3, abs=5 * fit["parameters"]["m11"]["stderr"])
+    assert fit["parameters"]["theta1"]["unit"] == "arcsec"
+    assert fit["residual_rms_arcsec"] == pytest.approx(1.0, rel=0.1)
+    assert main(["observability", "--scheme", "equatorial", "--latitude", "55.75",
+                 "--json", str(tmp_path / "obs.json")]) == 0
+    obs = json.loads((tmp_path / "obs.json").read_text())
+    assert obs["unobservable"] == ["theta1", "theta2"]
+    assert main(["effects", "--rig", "esg"]) == 0
+    assert "drift_transient" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv,match", [
+    (["fit", "missing.csv", "--scheme", "polar", "--latitude", "50"], "no such file"),
+    (["simulate", "--scheme", "diagonal", "--latitude", "50", "--out", "x.nc"],
+     "--scheme 'diagonal' is unknown"),
+    (["simulate", "--scheme", "polar", "--latitude", "50", "--out", "x.nc", "--set", "m13=1"],
+     "unknown parameter 'm13'"),
+    (["simulate", "--scheme", "polar", "--latitude", "95", "--out", "x.nc"], "--latitude 95"),
+    (["simulate", "--scheme", "polar", "--latitude", "50", "--out", "x.txt"], "use a .nc or .csv"),
+    (["observability", "--scheme", "polar", "--latitude", "50", "--effects", "wobble"],
+     "unknown effect 'wobble'"),
+])
+def test_cli_bad_input_exit_2_one_line_nothing_written(tmp_path, capsys, argv, match):
+    os.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert match.replace("\\", "") in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_help_explains_every_option(capsys):
+    with pytest.raises(SystemExit):
+        main(["fit", "--help"])
+    text = capsys.readouterr().out
+    for opt in ("--effects", "--method", "--latitude", "--scheme", "--json"):
+        assert opt in text
