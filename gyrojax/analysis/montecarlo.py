@@ -10,6 +10,7 @@ device (``XLA_FLAGS=--xla_force_host_platform_device_count=N``), GPU, or, under
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -20,6 +21,12 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 __all__ = ["monte_carlo", "batch_size_of"]
+
+
+@functools.lru_cache(maxsize=64)
+def _batched(fn):
+    """One compiled batch function per ``fn`` (repeated calls with the same fn do not recompile)."""
+    return eqx.filter_jit(jax.vmap(fn))
 
 
 def batch_size_of(draws) -> int:
@@ -38,7 +45,8 @@ def monte_carlo(fn: Callable, draws, *, chunk_size: int = 1024, devices=None,
 
     **Arguments:**
     - `fn`: maps one draw (pytree without the batch axis) to a pytree of arrays. Close over
-      constants (rig, sample times...).
+      constants (rig, sample times...). Pass the same function object again to reuse its
+      compilation.
     - `draws`: a pytree whose leaves share the leading batch size ``N``.
     - `chunk_size`: draws per compiled batch (rounded up to a multiple of the device count);
       bounds memory: 100,000 draws run as ``ceil(N / chunk_size)`` chunks.
@@ -51,7 +59,7 @@ def monte_carlo(fn: Callable, draws, *, chunk_size: int = 1024, devices=None,
     chunk = max(nd, int(math.ceil(min(chunk_size, n) / nd)) * nd)
     mesh = Mesh(np.array(devices), ("batch",))
     sharding = NamedSharding(mesh, PartitionSpec("batch"))
-    batched = eqx.filter_jit(jax.vmap(fn))
+    batched = _batched(fn)
     n_chunks = int(math.ceil(n / chunk))
     bar = None
     if progress:
