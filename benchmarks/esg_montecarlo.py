@@ -66,20 +66,31 @@ def np_base(chi, lat):
     return c.T @ np.array([0, np.cos(lat), np.sin(lat)]), c.T @ np.array([0, 0, -1.0])
 
 
-def np_field(tau, alpha, m, theta, u_z, g_z):
+def np_field(tau, alpha, m, e, u_z, g_z):
+    """Exact model (5.1) in plain scalar numpy/math: the efficient baseline a user would write
+    (spin axis e precomputed; no per-call array allocation beyond the result)."""
+    import math
+
     a1, a2 = alpha
-    czx = _r1(a1) @ _r2(a2)
-    u, g = czx.T @ u_z, czx.T @ g_z
-    e = _rotvec(np.array([theta[0], theta[1], 0.0]))[:, 2]
+    s1, c1, s2, c2 = math.sin(a1), math.cos(a1), math.sin(a2), math.cos(a2)
+    # v_x = C_zx^T v_zeta for x1 = (c2, s1 s2, -c1 s2), x2 = (0, c1, s1), x3 = (s2, -s1 c2, c1 c2)
+    u = (c2 * u_z[0] + s1 * s2 * u_z[1] - c1 * s2 * u_z[2], c1 * u_z[1] + s1 * u_z[2],
+         s2 * u_z[0] - s1 * c2 * u_z[1] + c1 * c2 * u_z[2])
+    g = (c2 * g_z[0] + s1 * s2 * g_z[1] - c1 * s2 * g_z[2], c1 * g_z[1] + s1 * g_z[2],
+         s2 * g_z[0] - s1 * c2 * g_z[1] + c1 * c2 * g_z[2])
+    ea, eb, ec = e
     m11, m12, m21, m22, mc1, mc2 = m
-    cosg = -g @ e
-    eg = np.cross(e, g)
-    torque = (m11 - 2 * m12 * cosg) * eg + (m21 - 2 * m22 * cosg) * np.cross(e, eg) \
-        + np.array([mc1, mc2, 0.0])
-    v = torque - (torque @ e) * e - np.cross(u, e)
-    s2, c2 = np.sin(a2), np.cos(a2)
-    d1 = v[1] / (s2 * e[0] - c2 * e[2])
-    return np.array([d1, (v[0] + d1 * s2 * e[1]) / e[2]])
+    cosg = -(g[0] * ea + g[1] * eb + g[2] * ec)
+    eg = (eb * g[2] - ec * g[1], ec * g[0] - ea * g[2], ea * g[1] - eb * g[0])
+    eeg = (eb * eg[2] - ec * eg[1], ec * eg[0] - ea * eg[2], ea * eg[1] - eb * eg[0])
+    k1, k2 = m11 - 2 * m12 * cosg, m21 - 2 * m22 * cosg
+    t = (k1 * eg[0] + k2 * eeg[0] + mc1, k1 * eg[1] + k2 * eeg[1] + mc2, k1 * eg[2] + k2 * eeg[2])
+    te = t[0] * ea + t[1] * eb + t[2] * ec
+    ue = (u[1] * ec - u[2] * eb, u[2] * ea - u[0] * ec)
+    v0 = t[0] - te * ea - ue[0]
+    v1 = t[1] - te * eb - ue[1]
+    d1 = v1 / (s2 * ea - c2 * ec)
+    return np.array([d1, (v0 + d1 * s2 * eb) / ec])
 
 
 def np_simulate(m, theta, dchi, alpha0, chi, lat):
@@ -89,8 +100,9 @@ def np_simulate(m, theta, dchi, alpha0, chi, lat):
     r = _rotvec(dchi)
     u, g = r.T @ u0, r.T @ g0
     tau = TS * units.EARTH_RATE
+    e = _rotvec(np.array([theta[0], theta[1], 0.0]))[:, 2]
     sol = solve_ivp(np_field, (tau[0], tau[-1]), alpha0, method="DOP853", t_eval=tau, rtol=1e-10,
-                    atol=1e-12, args=(m, theta, u, g))
+                    atol=1e-12, args=(m, e, u, g))
     return sol.y.T
 
 
@@ -226,7 +238,7 @@ def bench_gauss_newton(n_fits):
         a0 = x[:2]
         mm = x[2:] * 0.01
         sol = solve_ivp(np_field, (tau[0], tau[-1]), a0, method="DOP853", t_eval=tau, rtol=1e-10,
-                        atol=1e-12, args=(mm, np.zeros(2), u, g))
+                        atol=1e-12, args=(mm, np.array([0.0, 0.0, 1.0]), u, g))
         return (sol.y.T - y).reshape(-1)
 
     x0 = np.concatenate([[float(start["alpha10"]), float(start["alpha20"])],
