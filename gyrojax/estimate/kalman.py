@@ -25,6 +25,7 @@ import jax.scipy.linalg as jsl
 
 from ..record import BenchRecord
 from ..simulate import integrate
+from ._result import AbstractNamedEstimate
 
 __all__ = ["KalmanResult", "square_root_filter", "rts_smoother", "esg_augmented_filter",
            "ESGFilterResult"]
@@ -130,7 +131,7 @@ def rts_smoother(result: KalmanResult, phis):
             jnp.concatenate([ps, p_f[-1:]], 0))
 
 
-class ESGFilterResult(eqx.Module):
+class ESGFilterResult(AbstractNamedEstimate):
     """ESG augmented-state filter output.
 
     - `names`: state names (``alpha1, alpha2``, the linear-model parameters, ``d{m}_0`` transients).
@@ -147,11 +148,6 @@ class ESGFilterResult(eqx.Module):
     smoothed_x: jax.Array
     smoothed_std: jax.Array
 
-    def as_dict(self) -> dict:
-        return {n: self.values[..., i] for i, n in enumerate(self.names)}
-
-    def stderr_dict(self) -> dict:
-        return {n: self.stderr[..., i] for i, n in enumerate(self.names)}
 
 
 def interval_integrals(tau, f):

@@ -20,11 +20,12 @@ import optimistix as optx
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._linalg import scaled_lstsq
+from ._result import AbstractNamedEstimate
 
 __all__ = ["FitResult", "fit_trajectory", "trajectory_jacobian"]
 
 
-class FitResult(eqx.Module):
+class FitResult(AbstractNamedEstimate):
     """Outcome of a fit.
 
     - `names`: free parameters; `params`: the full parameter dict at the solution.
@@ -44,11 +45,6 @@ class FitResult(eqx.Module):
     num_steps: jax.Array
     result: optx.RESULTS
 
-    def as_dict(self) -> dict:
-        return {n: self.values[..., i] for i, n in enumerate(self.names)}
-
-    def stderr_dict(self) -> dict:
-        return {n: self.stderr[..., i] for i, n in enumerate(self.names)}
 
 
 def _residual_fn(rig, space, free, base, conditions, ts, y, rtol, atol, max_steps):

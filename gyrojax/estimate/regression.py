@@ -17,11 +17,12 @@ import jax.numpy as jnp
 
 from ..record import BenchRecord
 from ._linalg import scaled_lstsq
+from ._result import AbstractNamedEstimate
 
 __all__ = ["RegressionResult", "integral_regression", "regression_design"]
 
 
-class RegressionResult(eqx.Module):
+class RegressionResult(AbstractNamedEstimate):
     """Outcome of :func:`integral_regression` (batched with leading axes under vmap).
 
     - `names`: the estimated parameters, in order.
@@ -38,11 +39,6 @@ class RegressionResult(eqx.Module):
     residual_rms: jax.Array
     singular_values: jax.Array
 
-    def as_dict(self) -> dict:
-        return {n: self.values[..., i] for i, n in enumerate(self.names)}
-
-    def stderr_dict(self) -> dict:
-        return {n: self.stderr[..., i] for i, n in enumerate(self.names)}
 
 
 def regression_design(rig, record: BenchRecord, conditions, *, window: int = 1,
