@@ -294,4 +294,5 @@ def esg_augmented_filter(rig, record: BenchRecord, conditions, *, noise_std: flo
         jnp.asarray(transient_k if transient else 1.0, float), ps,
         jnp.asarray(transient_std, float), jnp.asarray(param_random_walk, float))
     out_names = names + (tuple(f"d{n}_0" for n in rig.drift_names) if transient else ())
-    return ESGFilterResult(out_names, values, stderr, res, xs, sstd)
+    return ESGFilterResult(names=out_names, values=values, stderr=stderr, filter=res, smoothed_x=xs,
+                           smoothed_std=sstd)

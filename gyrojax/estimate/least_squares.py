@@ -131,4 +131,6 @@ def fit_trajectory(rig, record: BenchRecord, conditions, params0: Mapping, *,
                                f"{optx.RESULTS[result] if jnp.ndim(result) == 0 else result}. "
                                "Start closer (e.g. from a regression estimate), raise max_steps, "
                                "or free fewer parameters (see gyrojax observability).")
-    return FitResult(free, params, values, se, cov, rms, sig, converged, nsteps, result)
+    return FitResult(names=free, params=params, values=values, stderr=se, covariance=cov,
+                     residual_rms=rms, noise_std=sig, converged=converged, num_steps=nsteps,
+                     result=result)

@@ -111,4 +111,5 @@ def integral_regression(rig, record: BenchRecord, conditions, *, window: int = 1
     a, b, names = regression_design(rig, record, conditions, window=window, names=names,
                                     quadrature=quadrature)
     p, se, cov, rms, s = _solve(a, b)
-    return RegressionResult(names, p, se, cov, rms, s)
+    return RegressionResult(names=names, values=p, stderr=se, covariance=cov, residual_rms=rms,
+                            singular_values=s)
