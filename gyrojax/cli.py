@@ -143,13 +143,14 @@ def cmd_simulate(args):
 
 
 def cmd_fit(args):
+    from . import units
     from .estimate import fit
 
     rec0 = _load(args, ("alpha1", "alpha2"))
     rig, cond, scheme, lat = _rig_and_conditions(args, rec0)
     effects = _parse_effects(args.effects, rig)
     report = fit(rig, rec0, cond, effects=effects, method=args.method,
-                 noise_std=None if args.noise_arcsec is None else args.noise_arcsec * 4.84813681e-6)
+                 noise_std=None if args.noise_arcsec is None else args.noise_arcsec * units.ARCSEC)
     print(f"# fit of {args.record} ({rec0.n_samples} samples), rig esg, scheme {scheme}, "
           f"latitude {lat} deg, method {args.method}, effects {list(effects) or 'none'}")
     print(report.table())

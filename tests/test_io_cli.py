@@ -82,6 +82,12 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     assert fit["parameters"]["m11"]["value"] == pytest.approx(0.3, abs=5 * fit["parameters"]["m11"]["stderr"])
     assert fit["parameters"]["theta1"]["unit"] == "arcsec"
     assert fit["residual_rms_arcsec"] == pytest.approx(1.0, rel=0.1)
+    kout = tmp_path / "kf.json"
+    assert main(["fit", str(rec), "--method", "kalman", "--effects", "rotor_tilt", "--json",
+                 str(kout)]) == 0
+    kf = json.loads(kout.read_text())
+    assert kf["parameters"]["m11"]["value"] == pytest.approx(0.3, abs=5 * kf["parameters"]["m11"]["stderr"])
+    assert kf["residual_rms_arcsec"] < 1.3
     assert main(["observability", "--scheme", "equatorial", "--latitude", "55.75",
                  "--json", str(tmp_path / "obs.json")]) == 0
     obs = json.loads((tmp_path / "obs.json").read_text())

@@ -100,11 +100,11 @@ def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "
         converged = bool(res.converged)
         extra["num_steps"] = int(res.num_steps)
     elif method == "kalman":
-        sigma = noise_std if noise_std is not None else _noise_from_regression(reg, record, rig)
+        sigma = noise_std if noise_std is not None else _noise_from_regression(reg)
         k = transient_k if "drift_transient" in effects else None
         kf = esg_augmented_filter(rig, record, conditions, noise_std=sigma, names=lin,
                                   transient_k=k)
-        p = p | kf.as_dict()
+        p = p | kf.as_dict() | {"alpha10": kf.smoothed_x[0, 0], "alpha20": kf.smoothed_x[0, 1]}
         if k is not None:
             p = p | {"k_tr": jnp.asarray(k, float)}
         stderr = kf.stderr_dict()
@@ -117,6 +117,6 @@ def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "
     return FitReport(method, tuple(free), p, stderr, rms, converged, space, extra)
 
 
-def _noise_from_regression(reg, record, rig):
+def _noise_from_regression(reg):
     """Angle noise estimate from the block residuals: a window-1 increment carries 2 sigma^2."""
     return float(reg.residual_rms) / np.sqrt(2.0)
