@@ -3,5 +3,7 @@
 from ._base import AbstractRig as AbstractRig
 from .esg import ESGConditions as ESGConditions
 from .esg import ESGRig as ESGRig
+from .gyrotheodolite import GyrotheodoliteConditions as GyrotheodoliteConditions
+from .gyrotheodolite import GyrotheodoliteRig as GyrotheodoliteRig
 
-RIGS = {"esg": ESGRig}
+RIGS = {"esg": ESGRig, "gyrotheodolite": GyrotheodoliteRig}

@@ -1,0 +1,166 @@
+"""Gyrotheodolite sensing element — spec ``gyrotheodolite-observer.md`` (seed 003).
+
+State ``x = (alpha, alpha_dot, beta, beta_dot)`` (rad, rad/s); only ``alpha`` is measured. Frame
+(spec §2): SE frame x = main axis (North), y = Up, z = East; ``alpha`` about the vertical,
+``beta`` tilt about z; the centre of mass a distance l below the suspension. Equations (1) with
+``k_alpha = H omega3 cos(phi)(1 + kappa)``, ``D = F_KC + f_alpha``:
+
+$J_y \\ddot\\alpha + H\\dot\\beta + D\\dot\\alpha + k_\\alpha \\alpha = mgl(\\gamma n_X + \\beta n_Z)$,
+$J_z \\ddot\\beta - H\\dot\\alpha + f_\\beta\\dot\\beta + mgl\\,\\beta = mgl\\,n_X + H\\omega_3\\sin\\varphi$.
+
+Vibration (spec §4): ``n_X = n_m cos(eps_v + psi0) sin(omega t)``, ``n_Z = n_m sin(eps_v + psi0)
+sin(omega t)`` in g. The roll ``gamma`` is not modelled by the source; it is zero here.
+
+Parameters (nominal; the spec's §8 assumed values are the defaults of :meth:`default_params`):
+``H`` (N m s), ``J_y``, ``J_z`` (kg m^2), ``mgl`` (N m), ``f_alpha``, ``f_beta``, ``F_KC`` (N m s),
+``kappa`` (1). This rig has no effect groups yet.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .. import units
+from ..params import Param, ParameterSpace
+from ._base import AbstractRig
+
+__all__ = ["GyrotheodoliteRig", "GyrotheodoliteConditions", "DEFAULTS"]
+
+DEFAULTS = {"H": 0.1, "J_y": 1.0e-3, "J_z": 3.5e-3, "mgl": 0.48, "f_alpha": 1e-5,
+            "f_beta": 1e-2, "F_KC": 3e-4, "kappa": 0.0}
+"""Assumed parameter set of spec §8 (north-seeking period ~8 min)."""
+
+_UNITS = {"H": "N m s", "J_y": "kg m^2", "J_z": "kg m^2", "mgl": "N m", "f_alpha": "N m s",
+          "f_beta": "N m s", "F_KC": "N m s", "kappa": "1"}
+_DESC = {"H": "rotor angular momentum", "J_y": "SE inertia about the vertical (azimuth)",
+         "J_z": "SE inertia about the tilt axis", "mgl": "pendulous moment",
+         "f_alpha": "viscous friction in azimuth", "f_beta": "viscous friction in tilt",
+         "F_KC": "damping of the compensation link", "kappa": "relative compensation gain"}
+_SPACE = ParameterSpace(tuple(
+    Param(name=n, unit=_UNITS[n], display_unit=_UNITS[n], display_factor=1.0,
+          scale=max(abs(v), 1e-6), null=v, description=_DESC[n]) for n, v in DEFAULTS.items()))
+
+
+class GyrotheodoliteConditions(eqx.Module):
+    """Latitude (rad) and the translational vibration: amplitude ``n_m`` (g), angular frequency
+    ``omega`` (rad/s), direction ``eps_v`` and offset ``psi0`` (rad)."""
+
+    latitude: jax.Array
+    n_m: jax.Array
+    omega: jax.Array
+    eps_v: jax.Array
+    psi0: jax.Array
+
+    @staticmethod
+    def create(latitude_deg: float = 50.45, *, n_m: float = 0.0, omega: float = 0.0,
+               eps_v: float = 0.0, psi0: float = 0.0) -> GyrotheodoliteConditions:
+        if not -90.0 < float(latitude_deg) < 90.0:
+            raise ValueError(f"latitude {latitude_deg} deg is outside (-90, 90); give degrees North")
+        if n_m < 0 or omega < 0:
+            raise ValueError(f"vibration amplitude n_m={n_m} g and omega={omega} rad/s must be >= 0")
+        f = lambda x: jnp.asarray(x, dtype=float)  # noqa: E731
+        return GyrotheodoliteConditions(f(latitude_deg * units.DEG), f(n_m), f(omega), f(eps_v),
+                                        f(psi0))
+
+    def overloads(self, t):
+        """``(n_X, n_Z)`` in g at time ``t`` (s)."""
+        s = jnp.sin(self.omega * t)
+        return (self.n_m * jnp.cos(self.eps_v + self.psi0) * s,
+                self.n_m * jnp.sin(self.eps_v + self.psi0) * s)
+
+
+class GyrotheodoliteRig(AbstractRig):
+    """The 4-state sensing element (1)/(3); time in seconds."""
+
+    @property
+    def param_space(self) -> ParameterSpace:
+        return _SPACE
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return ("alpha",)
+
+    @property
+    def time_scale(self) -> float:
+        return 1.0
+
+    def default_params(self, **overrides) -> dict:
+        """The spec's assumed parameters (§8), with overrides in SI."""
+        return _SPACE.make(overrides)
+
+    def conditions_from_record(self, record) -> GyrotheodoliteConditions:
+        c = record.conditions
+        return GyrotheodoliteConditions.create(float(c.get("latitude_deg", 50.45)),
+                                               n_m=float(c.get("n_m", 0.0)),
+                                               omega=float(c.get("omega", 0.0)))
+
+    def initial_state(self, params, conditions):
+        return jnp.zeros(4)
+
+    @staticmethod
+    def k_alpha(params, conditions):
+        """Azimuth stiffness ``H omega3 cos(phi) (1 + kappa)`` (N m)."""
+        return params["H"] * units.EARTH_RATE * jnp.cos(conditions.latitude) * (1 + params["kappa"])
+
+    def vector_field(self, t, state, params, conditions):
+        """Equations (1) with the vibration inputs and the constant ``H omega3 sin(phi)`` input."""
+        a, ad, b, bd = state
+        h, jy, jz, mgl = params["H"], params["J_y"], params["J_z"], params["mgl"]
+        d = params["F_KC"] + params["f_alpha"]
+        nx, nz = conditions.overloads(t)
+        gamma = 0.0
+        add = (-h * bd - d * ad - self.k_alpha(params, conditions) * a
+               + mgl * (gamma * nx + b * nz)) / jy
+        bdd = (h * ad - params["f_beta"] * bd - mgl * b + mgl * nx
+               + h * units.EARTH_RATE * jnp.sin(conditions.latitude)) / jz
+        return jnp.stack([ad, add, bd, bdd])
+
+    def observe(self, t, state, params, conditions):
+        return state[:1]
+
+    def state_space(self, params, conditions):
+        """``(A, C, G, b)`` of (3), (7): $\\dot x = A x + G n_X + b$, $y = C x$, written from the
+        spec (tests check ``A`` against the autodiff Jacobian of :meth:`vector_field`)."""
+        h, jy, jz, mgl = params["H"], params["J_y"], params["J_z"], params["mgl"]
+        d = params["F_KC"] + params["f_alpha"]
+        ka = self.k_alpha(params, conditions)
+        z = jnp.zeros_like(h)
+        a = jnp.array([[z + 0, z + 1, z, z], [-ka / jy, -d / jy, z, -h / jy], [z, z, z, z + 1],
+                       [z, h / jz, -mgl / jz, -params["f_beta"] / jz]])
+        c = jnp.array([[1.0, 0.0, 0.0, 0.0]])
+        g = jnp.stack([z, z, z, mgl / jz])
+        b = jnp.stack([z, z, z, h * units.EARTH_RATE * jnp.sin(conditions.latitude) / jz])
+        return a, c, g, b
+
+    def open_loop_coefficients(self, params, conditions):
+        """``(a0, a1, a2, a3)`` of ``det(pE - A)`` (spec §4)."""
+        h, jy, jz, mgl, fb = (params[k] for k in ("H", "J_y", "J_z", "mgl", "f_beta"))
+        d = params["F_KC"] + params["f_alpha"]
+        ka = self.k_alpha(params, conditions)
+        jj = jy * jz
+        return (ka * mgl / jj, (d * mgl + ka * fb) / jj, (d * fb + jy * mgl + ka * jz + h**2) / jj,
+                (d * jz + fb * jy) / jj)
+
+    def observer_gains(self, params, conditions, omega0, *, printed: bool = False):
+        """Closed-form observer gains ``K`` for all four poles at ``-omega0`` (spec §6, corrected).
+
+        With ``printed=True`` the source's (dimensionally wrong) ``k3``, ``k4`` are returned, which
+        give an unstable observer; kept to demonstrate the correction.
+        """
+        h, jy, jz, mgl, fb = (params[k] for k in ("H", "J_y", "J_z", "mgl", "f_beta"))
+        d = params["F_KC"] + params["f_alpha"]
+        ka = self.k_alpha(params, conditions)
+        a0, a1, a2, a3 = self.open_loop_coefficients(params, conditions)
+        w = jnp.asarray(omega0, dtype=float)
+        k1 = 4 * w - d / jy - fb / jz
+        k2 = 6 * w**2 - a2 - k1 * a3
+        if printed:  # k3 without J_z in the omega0^4 term; k4 without 1/J_z in its later terms
+            k3 = (w**4 * jy / mgl - ka - k1 * d - k2 * jy) / h
+            k4 = jy / h * (a1 * jz + k1 * (d * fb + h**2 + jy * mgl) / jy + k2 * fb) - 4 * w**3 * jy / h
+        else:
+            k3 = (w**4 * jy * jz / mgl - ka - k1 * d - k2 * jy) / h
+            k4 = jy / h * (a1 + k1 * (d * fb + h**2 + jy * mgl) / (jy * jz) + k2 * fb / jz
+                           - 4 * w**3)
+        return jnp.stack([k1, k2, k3, k4])
