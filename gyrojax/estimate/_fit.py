@@ -118,5 +118,6 @@ def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "
 
 
 def _noise_from_regression(reg):
-    """Angle noise estimate from the block residuals: a window-1 increment carries 2 sigma^2."""
+    """Angle noise estimate from the block residuals: each block increment of the measured angles
+    carries the noise of its two end samples, 2 sigma^2 (model error inflates it)."""
     return float(reg.residual_rms) / np.sqrt(2.0)

@@ -149,7 +149,6 @@ class ESGFilterResult(AbstractNamedEstimate):
     smoothed_std: jax.Array
 
 
-
 def interval_integrals(tau, f):
     """Integrals of sampled ``f`` over each sample interval, third-order accurate.
 

@@ -46,7 +46,6 @@ class FitResult(AbstractNamedEstimate):
     result: optx.RESULTS
 
 
-
 def _residual_fn(rig, space, free, base, conditions, ts, y, rtol, atol, max_steps):
     def fn(x, args):
         p = space.unflatten(x, base, free)

@@ -40,7 +40,6 @@ class RegressionResult(AbstractNamedEstimate):
     singular_values: jax.Array
 
 
-
 def regression_design(rig, record: BenchRecord, conditions, *, window: int = 1,
                       names: Sequence[str] | None = None, quadrature: str = "trapezoid"):
     """The stacked block design ``A`` (2r, k) and right-hand side ``b`` (2r,) of (6.3)-(6.4)."""

@@ -252,15 +252,6 @@ class ESGRig(AbstractRig):
         the hot path of the regression; tests check it against the autodiff tangent of the exact
         model. ``alpha`` may carry leading batch axes.
         """
-        c, rows = self.regression_columns(alpha, conditions)
-        f = jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
-        return jnp.stack(c, axis=-1), f
-
-    def regression_columns(self, alpha, conditions):
-        """The terms of :meth:`regression_terms` as separate arrays: ``c = (c1, c2)`` and
-        ``rows = (row1, row2)``, each row a tuple of k arrays shaped like ``alpha[..., 0]``.
-        Consumers that reduce over samples (the regression) integrate each column without
-        materializing the (n, 2, k) tensor, about twice as fast."""
         u_zeta, g_zeta = conditions.base_vectors()
         a1, a2 = alpha[..., 0], alpha[..., 1]
         s1, c1, s2, c2 = jnp.sin(a1), jnp.cos(a1), jnp.sin(a2), jnp.cos(a2)
@@ -300,7 +291,8 @@ class ESGRig(AbstractRig):
                                        [0.0, -s1x, c1x * c2x]])
             b1 = [sum(e1[i] * jac[i, j] for i in range(3)) for j in range(3)]
             b2 = [sum(e2[i] * jac[i, j] for i in range(3)) for j in range(3)]
-        return (-u1 * sec, -u2), (tuple(row1 + b1), tuple(row2 + b2))
+        f = jnp.stack([jnp.stack(row1 + b1, axis=-1), jnp.stack(row2 + b2, axis=-1)], axis=-2)
+        return jnp.stack([-u1 * sec, -u2], axis=-1), f
 
 
 def _drift_param(name, effect=None, scale=0.01, description=""):

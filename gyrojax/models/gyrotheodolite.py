@@ -126,8 +126,8 @@ class GyrotheodoliteRig(AbstractRig):
         h, jy, jz, mgl = params["H"], params["J_y"], params["J_z"], params["mgl"]
         d = params["F_KC"] + params["f_alpha"]
         ka = self.k_alpha(params, conditions)
-        z = jnp.zeros_like(h)
-        a = jnp.array([[z + 0, z + 1, z, z], [-ka / jy, -d / jy, z, -h / jy], [z, z, z, z + 1],
+        z, o = jnp.zeros_like(h), jnp.ones_like(h)
+        a = jnp.array([[z, o, z, z], [-ka / jy, -d / jy, z, -h / jy], [z, z, z, o],
                        [z, h / jz, -mgl / jz, -params["f_beta"] / jz]])
         c = jnp.array([[1.0, 0.0, 0.0, 0.0]])
         g = jnp.stack([z, z, z, mgl / jz])
