@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 
@@ -30,6 +29,9 @@ from gyrojax.estimate import fit_trajectory, integral_regression
 from gyrojax.models.esg import DRIFT_NAMES
 from gyrojax.record import BenchRecord
 from gyrojax.simulate import integrate
+
+sys.path.insert(0, os.path.dirname(__file__))
+from _results import machine_line, update_section  # noqa: E402
 
 LAT = 55.75
 SCHEME = "vertical"
@@ -262,12 +264,10 @@ def main(argv=None):
     ns = (1, 100) if args.quick else (1, 100, 10_000)
     rows, agree, nsc = bench_montecarlo(ns, scipy_trials=5 if args.quick else 30)
     gn = bench_gauss_newton(4 if args.quick else 20)
-    dev = ", ".join(str(d) for d in jax.devices())
     lines = [
         "## ESG Monte Carlo: simulate 24 h + identify 11 parameters (`benchmarks/esg_montecarlo.py`)",
         "",
-        f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {sys.version.split()[0]}, "
-        f"jax {jax.__version__}, devices: {dev}. Scheme {SCHEME}, 1441 samples (1-min), exact model "
+        f"{machine_line()} Scheme {SCHEME}, 1441 samples (1-min), exact model "
         "(Dopri8 / DOP853 at rtol 1e-10), regression of 6 drifts + theta + dchi (11 columns).",
         "",
         "| N trials | gyrojax trials/s | scipy solve_ivp + numpy lstsq loop, trials/s | ratio | "
@@ -300,15 +300,7 @@ def main(argv=None):
               "feature basis), not tuning; see PERFORMANCE.md.", ""]
     text = "\n".join(lines)
     print(text)
-    from gyrojax.io import atomic_write
-
-    header = "# Benchmark results\n\nRatios are gyrojax / baseline, measured side by side in one run.\n\n"
-
-    def write(tmp):
-        with open(tmp, "w") as fh:
-            fh.write(header + text)
-
-    atomic_write(args.out, write)
+    update_section(args.out, "esg", text)
 
 
 if __name__ == "__main__":

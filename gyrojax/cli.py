@@ -1,4 +1,4 @@
-"""The ``gyrojax`` command: simulate, fit, observability, montecarlo, effects, demo.
+"""The ``gyrojax`` command: simulate, fit, observability, montecarlo, effects, observer, demo.
 
 Engineering units at this edge (deg/h, arcsec, deg); SI inside. Bad input prints one line naming
 the field, the value and the fix, and exits with status 2. ``--json FILE`` writes machine-readable
@@ -274,6 +274,56 @@ def cmd_demo(args):
     _emit_json(summary, args.json)
 
 
+def cmd_observer(args):
+    from .analysis.vibration import compensation_monte_carlo, frequency_study
+    from .models.gyrotheodolite import GyrotheodoliteConditions, GyrotheodoliteRig
+
+    if args.rig != "gyrotheodolite":
+        raise UsageError(f"--rig {args.rig!r}: the observer study exists for gyrotheodolite only")
+    for w0 in args.omega0:
+        if not np.isfinite(w0) or w0 <= 0:
+            raise UsageError(f"--omega0 {w0}: observer pole magnitudes must be > 0 (1/s)")
+    rig = GyrotheodoliteRig()
+    params = rig.default_params(**{"kappa": args.kappa, **_parse_sets(args.set, rig.param_space)})
+    cond = GyrotheodoliteConditions.create(args.latitude)
+    study = frequency_study(rig, params, cond, args.omega0)
+    rows = study.table(level=args.level)
+    print(f"gyrotheodolite observer, all poles at -omega0; latitude {args.latitude} deg, "
+          f"kappa {args.kappa:g}; gains from the corrected closed form (spec §6)")
+    print(f"{'omega0':>8} {'k1 [1/s]':>12} {'k2 [1/s^2]':>12} {'k3 [1/s]':>12} {'k4 [1/s^2]':>12}"
+          f"  {'max|p+w0|/w0':>12}  {int(args.level * 100)}% band [rad/s]: rate  amplitude")
+    fmt = lambda x: "   none" if x is None else f"{x:7.3g}"  # noqa: E731
+    for r in rows:
+        print(f"{r['omega0']:8g} {r['k1']:12.5g} {r['k2']:12.5g} {r['k3']:12.5g} {r['k4']:12.5g}"
+              f"  {r['max_pole_offset_rel']:12.1e}  {fmt(r['bandwidth']):>21} "
+              f"{fmt(r['amplitude_bandwidth']):>10}")
+    out = {"rig": "gyrotheodolite", "latitude_deg": args.latitude, "kappa": args.kappa,
+           "level": args.level, "observers": rows}
+    if args.compensation:
+        import jax
+
+        out["compensation"] = {}
+        print("\ncompensation of the constant vibration error (spec §9), "
+              f"{args.compensation} random vibrations: fraction of the error left (median / p95)")
+        for label, r in (("model (1)", rig), ("§9 mechanism only", GyrotheodoliteRig(
+                vibration_torque=False))):
+            for w0 in args.omega0:
+                s = compensation_monte_carlo(r, params, jax.random.key(args.seed),
+                                             args.compensation, omega0=w0,
+                                             latitude_deg=args.latitude).summary()
+                out["compensation"].setdefault(label, []).append(s)
+                print(f"  {label:18s} omega0 {w0:7g}: true rate "
+                      f"{s['median_residual_true_rate']:.3g} / {s['p95_residual_true_rate']:.3g}, "
+                      f"observer {s['median_residual_observer']:.3g} / "
+                      f"{s['p95_residual_observer']:.3g}")
+    if args.plot:
+        from .plots import plot_frequency_study
+
+        plot_frequency_study(study, args.plot)
+        print(f"wrote {args.plot}")
+    _emit_json(out, args.json)
+
+
 # -- parser --------------------------------------------------------------------------------
 def _common(p, *, record=False, scheme=True):
     if record:
@@ -371,6 +421,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="PRNG seed")
     p.add_argument("--json", metavar="FILE", help="write results ('-' = stdout)")
     p.set_defaults(func=cmd_montecarlo)
+
+    p = sub.add_parser("observer", help="observer gains, poles and bandwidths (gyrotheodolite)")
+    p.add_argument("--rig", default="gyrotheodolite", help="rig name (default gyrotheodolite)")
+    p.add_argument("--omega0", type=float, nargs="+", default=[1.0, 10.0, 100.0, 1000.0],
+                   help="observer pole magnitudes in 1/s (default 1 10 100 1000)")
+    p.add_argument("--latitude", type=float, default=50.45, help="latitude in deg (default 50.45)")
+    p.add_argument("--kappa", type=float, default=0.0, help="relative compensation gain (default 0)")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE",
+                   help="rig parameter in SI (H=0.1, J_y=1e-3 ...), repeatable; defaults: spec §8")
+    p.add_argument("--level", type=float, default=0.1,
+                   help="relative rate-estimate error defining the bandwidth (default 0.1)")
+    p.add_argument("--compensation", type=int, default=0, metavar="DRAWS",
+                   help="also run the vibration-compensation Monte Carlo with DRAWS draws")
+    p.add_argument("--seed", type=int, default=0, help="PRNG seed (compensation)")
+    p.add_argument("--plot", metavar="PNG", help="save the Fig. 1 comparison")
+    p.add_argument("--json", metavar="FILE", help="write results ('-' = stdout)")
+    p.set_defaults(func=cmd_observer)
 
     p = sub.add_parser("effects", help="list a rig's catalogue of effects")
     p.add_argument("--rig", default="esg", help="rig name (default esg)")

@@ -71,3 +71,28 @@ def plot_budget(budget, path=None):
     if path:
         _save(fig, path)
     return fig
+
+
+def plot_frequency_study(study, path=None):
+    """Fig. 1 of the gyrotheodolite paper: amplitude (rad/s per g, log-log) and phase (deg) of the
+    true rate response to ``n_X`` and of the observer's estimate for each ``omega0``."""
+    plt = _plt()
+    w = np.asarray(study.omegas)
+    fig, ax = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
+    curves = [("plant (10)", np.asarray(study.plant), dict(color="k", lw=2.2))]
+    curves += [(f"observer, omega0 = {w0:g} 1/s", np.asarray(study.observer[i]), dict(lw=1.1))
+               for i, w0 in enumerate(np.asarray(study.omega0s))]
+    for label, h, style in curves:
+        ax[0].loglog(w, np.abs(h), label=label, **style)
+        ax[1].semilogx(w, np.degrees(np.unwrap(np.angle(h))), label=label, **style)
+    ax[0].set_ylabel("|alpha_dot / n_X| [rad/s per g]")
+    ax[1].set_ylabel("phase [deg]")
+    ax[1].set_xlabel("vibration frequency omega [rad/s]")
+    ax[0].legend(fontsize=8)
+    ax[0].set_title("azimuth-rate response to vibration: plant and observer estimate")
+    for a in ax:
+        a.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    if path:
+        _save(fig, path)
+    return fig

@@ -110,7 +110,9 @@ def test_bad_input():
         binomial_poles(0.0)
     with pytest.raises(ValueError, match="one output"):
         ackermann_observer(a, jnp.eye(4)[:2], binomial_poles(10.0))
-    no_gyro = RIG.default_params(H=0.0)
+    with pytest.raises(ValueError, match="H=0.0 N m s must be > 0"):
+        RIG.default_params(H=0.0)
+    no_gyro = RIG.param_space.make({"H": 0.0})  # unchecked, to reach the placement's own check
     a0, c0, _, _ = RIG.state_space(no_gyro, COND)
     with pytest.raises(ValueError, match="not observable"):
         ackermann_observer(a0, c0, binomial_poles(10.0))

@@ -1,4 +1,4 @@
-"""Analysis: observability, Monte Carlo, mounting-error studies."""
+"""Analysis: observability, Monte Carlo, mounting-error studies, gyrotheodolite vibration error."""
 
 from .montecarlo import monte_carlo as monte_carlo
 from .mounting import (
@@ -27,4 +27,13 @@ from .observability import (
 )
 from .observability import (
     observability as observability,
+)
+from .vibration import (
+    compensation_monte_carlo as compensation_monte_carlo,
+)
+from .vibration import (
+    constant_vibration_error as constant_vibration_error,
+)
+from .vibration import (
+    frequency_study as frequency_study,
 )

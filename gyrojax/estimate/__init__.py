@@ -1,4 +1,5 @@
-"""Estimators: integral regression, Gauss-Newton/LM, square-root Kalman filter, spiral fit."""
+"""Estimators: integral regression, Gauss-Newton/LM, square-root Kalman filter, spiral fit,
+Luenberger observers."""
 
 from ._fit import METHODS as METHODS
 from ._fit import FitReport as FitReport
@@ -26,6 +27,21 @@ from .least_squares import (
 )
 from .least_squares import (
     trajectory_jacobian as trajectory_jacobian,
+)
+from .observer import (
+    DiscreteObserver as DiscreteObserver,
+)
+from .observer import (
+    ackermann_observer as ackermann_observer,
+)
+from .observer import (
+    frequency_response as frequency_response,
+)
+from .observer import (
+    place_observer as place_observer,
+)
+from .observer import (
+    simulate_with_observer as simulate_with_observer,
 )
 from .regression import (
     RegressionResult as RegressionResult,

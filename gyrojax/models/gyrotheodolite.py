@@ -9,11 +9,21 @@ $J_y \\ddot\\alpha + H\\dot\\beta + D\\dot\\alpha + k_\\alpha \\alpha = mgl(\\ga
 $J_z \\ddot\\beta - H\\dot\\alpha + f_\\beta\\dot\\beta + mgl\\,\\beta = mgl\\,n_X + H\\omega_3\\sin\\varphi$.
 
 Vibration (spec §4): ``n_X = n_m cos(eps_v + psi0) sin(omega t)``, ``n_Z = n_m sin(eps_v + psi0)
-sin(omega t)`` in g. The roll ``gamma`` is not modelled by the source; it is zero here.
+sin(omega t)`` in g.
+
+Roll ``gamma`` about the main axis (**assumed**; the source gives no model): the steady-state
+response of a pendulous roll mode driven like the tilt mode of (1),
+$J_x\\ddot\\gamma + f_\\gamma\\dot\\gamma + mgl\\,\\gamma = mgl\\,n_Z$ (roll about the spin axis
+has no gyroscopic coupling). With ``roll_rate_coupling=True`` (default) the azimuth equation also
+carries the kinematic term of spec §9: the azimuth rate seen about the horizontal axis ``z`` of the
+rolled SE, $-\\dot\\alpha\\gamma$, adds to the Earth-rate term, i.e. ``+ H alpha_dot gamma`` on the
+right of the first equation. This is the mechanism behind the compensation formula of §9; without
+vibration both additions vanish and the rig is exactly (1).
 
 Parameters (nominal; the spec's §8 assumed values are the defaults of :meth:`default_params`):
-``H`` (N m s), ``J_y``, ``J_z`` (kg m^2), ``mgl`` (N m), ``f_alpha``, ``f_beta``, ``F_KC`` (N m s),
-``kappa`` (1). This rig has no effect groups yet.
+``H`` (N m s), ``J_y``, ``J_z``, ``J_x`` (kg m^2), ``mgl`` (N m), ``f_alpha``, ``f_beta``,
+``f_gamma``, ``F_KC`` (N m s), ``kappa`` (1). ``J_x`` and ``f_gamma`` (roll mode) are assumed equal
+to ``J_z``, ``f_beta``. This rig has no effect groups yet.
 """
 
 from __future__ import annotations
@@ -29,15 +39,21 @@ from ._base import AbstractRig
 __all__ = ["GyrotheodoliteRig", "GyrotheodoliteConditions", "DEFAULTS"]
 
 DEFAULTS = {"H": 0.1, "J_y": 1.0e-3, "J_z": 3.5e-3, "mgl": 0.48, "f_alpha": 1e-5,
-            "f_beta": 1e-2, "F_KC": 3e-4, "kappa": 0.0}
-"""Assumed parameter set of spec §8 (north-seeking period ~8 min)."""
+            "f_beta": 1e-2, "F_KC": 3e-4, "kappa": 0.0, "J_x": 3.5e-3, "f_gamma": 1e-2}
+"""Assumed parameter set of spec §8 (north-seeking period ~8 min); ``J_x``, ``f_gamma`` of the
+roll mode are gyrojax's assumption (not in the spec)."""
+
+POSITIVE = ("H", "J_y", "J_z", "J_x", "mgl")
+NON_NEGATIVE = ("f_alpha", "f_beta", "f_gamma", "F_KC")
 
 _UNITS = {"H": "N m s", "J_y": "kg m^2", "J_z": "kg m^2", "mgl": "N m", "f_alpha": "N m s",
-          "f_beta": "N m s", "F_KC": "N m s", "kappa": "1"}
+          "f_beta": "N m s", "F_KC": "N m s", "kappa": "1", "J_x": "kg m^2", "f_gamma": "N m s"}
 _DESC = {"H": "rotor angular momentum", "J_y": "SE inertia about the vertical (azimuth)",
          "J_z": "SE inertia about the tilt axis", "mgl": "pendulous moment",
          "f_alpha": "viscous friction in azimuth", "f_beta": "viscous friction in tilt",
-         "F_KC": "damping of the compensation link", "kappa": "relative compensation gain"}
+         "F_KC": "damping of the compensation link", "kappa": "relative compensation gain",
+         "J_x": "SE inertia about the main axis (roll mode, assumed)",
+         "f_gamma": "viscous friction in roll (assumed)"}
 _SPACE = ParameterSpace(tuple(
     Param(name=n, unit=_UNITS[n], display_unit=_UNITS[n], display_factor=1.0,
           scale=max(abs(v), 1e-6), null=v, description=_DESC[n]) for n, v in DEFAULTS.items()))
@@ -72,7 +88,15 @@ class GyrotheodoliteConditions(eqx.Module):
 
 
 class GyrotheodoliteRig(AbstractRig):
-    """The 4-state sensing element (1)/(3); time in seconds."""
+    """The 4-state sensing element (1)/(3); time in seconds.
+
+    ``roll_rate_coupling``: include the kinematic ``H alpha_dot gamma`` term of §9 (see the module
+    docstring). ``vibration_torque``: include the pendulous products ``mgl (gamma n_X + beta n_Z)``
+    of (1); switching it off leaves only the mechanism the §9 compensation formula describes.
+    """
+
+    roll_rate_coupling: bool = eqx.field(static=True, default=True)
+    vibration_torque: bool = eqx.field(static=True, default=True)
 
     @property
     def param_space(self) -> ParameterSpace:
@@ -87,8 +111,28 @@ class GyrotheodoliteRig(AbstractRig):
         return 1.0
 
     def default_params(self, **overrides) -> dict:
-        """The spec's assumed parameters (§8), with overrides in SI."""
-        return _SPACE.make(overrides)
+        """The spec's assumed parameters (§8), with overrides in SI; validated by
+        :meth:`check_params`."""
+        return self.check_params(_SPACE.make(overrides))
+
+    @staticmethod
+    def check_params(params) -> dict:
+        """Raise ``ValueError`` naming the parameter when an inertia, ``H`` or ``mgl`` is not
+        positive, a friction is negative, or ``kappa <= -1`` (no north-seeking stiffness).
+        Traced values (inside ``jit``/``vmap``) are not checked."""
+        for name in POSITIVE + NON_NEGATIVE + ("kappa",):
+            v = params[name]
+            if isinstance(v, jax.core.Tracer):
+                continue
+            v = jnp.asarray(v)
+            if name in POSITIVE and not bool(jnp.all(v > 0)):
+                raise ValueError(f"{name}={v} {_UNITS[name]} must be > 0 ({_DESC[name]})")
+            if name in NON_NEGATIVE and not bool(jnp.all(v >= 0)):
+                raise ValueError(f"{name}={v} {_UNITS[name]} must be >= 0 ({_DESC[name]})")
+            if name == "kappa" and not bool(jnp.all(v > -1)):
+                raise ValueError(f"kappa={v} must be > -1: k_alpha = H omega3 cos(phi)(1 + kappa) "
+                                 "must stay positive")
+        return params
 
     def conditions_from_record(self, record) -> GyrotheodoliteConditions:
         c = record.conditions
@@ -110,15 +154,28 @@ class GyrotheodoliteRig(AbstractRig):
         h, jy, jz, mgl = params["H"], params["J_y"], params["J_z"], params["mgl"]
         d = params["F_KC"] + params["f_alpha"]
         nx, nz = conditions.overloads(t)
-        gamma = 0.0
+        gamma = self.roll_angle(t, params, conditions)
+        coupling = h * ad * gamma if self.roll_rate_coupling else 0.0
         add = (-h * bd - d * ad - self.k_alpha(params, conditions) * a
-               + mgl * (gamma * nx + b * nz)) / jy
+               + (mgl * (gamma * nx + b * nz) if self.vibration_torque else 0.0) + coupling) / jy
         bdd = (h * ad - params["f_beta"] * bd - mgl * b + mgl * nx
                + h * units.EARTH_RATE * jnp.sin(conditions.latitude)) / jz
         return jnp.stack([ad, add, bd, bdd])
 
     def observe(self, t, state, params, conditions):
         return state[:1]
+
+    @staticmethod
+    def roll_response(params, omega):
+        """Complex gain ``gamma / n_Z`` (rad per g) of the assumed roll mode at ``omega`` (rad/s)."""
+        mgl = params["mgl"]
+        return mgl / (mgl - params["J_x"] * omega**2 + 1j * params["f_gamma"] * omega)
+
+    def roll_angle(self, t, params, conditions):
+        """Steady-state roll ``gamma(t)`` (rad) under the vibration of ``conditions``."""
+        amp = conditions.n_m * jnp.sin(conditions.eps_v + conditions.psi0)
+        phasor = self.roll_response(params, conditions.omega) * amp
+        return jnp.imag(phasor * jnp.exp(1j * conditions.omega * t))
 
     def state_space(self, params, conditions):
         """``(A, C, G, b)`` of (3), (7): $\\dot x = A x + G n_X + b$, $y = C x$, written from the

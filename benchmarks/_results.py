@@ -1,0 +1,36 @@
+"""Shared writer for ``benchmarks/RESULTS.md``: each benchmark owns one marked section and
+replaces only that one (atomically), so the benchmarks can be run in any order."""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+import sys
+
+HEADER = "# Benchmark results\n\nRatios are gyrojax / baseline, measured side by side in one run.\n"
+
+
+def machine_line() -> str:
+    import jax
+
+    dev = ", ".join(str(d) for d in jax.devices())
+    return (f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python "
+            f"{sys.version.split()[0]}, jax {jax.__version__}, devices: {dev}.")
+
+
+def update_section(path: str, key: str, text: str) -> None:
+    """Replace (or append) the section ``key`` of the results file with ``text``."""
+    from gyrojax.io import atomic_write
+
+    old = open(path).read() if os.path.exists(path) else HEADER
+    block = f"<!-- section: {key} -->\n{text.rstrip()}\n<!-- end: {key} -->\n"
+    pat = re.compile(rf"<!-- section: {re.escape(key)} -->.*?<!-- end: {re.escape(key)} -->\n",
+                     re.S)
+    new = pat.sub(lambda _: block, old) if pat.search(old) else old.rstrip() + "\n\n" + block
+
+    def write(tmp):
+        with open(tmp, "w") as fh:
+            fh.write(new)
+
+    atomic_write(path, write)
