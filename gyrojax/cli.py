@@ -106,6 +106,12 @@ def cmd_simulate(args):
     from . import units
     from .simulate import simulate
 
+    if args.rig == "schuler":
+        from . import _cli_schuler
+
+        args.sample = 1.0 if args.sample is None else args.sample
+        return _cli_schuler.simulate(args, _parse_sets, _emit_json)
+    args.sample = 60.0 if args.sample is None else args.sample
     rig, cond, scheme, lat = _rig_and_conditions(args)
     _positive("--hours", args.hours)
     _positive("--sample", args.sample)
@@ -146,6 +152,10 @@ def cmd_fit(args):
     from . import units
     from .estimate import fit
 
+    if args.rig == "schuler":
+        from . import _cli_schuler
+
+        return _cli_schuler.fit(args, _load, _emit_json)
     rec0 = _load(args, ("alpha1", "alpha2"))
     rig, cond, scheme, lat = _rig_and_conditions(args, rec0)
     effects = _parse_effects(args.effects, rig)
@@ -164,6 +174,12 @@ def cmd_observability(args):
     from . import units
     from .analysis.observability import observability
 
+    if args.rig == "schuler":
+        from . import _cli_schuler
+
+        args.sample = 1.0 if args.sample is None else args.sample
+        return _cli_schuler.observability(args, _emit_json)
+    args.sample = 60.0 if args.sample is None else args.sample
     rig, cond, scheme, lat = _rig_and_conditions(args)
     effects = _parse_effects(args.effects, rig)
     space = rig.param_space
@@ -328,7 +344,8 @@ def cmd_observer(args):
 def _common(p, *, record=False, scheme=True):
     if record:
         p.add_argument("record", help="record file (.nc or .csv; t in s, alpha1 alpha2 in rad)")
-    p.add_argument("--rig", default="esg", help="rig name (default esg; see DESIGN.md)")
+    p.add_argument("--rig", default="esg", choices=["esg", "schuler"],
+                   help="rig: esg (default) or schuler (platform INS Schuler test)")
     if scheme:
         p.add_argument("--scheme", help="mounting scheme: polar, equatorial, horizontal, vertical "
                                         "(default: from the record's attributes)")
@@ -338,6 +355,16 @@ def _common(p, *, record=False, scheme=True):
                        help="base-misalignment parametrization (default eps: eps = u x dchi, "
                             "normal to u, 2 components)")
     p.add_argument("--json", metavar="FILE", help="write machine-readable output ('-' = stdout)")
+
+
+def _schuler_options(p, *, length=True):
+    if length:
+        p.add_argument("--periods", type=float, default=1.0,
+                       help="schuler: test length in Schuler periods of 84.4 min (default 1)")
+    p.add_argument("--sigma-v", type=float, default=0.05,
+                   help="schuler: model-velocity noise in m/s (default 0.05)")
+    p.add_argument("--sigma-arcmin", type=float, default=1.0,
+                   help="schuler: gimbal-angle noise in arcmin per axis (default 1)")
 
 
 def _alpha0(text):
@@ -365,8 +392,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="simulate a bench test to a record file")
     _common(p)
     p.add_argument("--out", required=True, help="output record (.nc or .csv)")
-    p.add_argument("--hours", type=float, default=24.0, help="test length in h (default 24)")
-    p.add_argument("--sample", type=float, default=60.0, help="sampling interval in s (default 60)")
+    p.add_argument("--hours", type=float, default=24.0, help="test length in h (default 24; esg)")
+    p.add_argument("--sample", type=float,
+                   help="sampling interval in s (default 60 for esg, 1 for schuler)")
+    _schuler_options(p)
+    p.add_argument("--random-errors", action="store_true",
+                   help="schuler: draw the 12 errors from their priors (spec §10), then apply --set")
     p.add_argument("--noise-arcsec", type=float, default=1.0,
                    help="white angle-noise std in arcsec (default 1)")
     p.add_argument("--alpha0", type=_alpha0, default=[0.0, 0.0],
@@ -387,6 +418,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="estimator (default gauss-newton on the exact model)")
     p.add_argument("--noise-arcsec", type=float,
                    help="angle noise for --method kalman (default: estimated)")
+    _schuler_options(p, length=False)
     p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("observability", help="which parameters a test design can identify")
@@ -396,8 +428,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "base_misalignment)")
     p.add_argument("--alpha0", type=_alpha0, default=[0.0, 0.0],
                    help="initial gimbal angles 'A1,A2' in deg (default 0,0)")
-    p.add_argument("--hours", type=float, default=24.0, help="test length in h (default 24)")
-    p.add_argument("--sample", type=float, default=60.0, help="sampling interval in s (default 60)")
+    p.add_argument("--hours", type=float, default=24.0, help="test length in h (default 24; esg)")
+    p.add_argument("--sample", type=float,
+                   help="sampling interval in s (default 60 for esg, 1 for schuler)")
+    _schuler_options(p)
+    p.add_argument("--channels", default="all", choices=["all", "velocity"],
+                   help="schuler: measurements used (all, or the classical test's velocities)")
     p.add_argument("--method", default="regression", choices=["regression", "trajectory"],
                    help="sensitivity: regression design A (linear model, the spec's check) or "
                         "trajectory Jacobian of the exact model (default regression)")

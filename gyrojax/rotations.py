@@ -67,3 +67,17 @@ def euler321_increment_to_rotvec(chi, dchi_euler):
     c2, s2 = jnp.cos(chi[1]), jnp.sin(chi[1])
     jac = jnp.array([[1.0, 0.0, -s2], [0.0, c1, s1 * c2], [0.0, -s1, c1 * c2]])
     return jac @ dchi_euler
+
+
+def matrix_to_rotvec(mat):
+    """Rotation vector of a rotation matrix (the inverse of :func:`rotvec_to_matrix`), for angles
+    below pi (near pi the axis is ill-determined); smooth and differentiable at 0."""
+    mat = jnp.asarray(mat)
+    vee = 0.5 * jnp.stack([mat[2, 1] - mat[1, 2], mat[0, 2] - mat[2, 0], mat[1, 0] - mat[0, 1]])
+    s2 = jnp.dot(vee, vee)
+    small = s2 < 1e-12
+    sin_a = jnp.sqrt(jnp.where(small, 1.0, s2))  # the double where keeps gradients finite at 0
+    cos_a = 0.5 * (jnp.trace(mat) - 1.0)
+    a = jnp.arctan2(sin_a, cos_a)
+    ratio = jnp.where(small, 1.0 + s2 / 6.0, a / sin_a)
+    return ratio * vee

@@ -10,18 +10,12 @@ import jax.numpy as jnp
 from .models._base import AbstractRig
 from .record import BenchRecord, freeze
 
-__all__ = ["simulate", "integrate"]
+__all__ = ["simulate", "integrate", "trajectory"]
 
 
-def integrate(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: float = 1e-10,
-              atol: float = 1e-12, max_steps: int = 100_000, adjoint=None, throw: bool = True):
-    """Noise-free measured channels of ``rig`` at times ``ts`` (s), shape ``(n, c)``.
-
-    Integrates ``rig.vector_field`` in the rig's internal time from ``ts[0]`` (where the state is
-    ``rig.initial_state``) with an adaptive ``solver`` (default ``diffrax.Dopri8``) and a PID
-    controller at ``rtol``/``atol``. Differentiable in ``params``: pass
-    ``adjoint=diffrax.ForwardMode()`` for ``jax.jacfwd`` (forward sensitivities).
-    """
+def trajectory(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: float = 1e-10,
+               atol: float = 1e-12, max_steps: int = 100_000, adjoint=None, throw: bool = True):
+    """States of ``rig`` at times ``ts`` (s), shape ``(n, state)``; see :func:`integrate`."""
     tau = jnp.asarray(ts, dtype=float) * rig.time_scale
     y0 = rig.initial_state(params, conditions)
 
@@ -34,7 +28,22 @@ def integrate(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: fl
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
         max_steps=max_steps, adjoint=adjoint or diffrax.RecursiveCheckpointAdjoint(),
         throw=throw)
-    return jax.vmap(lambda t, y: rig.observe(t, y, params, conditions))(tau, sol.ys)
+    return sol.ys
+
+
+def integrate(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: float = 1e-10,
+              atol: float = 1e-12, max_steps: int = 100_000, adjoint=None, throw: bool = True):
+    """Noise-free measured channels of ``rig`` at times ``ts`` (s), shape ``(n, c)``.
+
+    Integrates ``rig.vector_field`` in the rig's internal time from ``ts[0]`` (where the state is
+    ``rig.initial_state``) with an adaptive ``solver`` (default ``diffrax.Dopri8``) and a PID
+    controller at ``rtol``/``atol``. Differentiable in ``params``: pass
+    ``adjoint=diffrax.ForwardMode()`` for ``jax.jacfwd`` (forward sensitivities).
+    """
+    tau = jnp.asarray(ts, dtype=float) * rig.time_scale
+    ys = trajectory(rig, params, conditions, ts, solver=solver, rtol=rtol, atol=atol,
+                    max_steps=max_steps, adjoint=adjoint, throw=throw)
+    return jax.vmap(lambda t, y: rig.observe(t, y, params, conditions))(tau, ys)
 
 
 @eqx.filter_jit

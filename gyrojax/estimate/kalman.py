@@ -65,17 +65,20 @@ def square_root_filter(x0, s0, phis, gammas, sqrt_qs, h, sqrt_r, ys) -> KalmanRe
     """Square-root Kalman filter over ``n`` samples.
 
     **Arguments:**
-    - `x0`, `s0`: prior mean (d,) and lower covariance factor (d, d) at the first sample.
+    - `x0`, `s0`: prior mean (d,) and covariance factor (d, d) at the first sample (any square
+      factor, e.g. of a rank-deficient prior).
     - `phis`, `gammas`, `sqrt_qs`: transitions from sample j to j+1, shapes (n-1, d, d),
       (n-1, d), (n-1, d, d) (``sqrt_qs`` may be zeros for constant parameters).
-    - `h` (m, d), `sqrt_r` (m, m): measurement matrix and noise factor; `ys` (n, m).
+    - `h`: measurement matrix (m, d), or (n, m, d) when it varies with time; `sqrt_r` (m, m):
+      noise factor; `ys` (n, m).
 
     **Returns:** a :class:`KalmanResult`.
     """
     d = x0.shape[0]
-    m = h.shape[0]
+    hs = h if h.ndim == 3 else jnp.broadcast_to(h, (ys.shape[0],) + h.shape)
+    m = hs.shape[1]
 
-    def update(x, s, y):
+    def update(x, s, y, h):
         pre = jnp.block([[sqrt_r, h @ s], [jnp.zeros((d, m)), s]])
         post = _tria(pre)
         sy = post[:m, :m]
@@ -87,17 +90,18 @@ def square_root_filter(x0, s0, phis, gammas, sqrt_qs, h, sqrt_r, ys) -> KalmanRe
             - 0.5 * m * jnp.log(2 * jnp.pi)
         return x_new, s_new, e, ll
 
-    x1, s1, e1, ll1 = update(x0, s0, ys[0])
+    x1, s1, e1, ll1 = update(x0, s0, ys[0], hs[0])
 
     def step(carry, inp):
         x, s = carry
-        phi, gamma, sq, y = inp
+        phi, gamma, sq, y, h = inp
         xp = phi @ x + gamma
         sp = _tria(jnp.concatenate([phi @ s, sq], axis=1))
-        xn, sn, e, ll = update(xp, sp, y)
+        xn, sn, e, ll = update(xp, sp, y, h)
         return (xn, sn), (xp, sp, xn, sn, e, ll)
 
-    _, (xp, sp, xf, sf, es, lls) = jax.lax.scan(step, (x1, s1), (phis, gammas, sqrt_qs, ys[1:]))
+    _, (xp, sp, xf, sf, es, lls) = jax.lax.scan(step, (x1, s1),
+                                                (phis, gammas, sqrt_qs, ys[1:], hs[1:]))
     cat = lambda a, b: jnp.concatenate([a[None], b], axis=0)  # noqa: E731
     return KalmanResult(cat(x0, xp), cat(s0, sp), cat(x1, xf), cat(s1, sf), cat(e1, es),
                         ll1 + jnp.sum(lls))

@@ -5,5 +5,7 @@ from .esg import ESGConditions as ESGConditions
 from .esg import ESGRig as ESGRig
 from .gyrotheodolite import GyrotheodoliteConditions as GyrotheodoliteConditions
 from .gyrotheodolite import GyrotheodoliteRig as GyrotheodoliteRig
+from .schuler import SchulerConditions as SchulerConditions
+from .schuler import SchulerRig as SchulerRig
 
-RIGS = {"esg": ESGRig, "gyrotheodolite": GyrotheodoliteRig}
+RIGS = {"esg": ESGRig, "gyrotheodolite": GyrotheodoliteRig, "schuler": SchulerRig}

@@ -1,0 +1,272 @@
+"""Estimation of the 12 instrument errors and initial misalignments from a Schuler-test record
+(spec ``schuler-test.md`` §8-§9).
+
+Measurements (§8): the model velocities ``V1 V2`` and the platform's rotation since ``t0`` (record
+channels ``rot1..3``, a rotation vector). Against a model trajectory the attitude residual is
+(S12): $E = \\Delta R\\,\\Delta R_{model}^T = I - [\\mathbf z_\\theta\\times]$,
+$\\mathbf z_\\theta = -\\mathrm{vee}(\\tfrac12(E - E^T))$.
+
+Two estimators of $\\boldsymbol\\theta = $ (``nu1 nu2 nu3 D11 D22 df1 df2 K11 K22 alpha10 alpha20
+dA0``), both with the prior $N(0, \\Sigma_\\theta)$ of §10:
+
+- :func:`schuler_filter` — the source's single-pass linearised Kalman filter (§9.2) on the 17-state
+  error model about the error-free reference, in square-root form under ``lax.scan``, with an RTS
+  smoother. Biased for realistic scale errors (the linearisation misses the Schuler-frequency
+  shift).
+- :func:`fit_schuler` — the iterated Gauss-Newton on the nonlinear model (§9.3): forward-mode
+  sensitivities through diffrax, prior-regularised least squares by QR, first on the first period
+  and then on the whole record. It reaches the Cramer-Rao bound.
+
+Both run under ``jax.vmap`` over records (Monte Carlo).
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import units
+from ..models.schuler import (
+    PARAM_NAMES,
+    SchulerConditions,
+    SchulerRig,
+    error_matrix,
+    platform_matrix,
+)
+from ..rotations import matrix_to_rotvec, rotvec_to_matrix
+from ..simulate import integrate, trajectory
+from ._linalg import scaled_lstsq
+from ._result import AbstractNamedEstimate
+from .kalman import rts_smoother, square_root_filter
+
+__all__ = ["attitude_residual", "schuler_residuals", "SchulerEstimate", "fit_schuler",
+           "schuler_filter", "check_schuler_record"]
+
+THETA_NAMES = PARAM_NAMES
+
+
+def attitude_residual(rot_meas, rot_model):
+    """$\\mathbf z_\\theta = -\\mathrm{vee}(\\tfrac12(E - E^T))$ with
+    $E = \\Delta R_{meas}\\Delta R_{model}^T$ (S12), from two rotation vectors (rad)."""
+    e = rotvec_to_matrix(rot_meas) @ rotvec_to_matrix(rot_model).T
+    return -0.5 * jnp.stack([e[2, 1] - e[1, 2], e[0, 2] - e[2, 0], e[1, 0] - e[0, 1]])
+
+
+def schuler_residuals(rig: SchulerRig, conditions: SchulerConditions, ts, y, params, *,
+                      adjoint=None):
+    """Measured minus modelled channels, ``(N, 5)``: velocity differences (m/s) and the attitude
+    residual (S12) (rad)."""
+    model = integrate(rig, params, conditions, ts, adjoint=adjoint)
+    att = jax.vmap(attitude_residual)(y[:, 2:], model[:, 2:])
+    return jnp.concatenate([y[:, :2] - model[:, :2], att], axis=1)
+
+
+class SchulerEstimate(AbstractNamedEstimate):
+    """Estimates of the 12 unknowns (internal units, parameter axis last).
+
+    - ``covariance`` (12, 12) posterior covariance (prior included); ``stderr`` its root diagonal.
+    - ``iterations``: Gauss-Newton iterations (0 for the filter); ``residual_rms`` (5,): RMS of
+      the final residuals per channel (m/s, rad).
+    - ``method``: ``"gauss-newton"`` or ``"kalman"``.
+    """
+
+    names: tuple[str, ...] = eqx.field(static=True)
+    values: jax.Array
+    stderr: jax.Array
+    covariance: jax.Array
+    iterations: jax.Array
+    residual_rms: jax.Array
+    method: str = eqx.field(static=True)
+
+    def correlation(self):
+        s = self.stderr
+        return self.covariance / (s[..., :, None] * s[..., None, :])
+
+    def table(self, truth=None) -> str:
+        """Values and standard errors in display units (deg/h, ppm, m/s^2, arcmin)."""
+        space = SchulerRig().param_space
+        lines = [f"{'name':8s} {'estimate':>12s} {'std error':>11s} {'unit':7s}"
+                 + ("  truth" if truth is not None else "")]
+        for i, n in enumerate(self.names):
+            p = space[n]
+            row = (f"{n:8s} {float(p.to_display(self.values[i])):12.5g} "
+                   f"{float(p.to_display(self.stderr[i])):11.3g} {p.display_unit:7s}")
+            if truth is not None:
+                row += f"  {float(p.to_display(truth[n])):.5g}"
+            lines.append(row)
+        return "\n".join(lines)
+
+
+def _prior_std(rig, prior_std):
+    space = rig.param_space
+    base = {n: space[n].scale for n in THETA_NAMES}
+    base.update(prior_std or {})
+    return jnp.array([float(base[n]) for n in THETA_NAMES])
+
+
+def check_schuler_record(ts, y, conditions: SchulerConditions, *, uniform: bool = False):
+    """Validate a Schuler-test record at the boundary: ``ts`` (N,) strictly increasing, ``y``
+    (N, 5) finite with the velocity and attitude channels, spanning at least half a Schuler
+    period; with ``uniform`` also a constant sample interval (the filter's discretisation)."""
+    ts = np.asarray(ts, dtype=float)
+    y = np.asarray(y, dtype=float)
+    if y.ndim != 2 or y.shape[1] != 5:
+        raise ValueError(f"the record has channels of shape {y.shape[1:]}: the Schuler test needs "
+                         "V1 V2 (model velocities, m/s) and rot1 rot2 rot3 (platform rotation since "
+                         "t0 from the gimbal angles, rad); missing gimbal angles cannot be replaced")
+    if ts.shape != (y.shape[0],) or np.any(np.diff(ts) <= 0):
+        raise ValueError("t must be strictly increasing, one time per sample")
+    if not np.all(np.isfinite(y)):
+        bad = np.argwhere(~np.isfinite(y))[0]
+        raise ValueError(f"non-finite value at t={ts[bad[0]]} s, channel {bad[1]}; remove or "
+                         "interpolate the gap")
+    half = 0.5 * float(conditions.schuler_period)
+    if ts[-1] - ts[0] < half:
+        raise ValueError(f"the record spans {ts[-1] - ts[0]:.0f} s, less than half a Schuler period "
+                         f"({half:.0f} s): the errors are not separable; record 1-4 periods")
+    if uniform:
+        dt = np.diff(ts)
+        if np.max(np.abs(dt - dt[0])) > 1e-6 * dt[0]:
+            raise ValueError(f"inconsistent sampling: intervals from {dt.min():g} to {dt.max():g} s; "
+                             "the filter needs a constant interval (resample the record)")
+
+
+# -- Gauss-Newton (§9.3) ---------------------------------------------------------------------
+@eqx.filter_jit
+def _gauss_newton(rig, conditions, ts, y, weights, sig, u0, max_iter, tol):
+    def resid(u):
+        params = dict(zip(THETA_NAMES, u * sig, strict=True))
+        r = schuler_residuals(rig, conditions, ts, y, params, adjoint=diffrax.ForwardMode())
+        return (r * weights).ravel()
+
+    k = sig.shape[0]
+
+    def step(u):
+        r = resid(u)
+        jac = jax.jacfwd(resid)(u)
+        a = jnp.concatenate([jac, jnp.eye(k)], axis=0)
+        b = -jnp.concatenate([r, u])
+        delta, cov, _ = scaled_lstsq(a, b)
+        return delta, cov
+
+    def body(carry):
+        u, it, _, _ = carry
+        delta, cov = step(u)
+        return u + delta, it + 1, jnp.max(jnp.abs(delta)), cov
+
+    def cond(carry):
+        _, it, change, _ = carry
+        return (it < max_iter) & (change > tol)
+
+    u, it, _, cov = jax.lax.while_loop(cond, body, (u0, 0, jnp.inf, jnp.eye(k)))
+    params = dict(zip(THETA_NAMES, u * sig, strict=True))
+    r = schuler_residuals(rig, conditions, ts, y, params)
+    return u * sig, cov * jnp.outer(sig, sig), it, jnp.sqrt(jnp.mean(r**2, axis=0))
+
+
+def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_v: float = 0.05,
+                sigma_theta: float = units.ARCMIN, prior_std: dict | None = None,
+                max_iter: int = 10, tol: float = 1e-3, staged: bool = True,
+                check: bool = True) -> SchulerEstimate:
+    """Iterated Gauss-Newton on the nonlinear model (spec §9.3).
+
+    **Arguments:** ``ts`` (N,) in s; ``y`` (N, 5): ``V1 V2`` (m/s) and ``rot1..3`` (rad);
+    ``sigma_v`` (m/s) and ``sigma_theta`` (rad) the measurement noise; ``prior_std`` overrides the
+    prior standard deviations (internal units, by name); iterate until ``max |delta| < tol`` prior
+    standard deviations. With ``staged`` and a record longer than 1.2 periods the first period is
+    fitted first (the spec's safeguard against the Schuler-frequency ambiguity).
+    ``check=False`` skips the host-side validation (for ``jax.vmap`` over records).
+    """
+    if check:
+        check_schuler_record(ts, y, conditions)
+    ts = jnp.asarray(ts, dtype=float)
+    y = jnp.asarray(y, dtype=float)
+    sig = _prior_std(rig, prior_std)
+    w = 1.0 / jnp.array([sigma_v, sigma_v, sigma_theta, sigma_theta, sigma_theta])
+    u = jnp.zeros(len(THETA_NAMES))
+    period = float(conditions.schuler_period)
+    if staged and float(ts[-1] - ts[0]) > 1.2 * period:
+        n1 = int(np.searchsorted(np.asarray(ts), float(ts[0]) + period)) + 1
+        theta, _, _, _ = _gauss_newton(rig, conditions, ts[:n1], y[:n1], w, sig, u, max_iter, tol)
+        u = theta / sig
+    theta, cov, it, rms = _gauss_newton(rig, conditions, ts, y, w, sig, u, max_iter, tol)
+    return SchulerEstimate(names=THETA_NAMES, values=theta, stderr=jnp.sqrt(jnp.diagonal(cov)),
+                           covariance=cov, iterations=it, residual_rms=rms, method="gauss-newton")
+
+
+# -- linearised Kalman filter (§9.2) -------------------------------------------------------
+def _perturbed_measurement(x, state_ref, state_ref0, rot_ref):
+    """The measurement (S12) of the state ``X_ref + dX(x)`` against the reference: velocity
+    variations and the attitude residual, as a function of the 17-state ``x``."""
+    st = state_ref + jnp.stack([x[0], x[1], -x[4], x[2], x[3], 0.0])
+    st0 = state_ref0 + jnp.stack([x[14], x[15], -x[16], 0.0, 0.0, 0.0])
+    rel = platform_matrix(st[0], st[1], st[2]) @ platform_matrix(st0[0], st0[1], st0[2]).T
+    return jnp.concatenate([x[2:4], attitude_residual(matrix_to_rotvec(rel), rot_ref)])
+
+
+def _transfer(n_theta=12):
+    """``T`` (17, 12): x(t0) = T theta."""
+    t = np.zeros((17, n_theta))
+    t[5:, :] = np.eye(n_theta)
+    t[0, 9], t[1, 10], t[4, 11] = 1.0, 1.0, 1.0
+    return jnp.asarray(t)
+
+
+@eqx.filter_jit
+def _filter(rig, conditions, ts, y, ref, sqrt_r, s0, x0, smooth):
+    dt = ts[1] - ts[0]
+    mids = 0.5 * (ts[1:] + ts[:-1])
+    t_all = jnp.stack([ts[:-1], mids], axis=1).ravel()
+    t_all = jnp.concatenate([t_all, ts[-1:]])
+    states = trajectory(rig, ref, conditions, t_all)
+    x_ref, x_mid = states[::2], states[1::2]
+    phis = jax.vmap(lambda s: jax.scipy.linalg.expm(error_matrix(rig, ref, conditions, s) * dt))(
+        x_mid)
+    rot_ref = jax.vmap(lambda s: rig.observe(0.0, s, ref, conditions)[2:])(x_ref)
+    hs = jax.vmap(lambda s, r: jax.jacfwd(_perturbed_measurement)(jnp.zeros(17), s, x_ref[0], r))(
+        x_ref, rot_ref)
+    z = jnp.concatenate([y[:, :2] - x_ref[:, 3:5],
+                         jax.vmap(attitude_residual)(y[:, 2:], rot_ref)], axis=1)
+    n = ts.shape[0]
+    res = square_root_filter(x0, s0, phis, jnp.zeros((n - 1, 17)), jnp.zeros((n - 1, 17, 17)),
+                             hs, sqrt_r, z)
+    smoothed = rts_smoother(res, phis)[0] if smooth else res.x_filt
+    return res.x_filt[-1], res.p_filt[-1], res.innovations, smoothed
+
+
+def schuler_filter(rig: SchulerRig, ts, y, conditions: SchulerConditions, *,
+                   sigma_v: float = 0.05, sigma_theta: float = units.ARCMIN,
+                   prior_std: dict | None = None, params_ref=None, smooth: bool = False,
+                   check: bool = True):
+    """The source's single-pass linearised Kalman filter (spec §9.2), square-root form.
+
+    The reference is the error-free trajectory (or ``params_ref``, e.g. a previous estimate:
+    the prior mean of the correction is then ``-theta_ref``, and one pass is one Gauss-Newton
+    step). ``Phi_k = expm(A(t_{k+1/2}) dt)``, ``H_k`` the autodiff Jacobian of (S12), ``Q = 0``.
+    With ``Q = 0`` the constants' final filtered values are also their smoothed values.
+
+    **Returns:** ``(estimate, extras)``: a :class:`SchulerEstimate` (``values`` = reference +
+    correction) and a dict with the standardized ``innovations`` (N, 5) and the 17 ``states``
+    (N, 17) (RTS-smoothed when ``smooth``).
+    """
+    if check:
+        check_schuler_record(ts, y, conditions, uniform=True)
+    ts = jnp.asarray(ts, dtype=float)
+    y = jnp.asarray(y, dtype=float)
+    ref = rig.param_space.make({}) if params_ref is None else params_ref
+    theta_ref = jnp.array([ref[n] for n in THETA_NAMES])
+    sig = _prior_std(rig, prior_std)
+    tmat = _transfer()
+    s0 = jnp.concatenate([tmat * sig[None, :], jnp.zeros((17, 5))], axis=1)
+    x0 = tmat @ (-theta_ref)
+    sqrt_r = jnp.diag(jnp.array([sigma_v, sigma_v, sigma_theta, sigma_theta, sigma_theta]))
+    xf, pf, innov, states = _filter(rig, conditions, ts, y, ref, sqrt_r, s0, x0, smooth)
+    theta = theta_ref + xf[5:]
+    cov = pf[5:, 5:]
+    est = SchulerEstimate(names=THETA_NAMES, values=theta, stderr=jnp.sqrt(jnp.diagonal(cov)),
+                          covariance=cov, iterations=jnp.asarray(0),
+                          residual_rms=jnp.sqrt(jnp.mean(innov**2, axis=0)), method="kalman")
+    return est, {"innovations": innov, "states": states}
