@@ -133,3 +133,30 @@ def test_bad_records():
         schuler_filter(RIG, uneven, y, COND)
     with pytest.raises(ValueError, match="strictly increasing"):
         fit_schuler(RIG, ts[::-1], y, COND)
+
+
+def test_shared_gains_equal_per_run_filters():
+    """Monte Carlo runs of one linear model share covariances and gains: kalman_gains once +
+    apply_gains over the runs reproduces each run's own square-root filter (and history=False
+    keeps only the last sample)."""
+    from gyrojax.estimate.kalman import apply_gains, kalman_gains, square_root_filter
+    from gyrojax.estimate.schuler import linearised_model, measurement_variations, prior_factor
+
+    ts, thetas, ys = _records(3, 1, seed=21)
+    ts, ys = ts[::10], ys[:, ::10]
+    phis, hs, x_ref, rot_ref = linearised_model(RIG, COND, ts, RIG.param_space.make({}))
+    zs = jax.vmap(lambda y: measurement_variations(y, x_ref, rot_ref))(ys)
+    s0, _ = prior_factor(RIG)
+    sqrt_r = jnp.diag(jnp.array([0.05, 0.05, units.ARCMIN, units.ARCMIN, units.ARCMIN]))
+    n = ts.shape[0]
+    zeros = (jnp.zeros((n - 1, 17)), jnp.zeros((n - 1, 17, 17)))
+    per_run = jax.vmap(lambda z: square_root_filter(jnp.zeros(17), s0, phis, *zeros, hs, sqrt_r,
+                                                    z, history=False))(zs)
+    gains, s_last = kalman_gains(s0, phis, zeros[1], hs, sqrt_r)
+    shared = apply_gains(jnp.zeros((3, 17)), phis, hs, gains, zs)
+    scale = np.asarray(prior_factor(RIG)[0]).max(axis=1)
+    scale = np.where(scale > 0, scale, 1.0)  # m/s for the velocity states
+    np.testing.assert_allclose(np.asarray(shared) / scale, np.asarray(per_run.x_filt[:, 0]) / scale,
+                               atol=1e-8)
+    np.testing.assert_allclose(s_last @ s_last.T, per_run.p_filt[0, 0], rtol=1e-6, atol=1e-24)
+    assert per_run.x_filt.shape == (3, 1, 17) and per_run.innovations.shape == (3, n, 5)

@@ -27,8 +27,8 @@ from ..record import BenchRecord
 from ..simulate import integrate
 from ._result import AbstractNamedEstimate
 
-__all__ = ["KalmanResult", "square_root_filter", "rts_smoother", "esg_augmented_filter",
-           "ESGFilterResult"]
+__all__ = ["KalmanResult", "square_root_filter", "rts_smoother", "kalman_gains", "apply_gains",
+           "esg_augmented_filter", "ESGFilterResult"]
 
 
 def _tria(a):
@@ -61,7 +61,8 @@ class KalmanResult(eqx.Module):
         return self.s_filt @ jnp.swapaxes(self.s_filt, -1, -2)
 
 
-def square_root_filter(x0, s0, phis, gammas, sqrt_qs, h, sqrt_r, ys) -> KalmanResult:
+def square_root_filter(x0, s0, phis, gammas, sqrt_qs, h, sqrt_r, ys, *,
+                       history: bool = True) -> KalmanResult:
     """Square-root Kalman filter over ``n`` samples.
 
     **Arguments:**
@@ -71,6 +72,8 @@ def square_root_filter(x0, s0, phis, gammas, sqrt_qs, h, sqrt_r, ys) -> KalmanRe
       (n-1, d), (n-1, d, d) (``sqrt_qs`` may be zeros for constant parameters).
     - `h`: measurement matrix (m, d), or (n, m, d) when it varies with time; `sqrt_r` (m, m):
       noise factor; `ys` (n, m).
+    - `history`: keep every sample's means and factors; with ``False`` only the last sample's are
+      returned (leading axis of length 1) — what a batched Monte Carlo needs, at O(d^2) memory.
 
     **Returns:** a :class:`KalmanResult`.
     """
@@ -98,13 +101,67 @@ def square_root_filter(x0, s0, phis, gammas, sqrt_qs, h, sqrt_r, ys) -> KalmanRe
         xp = phi @ x + gamma
         sp = _tria(jnp.concatenate([phi @ s, sq], axis=1))
         xn, sn, e, ll = update(xp, sp, y, h)
-        return (xn, sn), (xp, sp, xn, sn, e, ll)
+        return (xn, sn), ((xp, sp, xn, sn, e, ll) if history else (e, ll))
 
-    _, (xp, sp, xf, sf, es, lls) = jax.lax.scan(step, (x1, s1),
-                                                (phis, gammas, sqrt_qs, ys[1:], hs[1:]))
+    (xl, sl), outs = jax.lax.scan(step, (x1, s1), (phis, gammas, sqrt_qs, ys[1:], hs[1:]))
+    if not history:
+        es, lls = outs
+        innov = jnp.concatenate([e1[None], es], axis=0)
+        return KalmanResult(xl[None], sl[None], xl[None], sl[None], innov, ll1 + jnp.sum(lls))
+    xp, sp, xf, sf, es, lls = outs
     cat = lambda a, b: jnp.concatenate([a[None], b], axis=0)  # noqa: E731
     return KalmanResult(cat(x0, xp), cat(s0, sp), cat(x1, xf), cat(s1, sf), cat(e1, es),
                         ll1 + jnp.sum(lls))
+
+
+def kalman_gains(s0, phis, sqrt_qs, h, sqrt_r):
+    """The covariance recursion alone: gains ``K_j`` (n, d, m) and the final covariance factor.
+
+    For a linear model the covariances and gains do not depend on the measurements, so across
+    Monte Carlo runs of one model they are computed once (here) and applied to every run with
+    :func:`apply_gains` as batched matrix products (see PERFORMANCE.md).
+    """
+    d = s0.shape[0]
+    n = phis.shape[0] + 1
+    hs = h if h.ndim == 3 else jnp.broadcast_to(h, (n,) + h.shape)
+    m = hs.shape[1]
+
+    def update(s, h):
+        post = _tria(jnp.block([[sqrt_r, h @ s], [jnp.zeros((d, m)), s]]))
+        sy, kbar = post[:m, :m], post[m:, :m]
+        gain = jsl.solve_triangular(sy.T, kbar.T, lower=False).T  # K = Kbar Sy^{-1}
+        return post[m:, m:], gain
+
+    s1, k1 = update(s0, hs[0])
+
+    def step(s, inp):
+        phi, sq, h = inp
+        sn, k = update(_tria(jnp.concatenate([phi @ s, sq], axis=1)), h)
+        return sn, k
+
+    s_last, ks = jax.lax.scan(step, s1, (phis, sqrt_qs, hs[1:]))
+    return jnp.concatenate([k1[None], ks], axis=0), s_last
+
+
+def apply_gains(x0, phis, h, gains, ys):
+    """Run precomputed gains over a batch of measurement sequences ``ys`` (r, n, m) from prior
+    means ``x0`` (r, d): returns the final filtered means (r, d). Each step is two batched matrix
+    products over the runs."""
+    n = ys.shape[1]
+    hs = h if h.ndim == 3 else jnp.broadcast_to(h, (n,) + h.shape)
+    yt = jnp.swapaxes(ys, 0, 1)  # (n, r, m)
+
+    def upd(x, h, k, y):
+        return x + (y - x @ h.T) @ k.T
+
+    x1 = upd(x0, hs[0], gains[0], yt[0])
+
+    def step(x, inp):
+        phi, h, k, y = inp
+        return upd(x @ phi.T, h, k, y), None
+
+    x_last, _ = jax.lax.scan(step, x1, (phis, hs[1:], gains[1:], yt[1:]))
+    return x_last
 
 
 def rts_smoother(result: KalmanResult, phis):

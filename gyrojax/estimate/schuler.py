@@ -43,7 +43,8 @@ from ._result import AbstractNamedEstimate
 from .kalman import rts_smoother, square_root_filter
 
 __all__ = ["attitude_residual", "schuler_residuals", "SchulerEstimate", "fit_schuler",
-           "schuler_filter", "check_schuler_record"]
+           "schuler_filter", "check_schuler_record", "linearised_model", "measurement_variations",
+           "prior_factor"]
 
 THETA_NAMES = PARAM_NAMES
 
@@ -207,6 +208,13 @@ def _perturbed_measurement(x, state_ref, state_ref0, rot_ref):
     return jnp.concatenate([x[2:4], attitude_residual(matrix_to_rotvec(rel), rot_ref)])
 
 
+def prior_factor(rig: SchulerRig, prior_std: dict | None = None):
+    """Square factor ``S0`` (17, 17) of ``P0 = T Sigma_theta T^T`` (rank 12) and ``T`` (17, 12)."""
+    tmat = _transfer()
+    sig = _prior_std(rig, prior_std)
+    return jnp.concatenate([tmat * sig[None, :], jnp.zeros((17, 5))], axis=1), tmat
+
+
 def _transfer(n_theta=12):
     """``T`` (17, 12): x(t0) = T theta."""
     t = np.zeros((17, n_theta))
@@ -216,11 +224,13 @@ def _transfer(n_theta=12):
 
 
 @eqx.filter_jit
-def _filter(rig, conditions, ts, y, ref, sqrt_r, s0, x0, smooth):
+def linearised_model(rig: SchulerRig, conditions: SchulerConditions, ts, ref):
+    """The discrete linear model of §9.2 about the trajectory with errors ``ref`` on the uniform
+    sample times ``ts``: ``Phi_k = expm(A(t_{k+1/2}) dt)`` (N-1, 17, 17), ``H_k`` (N, 5, 17) the
+    autodiff Jacobian of (S12), the reference states (N, 6) and rotation vectors (N, 3)."""
     dt = ts[1] - ts[0]
     mids = 0.5 * (ts[1:] + ts[:-1])
-    t_all = jnp.stack([ts[:-1], mids], axis=1).ravel()
-    t_all = jnp.concatenate([t_all, ts[-1:]])
+    t_all = jnp.concatenate([jnp.stack([ts[:-1], mids], axis=1).ravel(), ts[-1:]])
     states = trajectory(rig, ref, conditions, t_all)
     x_ref, x_mid = states[::2], states[1::2]
     phis = jax.vmap(lambda s: jax.scipy.linalg.expm(error_matrix(rig, ref, conditions, s) * dt))(
@@ -228,8 +238,19 @@ def _filter(rig, conditions, ts, y, ref, sqrt_r, s0, x0, smooth):
     rot_ref = jax.vmap(lambda s: rig.observe(0.0, s, ref, conditions)[2:])(x_ref)
     hs = jax.vmap(lambda s, r: jax.jacfwd(_perturbed_measurement)(jnp.zeros(17), s, x_ref[0], r))(
         x_ref, rot_ref)
-    z = jnp.concatenate([y[:, :2] - x_ref[:, 3:5],
-                         jax.vmap(attitude_residual)(y[:, 2:], rot_ref)], axis=1)
+    return phis, hs, x_ref, rot_ref
+
+
+def measurement_variations(y, x_ref, rot_ref):
+    """``z`` of §8 (N, 5): measured minus reference velocities and the attitude residual (S12)."""
+    return jnp.concatenate([y[:, :2] - x_ref[:, 3:5],
+                            jax.vmap(attitude_residual)(y[:, 2:], rot_ref)], axis=1)
+
+
+@eqx.filter_jit
+def _filter(rig, conditions, ts, y, ref, sqrt_r, s0, x0, smooth):
+    phis, hs, x_ref, rot_ref = linearised_model(rig, conditions, ts, ref)
+    z = measurement_variations(y, x_ref, rot_ref)
     n = ts.shape[0]
     res = square_root_filter(x0, s0, phis, jnp.zeros((n - 1, 17)), jnp.zeros((n - 1, 17, 17)),
                              hs, sqrt_r, z)
@@ -258,9 +279,7 @@ def schuler_filter(rig: SchulerRig, ts, y, conditions: SchulerConditions, *,
     y = jnp.asarray(y, dtype=float)
     ref = rig.param_space.make({}) if params_ref is None else params_ref
     theta_ref = jnp.array([ref[n] for n in THETA_NAMES])
-    sig = _prior_std(rig, prior_std)
-    tmat = _transfer()
-    s0 = jnp.concatenate([tmat * sig[None, :], jnp.zeros((17, 5))], axis=1)
+    s0, tmat = prior_factor(rig, prior_std)
     x0 = tmat @ (-theta_ref)
     sqrt_r = jnp.diag(jnp.array([sigma_v, sigma_v, sigma_theta, sigma_theta, sigma_theta]))
     xf, pf, innov, states = _filter(rig, conditions, ts, y, ref, sqrt_r, s0, x0, smooth)
