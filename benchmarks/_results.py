@@ -34,3 +34,25 @@ def update_section(path: str, key: str, text: str) -> None:
             fh.write(new)
 
     atomic_write(path, write)
+
+
+def publish(path: str, key: str, lines) -> str:
+    """Join the section's lines, print them and write them as section ``key`` of ``path``."""
+    text = "\n".join(lines)
+    print(text)
+    update_section(path, key, text)
+    return text
+
+
+def best_time(fn, repeat: int = 3) -> float:
+    """Best of ``repeat`` wall times of ``fn()`` (blocked on JAX results), after warm-up."""
+    import time
+
+    import jax
+
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t)
+    return min(times)

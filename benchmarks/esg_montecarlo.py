@@ -31,7 +31,7 @@ from gyrojax.record import BenchRecord
 from gyrojax.simulate import integrate
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _results import machine_line, update_section  # noqa: E402
+from _results import machine_line, publish  # noqa: E402
 
 LAT = 55.75
 SCHEME = "vertical"
@@ -298,9 +298,7 @@ def main(argv=None):
               "scipy loop is ~17x, short of the 100x goal. Reaching it needs a structural change "
               "(e.g. integrating the regression features along with the trajectory, or a cheaper "
               "feature basis), not tuning; see PERFORMANCE.md.", ""]
-    text = "\n".join(lines)
-    print(text)
-    update_section(args.out, "esg", text)
+    publish(args.out, "esg", lines)
 
 
 if __name__ == "__main__":

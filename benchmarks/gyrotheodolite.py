@@ -22,21 +22,12 @@ from gyrojax.analysis.vibration import compensation_monte_carlo, frequency_study
 from gyrojax.models.gyrotheodolite import GyrotheodoliteConditions, GyrotheodoliteRig
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _results import machine_line, update_section  # noqa: E402
+from _results import best_time, machine_line, publish  # noqa: E402
 
 RIG = GyrotheodoliteRig()
 P = RIG.default_params()
 COND = GyrotheodoliteConditions.create(50.45)
 LAT = 50.45 * units.DEG
-
-
-def _best(fn, repeat=5):
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t)
-    return min(times)
 
 
 def _numpy_model():
@@ -68,8 +59,8 @@ def bench_sweep(sizes):
         st = frequency_study(RIG, P, COND, omega0s, w)
         jax.block_until_ready(st.observer)
         first = time.perf_counter() - t
-        tj = _best(lambda: frequency_study(RIG, P, COND, omega0s, w).observer)
-        ts = _best(lambda: scipy_sweep(omega0s, w), repeat=3)
+        tj = best_time(lambda: frequency_study(RIG, P, COND, omega0s, w).observer)
+        ts = best_time(lambda: scipy_sweep(omega0s, w), repeat=3)
         _, ref = scipy_sweep(omega0s, w)
         diff = float(np.max(np.abs(np.asarray(st.observer) - ref) / np.abs(ref)))
         rows.append((n_w0, n_f, tj, ts, max(first - tj, 0.0), diff))
@@ -122,11 +113,11 @@ def bench_compensation(ns, loop_max):
         st = compensation_monte_carlo(RIG, P, key, n, omega0=1000.0)
         jax.block_until_ready(st.error.mean_alpha)
         first = time.perf_counter() - t
-        tj = _best(lambda: compensation_monte_carlo(RIG, P, key, n, omega0=1000.0).error.mean_alpha)
+        tj = best_time(lambda: compensation_monte_carlo(RIG, P, key, n, omega0=1000.0).error.mean_alpha)
         amp, om, ps = (np.asarray(v) for v in (st.n_m, st.omega, st.psi0))
         m = min(n, loop_max)
-        tl = _best(lambda: numpy_draw_loop(amp[:m], om[:m], ps[:m], 1000.0), repeat=3) * n / m
-        tb = _best(lambda: numpy_batched(amp, om, ps, 1000.0), repeat=3)
+        tl = best_time(lambda: numpy_draw_loop(amp[:m], om[:m], ps[:m], 1000.0), repeat=3) * n / m
+        tb = best_time(lambda: numpy_batched(amp, om, ps, 1000.0), repeat=3)
         ref = numpy_batched(amp, om, ps, 1000.0)
         mine = np.stack([np.asarray(st.error.mean_alpha), np.asarray(st.error.correction_est)], 1)
         diff = float(np.nanmax(np.abs(mine - ref) / np.maximum(np.abs(ref), 1e-30)))
@@ -161,9 +152,7 @@ def main(argv=None):
         lines.append(f"| {n:,} | {tj * 1e3:.2f} | {tl * 1e3:.0f} | {tl / tj:.0f}x | "
                      f"{tb * 1e3:.1f} | {tb / tj:.1f}x | {comp_s:.1f} | {diff:.1e} |")
     lines.append("")
-    text = "\n".join(lines)
-    print(text)
-    update_section(args.out, "gyrotheodolite", text)
+    publish(args.out, "gyrotheodolite", lines)
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ from .record import BenchRecord, freeze
 __all__ = ["simulate", "integrate", "trajectory"]
 
 
+@eqx.filter_jit
 def trajectory(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: float = 1e-10,
                atol: float = 1e-12, max_steps: int = 100_000, adjoint=None, throw: bool = True):
     """States of ``rig`` at times ``ts`` (s), shape ``(n, state)``; see :func:`integrate`."""
@@ -31,6 +32,7 @@ def trajectory(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: f
     return sol.ys
 
 
+@eqx.filter_jit
 def integrate(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: float = 1e-10,
               atol: float = 1e-12, max_steps: int = 100_000, adjoint=None, throw: bool = True):
     """Noise-free measured channels of ``rig`` at times ``ts`` (s), shape ``(n, c)``.
@@ -39,6 +41,9 @@ def integrate(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: fl
     ``rig.initial_state``) with an adaptive ``solver`` (default ``diffrax.Dopri8``) and a PID
     controller at ``rtol``/``atol``. Differentiable in ``params``: pass
     ``adjoint=diffrax.ForwardMode()`` for ``jax.jacfwd`` (forward sensitivities).
+
+    jit-compiled (``equinox.filter_jit``) so repeated calls with the same shapes reuse one
+    compilation: the vector-field closure is built inside the trace.
     """
     tau = jnp.asarray(ts, dtype=float) * rig.time_scale
     ys = trajectory(rig, params, conditions, ts, solver=solver, rtol=rtol, atol=atol,
