@@ -1,4 +1,5 @@
-"""The ``gyrojax`` command: simulate, fit, observability, montecarlo, effects, observer, demo.
+"""The ``gyrojax`` command: simulate, fit, observability, montecarlo, diagnose, effects, observer,
+demo.
 
 Engineering units at this edge (deg/h, arcsec, deg); SI inside. Bad input prints one line naming
 the field, the value and the fix, and exits with status 2. ``--json FILE`` writes machine-readable
@@ -244,7 +245,8 @@ def cmd_effects(args):
 
 
 def cmd_demo(args):
-    """Fit the built-in example record: regression, Gauss-Newton, Kalman; observability."""
+    """Fit the built-in example record: regression, Gauss-Newton, Kalman; observability; then
+    diagnose the nominal model's gap on it (the record hides a base misalignment)."""
     from .analysis.observability import observability
     from .estimate import fit
     from .io import load_record
@@ -281,6 +283,12 @@ def cmd_demo(args):
     print("\n## observability of drift + rotor tilt + base misalignment in this test")
     print(rep.summary())
     summary["observability"] = rep.to_json()
+    from .diagnose import diagnose
+
+    print("\n## sim-to-real diagnosis: the nominal model (drifts only) against this record")
+    gap = diagnose(rec)
+    print(gap.markdown())
+    summary["diagnosis"] = gap.to_json()
     if args.plot:
         from .plots import plot_fit
 
@@ -340,6 +348,36 @@ def cmd_observer(args):
     _emit_json(out, args.json)
 
 
+def cmd_diagnose(args):
+    from .diagnose import diagnose
+    from .models.esg import ESGRig
+
+    if args.rig != "esg":
+        raise UsageError(f"--rig {args.rig!r} has no diagnosis yet; rigs with one: esg")
+    record = _load(args, ESGRig().channels)
+    _, _, scheme, lat = _rig_and_conditions(args, record)
+    record = record.with_conditions(scheme=scheme, latitude_deg=lat)
+    effects = None
+    if args.effects:
+        effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
+    noise = None
+    if args.noise_arcsec is not None:
+        from . import units
+
+        noise = _positive("--noise-arcsec", args.noise_arcsec) * units.ARCSEC
+    if not 0 < args.alpha < 0.5:
+        raise UsageError(f"--alpha {args.alpha}: give a significance level in (0, 0.5)")
+    report = diagnose(record, rig=args.rig, effects=effects, holdout=args.holdout,
+                      alpha=args.alpha, noise_std=noise)
+    print(report.markdown())
+    _emit_json(report.to_json(), args.json)
+    if args.plot:
+        from .plots import plot_gap_report
+
+        plot_gap_report(report, args.plot)
+        print(f"wrote {args.plot}", file=sys.stderr)
+
+
 # -- parser --------------------------------------------------------------------------------
 def _common(p, *, record=False, scheme=True):
     if record:
@@ -384,7 +422,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "at the command line (deg/h, arcsec, deg); SI in files.")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("demo", help="fit the built-in example record (the main job)")
+    p = sub.add_parser("demo", help="fit and diagnose the built-in example record (the main job)")
     p.add_argument("--plot", metavar="PNG", help="save trajectory/residual figure")
     p.add_argument("--json", metavar="FILE", help="write the fits and observability report")
     p.set_defaults(func=cmd_demo)
@@ -474,6 +512,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", metavar="PNG", help="save the Fig. 1 comparison")
     p.add_argument("--json", metavar="FILE", help="write results ('-' = stdout)")
     p.set_defaults(func=cmd_observer)
+
+    p = sub.add_parser("diagnose", help="sim-to-real gap: where, which effect, how much")
+    _common(p, record=True)
+    p.add_argument("--effects", default="",
+                   help="comma-separated library to screen (default: the rig's whole catalogue: "
+                        "rotor_tilt, base_misalignment, drift_transient, drift_ramp, drift_step, "
+                        "diurnal_line)")
+    p.add_argument("--holdout", type=float, default=0.25,
+                   help="fraction of the record (its end) held out for the before/after gap "
+                        "(default 0.25)")
+    p.add_argument("--noise-arcsec", type=float,
+                   help="angle noise std in arcsec (default: estimated from the residual)")
+    p.add_argument("--alpha", type=float, default=0.05,
+                   help="significance level after Benjamini-Hochberg control (default 0.05)")
+    p.add_argument("--plot", metavar="PNG", help="gap map, residuals before/after, ranking")
+    p.set_defaults(func=cmd_diagnose)
 
     p = sub.add_parser("effects", help="list a rig's catalogue of effects")
     p.add_argument("--rig", default="esg", help="rig name (default esg)")

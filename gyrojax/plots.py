@@ -96,3 +96,68 @@ def plot_frequency_study(study, path=None):
     if path:
         _save(fig, path)
     return fig
+
+
+def plot_gap_report(report, path=None):
+    """One figure of a gap diagnosis: the time x channel gap map (-log10 q per dyadic window),
+    the whitened residuals before and after the verdict's refit (train | held-out), and the
+    candidate ranking (posterior, score test -log10 p)."""
+    plt = _plt()
+    fig = plt.figure(figsize=(11, 8))
+    gs = fig.add_gridspec(3, 2, height_ratios=[1.1, 1.0, 1.0])
+    ax_map = fig.add_subplot(gs[0, :])
+    cells = [x for x in report.where if x["axis"] == "time"]
+    chans = list(report.channels)
+    levels = sorted({x["level"] for x in cells})
+    widths = [min(x["t1"] - x["t0"] for x in cells if x["level"] == lv) for lv in levels]
+    cmap = plt.get_cmap("magma_r")
+    for x in cells:
+        row = levels.index(x["level"]) * len(chans) + chans.index(x["channel"])
+        val = min(-np.log10(max(x["q"], 1e-300)), 10.0)
+        ax_map.barh(row, (x["t1"] - x["t0"]) / units.HOUR, left=x["t0"] / units.HOUR, height=0.9,
+                    color=cmap(val / 10.0), edgecolor="k" if x["significant"] else "none", lw=0.6)
+    ax_map.set_yticks(range(len(widths) * len(chans)))
+    ax_map.set_yticklabels([f"{w / units.HOUR:.2g} h {c}" for w in widths for c in chans],
+                           fontsize=7)
+    ax_map.invert_yaxis()
+    ax_map.set_xlabel("time [h]")
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, 10))
+    fig.colorbar(sm, ax=ax_map, label="-log10 q (capped at 10)")
+    freq = [x for x in report.where if x["axis"] == "frequency" and x["significant"]]
+    ax_map.set_title(f"verdict: {report.kind} {', '.join(report.verdict.get('effects') or [])}"
+                     + (f"; significant lines: {', '.join(x['cell'] for x in freq)[:90]}"
+                        if freq else ""), fontsize=9)
+    t_h = report.t / units.HOUR
+    split = report.t[report.n_train - 1] / units.HOUR if report.n_heldout else None
+    for k, (res, title) in enumerate([(report.residual_all, "nominal model"),
+                                      (report.residual_after, "after refit")]):
+        ax = fig.add_subplot(gs[1 + k, 0])
+        if res is None:
+            ax.text(0.5, 0.5, "no refit (no gap, or nothing to refit)", ha="center",
+                    transform=ax.transAxes)
+        else:
+            for j, c in enumerate(chans):
+                ax.plot(t_h, res[:, j], lw=0.6, label=c)
+        if split is not None:
+            ax.axvline(split, color="k", ls="--", lw=0.8)
+        ax.set_ylabel("residual / noise")
+        ax.set_title(f"whitened residual, {title} (train | held-out)", fontsize=9)
+        ax.legend(fontsize=7)
+    ax_rank = fig.add_subplot(gs[1:, 1])
+    names = [r["name"] for r in report.ranking][::-1]
+    post = [r["posterior"] for r in report.ranking][::-1]
+    logp = [min(-np.log10(max(r["p"], 1e-300)), 50.0) for r in report.ranking][::-1]
+    yy = np.arange(len(names))
+    ax_rank.barh(yy - 0.2, post, height=0.4, label="posterior")
+    ax2 = ax_rank.twiny()
+    ax2.barh(yy + 0.2, logp, height=0.4, color="tab:orange", label="-log10 p (score)")
+    ax_rank.set_yticks(yy)
+    ax_rank.set_yticklabels([f"{n}\n({r['flag']})" for n, r in
+                             zip(names, report.ranking[::-1])], fontsize=7)
+    ax_rank.set_xlabel("posterior")
+    ax2.set_xlabel("-log10 p of the score test (capped at 50)")
+    ax_rank.set_xlim(0, 1)
+    fig.tight_layout()
+    if path:
+        _save(fig, path)
+    return fig

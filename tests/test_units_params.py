@@ -56,7 +56,8 @@ def test_param_space_flatten_unflatten_and_errors():
     back = sp.unflatten(x * 2, p, free)
     assert float(back["theta1"]) == pytest.approx(20 * units.ARCMIN)
     assert float(back["m12"]) == 0.0
-    assert sp.effects == ("rotor_tilt", "base_misalignment", "drift_transient")
+    assert sp.effects == ("rotor_tilt", "base_misalignment", "drift_transient", "drift_ramp",
+                          "drift_step")
     assert sp.free_names(("rotor_tilt",))[-2:] == ("theta1", "theta2")
     with pytest.raises(ValueError, match="unknown parameter name"):
         sp.make({"m13": 1.0})

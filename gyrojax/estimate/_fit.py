@@ -83,6 +83,10 @@ def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "
     if method == "regression" and "drift_transient" in effects:
         raise ValueError("effect 'drift_transient' is nonlinear in time and cannot be fitted by "
                          "--method regression; use --method kalman or gauss-newton")
+    other = [e for e in effects if e not in ("rotor_tilt", "base_misalignment", "drift_transient")]
+    if other and method in ("regression", "kalman"):
+        raise ValueError(f"effect(s) {other} are fitted by --method gauss-newton or "
+                         f"levenberg-marquardt only, not by --method {method}")
     reg = integral_regression(rig, record, conditions, window=window, quadrature=quadrature,
                               names=lin)
     y0 = record.y[0]
@@ -92,7 +96,8 @@ def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "
     converged = True
     extra = {}
     if method in ("gauss-newton", "levenberg-marquardt"):
-        free = space.free_names(effects)
+        # the step onset is a grid parameter (zero derivative almost everywhere): held at its value
+        free = space.free_names(effects, exclude=("t_step",) if "drift_step" in effects else ())
         if "drift_transient" in effects:
             p = p | {"k_tr": jnp.asarray(transient_k, float)}
         res = fit_trajectory(rig, record, conditions, p, free=free, method=method, throw=False)

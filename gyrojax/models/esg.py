@@ -15,6 +15,8 @@ Parameters (names as in the spec):
 | ``rotor_tilt`` | ``theta1 theta2`` (spin-axis non-perpendicularity, §3.4) | rad (arcsec) |
 | ``base_misalignment`` | ``eps*`` or ``dchi1..3`` by ``base_param`` (§3.5-3.6) | rad (arcsec) |
 | ``drift_transient`` | ``dm11_0 ... dmc2_0`` (``m0 - m*``), ``k_tr`` (law 7.4) | 1 (deg/h), 1/tau (1/h) |
+| ``drift_ramp`` | ``rmc1 rmc2``: case-fixed drift growing linearly from t = 0 | 1/tau (deg/h/h) |
+| ``drift_step`` | ``smc1 smc2``: case-fixed drift step at ``t_step`` (re-levitation) | 1 (deg/h), tau (h) |
 
 ``base_param`` chooses how the base misalignment is parametrized:
 
@@ -188,7 +190,12 @@ class ESGRig(AbstractRig):
 
     def _drift(self, params, tau):
         decay = jnp.exp(-params["k_tr"] * tau)
-        return [params[n] + params[f"d{n}_0"] * decay for n in DRIFT_NAMES]
+        m = [params[n] + params[f"d{n}_0"] * decay for n in DRIFT_NAMES]
+        # drift_ramp / drift_step on the case-fixed drifts; like the transient, they run from t = 0
+        on = jnp.where(tau >= params["t_step"], 1.0, 0.0)
+        for i, n in enumerate(("mc1", "mc2")):
+            m[4 + i] = m[4 + i] + params[f"r{n}"] * tau + params[f"s{n}"] * on
+        return m
 
     def _exact_rates(self, alpha, m, theta, u_zeta, g_zeta):
         a1, a2 = alpha[0], alpha[1]
@@ -326,4 +333,13 @@ def _param_space(base_param: str, base_names: tuple[str, ...]) -> ParameterSpace
     ps.append(Param(name="k_tr", unit="1/tau", display_unit="1/h",
                     display_factor=1.0 / (U * units.HOUR), scale=1.0, null=1.0,
                     effect="drift_transient", description="decay rate of the start-up transient"))
+    ramp = _M_FACTOR / (U * units.HOUR)  # normalized m per tau, for 1 deg/h per hour
+    ps += [Param(name=f"r{n}", unit="1/tau", display_unit="deg/h/h", display_factor=ramp,
+                 scale=0.002 * ramp, null=0.0, effect="drift_ramp",
+                 description=f"linear growth of {n} from t = 0") for n in ("mc1", "mc2")]
+    ps += [_drift_param(f"s{n}", "drift_step", 0.005, f"step of {n} at t_step")
+           for n in ("mc1", "mc2")]
+    ps.append(Param(name="t_step", unit="tau", display_unit="h", display_factor=U * units.HOUR,
+                    scale=U * units.HOUR, null=np.pi, effect="drift_step",
+                    description="onset of the drift step (grid parameter)"))
     return ParameterSpace(tuple(ps))

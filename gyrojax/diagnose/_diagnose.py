@@ -1,0 +1,425 @@
+"""The diagnosis pipeline: one linearisation, four answers, one verdict (spec gap-diagnosis §4.2).
+
+Stage 0 fits the nominal model on the train split and whitens its residual by the noise level
+(given, or estimated from first differences of the residual, which a smooth gap barely touches).
+Stage 1 maps the gap (time x channel, known lines, the largest unlisted line). Stage 2 screens the
+library by efficient score tests with posteriors and an ambiguity set, with one greedy forward
+step for a second effect. Stage 3 reports confounding (visible fraction, no-signature directions,
+aliases by name) and design advice. Stage 4 refits the candidates and measures the held-out gap
+before and after. Stage 5 gives the verdict. Multiplicity: Benjamini-Hochberg over every gap-map
+cell and every library test together; detection = any q < alpha.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..analysis.observability import format_combination
+from ..record import BenchRecord
+from ._report import GapReport
+from ._stats import (
+    LAMBDA_80,
+    Screen,
+    _orth,
+    _project,
+    ambiguity_set,
+    bh_qvalues,
+    canonical_correlation,
+    gap_map_cells,
+    nominal_basis,
+    screen,
+)
+
+__all__ = ["diagnose", "RIGS"]
+
+RIGS = ("esg",)
+
+
+def _problem(record, rig, holdout, noise_std, effects, order):
+    if rig == "esg":
+        from ._esg import ESG_LIBRARY, ESGProblem
+
+        if effects is not None:
+            bad = [e for e in effects if e not in ESG_LIBRARY]
+            if bad:
+                raise ValueError(f"unknown effect(s) {bad} for --rig esg; the catalogue is "
+                                 f"{', '.join(ESG_LIBRARY)}")
+        c = record.conditions
+        missing = [k for k in ("latitude_deg", "scheme") if k not in c]
+        if missing:
+            raise ValueError(f"record lacks the condition(s) {missing}; give --latitude DEG and "
+                             "--scheme NAME (or store them as NetCDF attributes)")
+        if order not in ("exact", "first"):
+            raise ValueError(f"order={order!r}; use 'exact' (model 5.1) or 'first' (model 3.1)")
+        return ESGProblem(record, holdout=holdout, noise_std=noise_std, effects=effects,
+                          order=order)
+    raise ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: {', '.join(RIGS)}")
+
+
+def _check_record(record: BenchRecord, holdout: float):
+    y = np.asarray(record.y)
+    t = np.asarray(record.t)
+    if not 0 <= holdout < 0.9:
+        raise ValueError(f"holdout={holdout}; give a fraction in [0, 0.9) of the record to hold out")
+    bad = ~np.isfinite(y)
+    if bad.any():
+        ch, idx = np.argwhere(bad)[0][1], np.argwhere(bad)[0][0]
+        raise ValueError(f"channel {record.channels[ch]!r} has {int(bad[:, ch].sum())} NaN/inf "
+                         f"samples (first at t = {t[idx]:g} s); mask or interpolate them first")
+    for ch, name in enumerate(record.channels):
+        if np.ptp(y[:, ch]) == 0:
+            raise ValueError(f"channel {name!r} is constant ({y[0, ch]:g}); a stuck channel "
+                             "cannot be diagnosed: check the recording")
+    n_train = len(t) - int(round(holdout * len(t)))
+    if n_train < 60:
+        raise ValueError(f"record too short to fit: {n_train} train samples (of {len(t)}); "
+                         "need at least 60 - record longer or lower --holdout")
+
+
+def _noise(problem, resid):
+    """Per-channel noise level and its dof: given, or from first differences (von Neumann)."""
+    if problem.noise_std is not None:
+        s = np.broadcast_to(np.asarray(problem.noise_std, float), (resid.shape[1],)).copy()
+        return s, np.inf, "given"
+    d = np.diff(resid, axis=0)
+    s = np.sqrt(np.mean(d * d, axis=0) / 2)
+    return s, 2 * (resid.shape[0] - 1) / 3, "estimated from first differences of the residual"
+
+
+def _greedy_second(e, span, rows, first: Screen, alpha):
+    """Rescore the library on the residual ``e`` of the first effect's refit, with the span of
+    the nominal and first-effect Jacobians projected out; Bonferroni over the rest."""
+    jn2 = span
+    others = [r.sig for r in rows if r is not first and r.dof > 0]
+    if not others:
+        return None
+    resc = screen(e, jn2, others)
+    best = max(resc, key=lambda r: r.lm)
+    p_bonf = min(1.0, best.p * len(others))
+    return best if p_bonf < alpha and best.flag not in ("no signature",
+                                                        "structurally confounded") else None
+
+
+def _consistency(row: Screen, prob, n, c, cells) -> float:
+    """Cosine between the predicted and the observed excess over the finest time windows: does
+    the effect's signature lie where the gap lies?"""
+    tc = [x for x in cells if x["axis"] == "time"]
+    if not tc or row.dof == 0:
+        return float("nan")
+    finest = max(x["level"] for x in tc)
+    fine = [x for x in tc if x["level"] == finest]
+    pred = (row.projected @ row.beta).reshape(n, c)
+    chans = list(prob.channels)
+    obs, pr = [], []
+    for x in fine:
+        i0 = int(np.searchsorted(prob.t[:n], x["t0"]))
+        i1 = int(np.searchsorted(prob.t[:n], x["t1"])) + 1
+        obs.append(max(0.0, x["excess"]))
+        pr.append(float(np.sum(pred[i0:i1, chans.index(x["channel"])] ** 2)))
+    obs, pr = np.array(obs), np.array(pr)
+    if np.linalg.norm(obs) == 0 or np.linalg.norm(pr) == 0:
+        return float("nan")
+    return float(obs @ pr / np.linalg.norm(obs) / np.linalg.norm(pr))
+
+
+def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=None,
+             holdout: float = 0.25,
+             alpha: float = 0.05, noise_std=None, design_advice: bool = True,
+             max_refits: int = 3, prior: str = "design", order: str = "exact") -> GapReport:
+    """Diagnose the gap between the rig's nominal model and ``record``.
+
+    **Arguments:**
+    - `record`: a BenchRecord with the rig's channels and conditions (ESG: ``scheme``,
+      ``latitude_deg``).
+    - `rig`: rig name (``"esg"``).
+    - `conditions`: test conditions added to (or overriding) the record's, e.g.
+      ``{"scheme": "polar", "latitude_deg": 55.75}``.
+    - `effects`: the library to screen (default: the rig's whole catalogue).
+    - `holdout`: fraction of the record (its end) held out for the before/after gap.
+    - `alpha`: significance level after multiplicity control.
+    - `noise_std`: measurement noise per channel (SI); default estimated from the residual.
+    - `design_advice`: compute the design advisor for confounded, weak or ambiguous effects.
+    - `order`: ESG model, ``"exact"`` (5.1) or the paper's first-order ``"first"`` (3.1).
+    - `prior`: Bayes-factor prior, ``"design"`` (g-prior, default) or ``"scale"`` (prior scales).
+
+    **Returns:** a :class:`GapReport` (``.to_json()``, ``.markdown()``).
+    """
+    timings = {}
+    t_start = time.perf_counter()
+    if conditions:
+        record = record.with_conditions(**dict(conditions))
+    _check_record(record, holdout)
+    prob = _problem(record, rig, holdout, noise_std, effects, order)
+    n, c = prob.n_train, len(prob.channels)
+    params0 = prob.fit_nominal()
+    pred0 = prob.predict(params0)
+    resid_all = prob.y - pred0
+    sigma, noise_dof, noise_src = _noise(prob, resid_all[:n])
+    timings["nominal_fit_s"] = time.perf_counter() - t_start
+
+    t0 = time.perf_counter()
+    jn_all, sigs_all = prob.jacobians(params0, sigma)
+    rows_tr = slice(0, n * c)
+    jn = jn_all[rows_tr]
+    sigs = [_train_slice(s, n * c) for s in sigs_all]
+    s_full = {s.name: s for s in sigs_all}
+    e_all = (resid_all / sigma).reshape(-1)
+    e = e_all[rows_tr]
+    timings["jacobians_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    rows = screen(e, jn, sigs, prior=prior)
+    cells = gap_map_cells(e.reshape(n, c), prob.t[:n], prob.channels, n_params=jn.shape[1],
+                          noise_dof=noise_dof, lines=prob.lines, jn=jn)
+    p_all = np.array([x["p"] for x in cells] + [r.p for r in rows])
+    q_all = bh_qvalues(p_all)
+    for x, q in zip(cells, q_all[: len(cells)]):
+        x["q"] = float(q)
+        x["significant"] = bool(q < alpha)
+    for r, q in zip(rows, q_all[len(cells):]):
+        r.q = float(q)
+    excess = sum(max(0.0, x["excess"]) for x in cells if x["axis"] == "time"
+                 and x["cell"] == cells[0]["cell"])
+    detected = bool(np.any(q_all < alpha))
+    amb = ambiguity_set(rows) if detected else []
+    timings["screening_s"] = time.perf_counter() - t0
+
+    # confounding + pairwise canonical correlations of projected signatures
+    pairs = {}
+    for i, a in enumerate(rows):
+        for b in rows[i + 1:]:
+            pairs[(a.sig.name, b.sig.name)] = canonical_correlation(a.projected, b.projected)
+
+    top = max(rows, key=lambda r: r.posterior) if rows else None
+
+    # held-out gap and refits
+    t0 = time.perf_counter()
+    n_ho = len(e_all) - n * c
+    band = _null_band(jn_all, n * c, n_ho)
+    g_nom = float(np.mean(e_all[n * c:] ** 2) - 1) if n_ho else float("nan")
+    g_nom_train = float(np.mean(e ** 2) - 1)
+
+    def run_refit(combo):
+        pred, coeffs, _ = prob.refit(params0, [(r.sig, r.grid_index) for r in combo], sigma)
+        ea = (prob.y - pred) / sigma
+        g_aug = float(np.mean(ea[n:] ** 2) - 1) if n_ho else float("nan")
+        span = np.concatenate([jn] + [r.sig.jac[r.grid_index] for r in combo], axis=1)
+        span_all = np.concatenate([jn_all] + [s_full[r.sig.name].jac[r.grid_index]
+                                              for r in combo], axis=1)
+        band_aug = _null_band(span_all, n * c, n_ho)
+        post_cells = gap_map_cells(ea[:n], prob.t[:n], prob.channels,
+                                   n_params=jn.shape[1] + sum(r.dof for r in combo),
+                                   noise_dof=noise_dof, lines=prob.lines, jn=span)
+        qq = bh_qvalues(np.array([x["p"] for x in post_cells]))
+        remaining = [dict(x, q=float(q)) for x, q in zip(post_cells, qq) if q < alpha]
+        resid_after[tuple(r.sig.name for r in combo)] = ea
+        return dict(effects=[r.sig.name for r in combo], coefficients=coeffs,
+                    onestep={r.sig.name: _onestep_display(r) for r in combo},
+                    gap_train_after=float(np.mean(ea[:n] ** 2) - 1),
+                    heldout_gap_before=g_nom, heldout_gap_after=g_aug,
+                    reduction=(1 - g_aug / g_nom) if n_ho and g_nom > band[1] else None,
+                    heldout_null_band_after=list(band_aug),
+                    closure=bool(g_aug <= band_aug[1]) if n_ho else None,
+                    remaining_cells=remaining), ea[:n].reshape(-1), span
+
+    refits = []
+    resid_after = {}
+    second = None
+    if detected:
+        singles = {}
+        for r in amb[:max_refits]:
+            if r.dof > 0:
+                singles[r.sig.name] = run_refit([r])
+                refits.append(singles[r.sig.name][0])
+        # greedy forward step: the top effect's refit leaves a localised gap -> rescore the rest
+        # of the library on the refit residual with the top effect's signature in the span
+        if top is not None and top.sig.name in singles and singles[top.sig.name][0][
+                "remaining_cells"]:
+            _, e_post, span = singles[top.sig.name]
+            second = _greedy_second(e_post, span, rows, top, alpha)
+            if second is not None:
+                partner = next(r for r in rows if r.sig.name == second.sig.name)
+                refits.append(run_refit([top, partner])[0])
+    timings["refit_s"] = time.perf_counter() - t0
+
+    verdict = _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band)
+
+    advice = []
+    if design_advice:
+        t0 = time.perf_counter()
+        flagged = [r for r in rows if r.flag != "visible"]
+        if verdict["kind"] == "ambiguous":
+            flagged += [r for r in amb if r not in flagged]
+        if flagged:
+            advice = _design_advice(prob, params0, sigma, flagged)
+        timings["design_advice_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+
+    return GapReport(
+        rig=rig, channels=prob.channels, n_train=n, n_heldout=len(prob.t) - n,
+        nominal=prob.display_nominal(params0), nominal_units=dict(zip(prob.nominal_names,
+                                                                       prob.nominal_units)),
+        noise={"std": [float(s) for s in sigma], "source": noise_src, "dof": float(noise_dof)},
+        gap={"train": g_nom_train, "heldout": g_nom, "heldout_null_band": list(band),
+             "rms_train": [float(x) for x in np.sqrt(np.mean(resid_all[:n] ** 2, axis=0))],
+             "rms_heldout": [float(x) for x in np.sqrt(np.mean(resid_all[n:] ** 2, axis=0))]
+             if n_ho else None},
+        where=cells, ranking=[_row_json(r, prob, excess, n, c, cells) for r in
+                              sorted(rows, key=lambda r: -r.posterior)],
+        ambiguity={"set": [r.sig.name for r in amb],
+                   "pairs": {f"{a} ~ {b}": v for (a, b), v in pairs.items()}},
+        second=second.sig.name if second is not None else None,
+        refits=refits, design_advice=advice, verdict=verdict, alpha=alpha, timings=timings,
+        residual_all=resid_all / sigma, t=prob.t,
+        residual_after=resid_after.get(tuple(verdict.get("effects") or ())))
+
+
+def _train_slice(sig, m):
+    import dataclasses
+
+    return dataclasses.replace(sig, jac=sig.jac[:, :m, :])
+
+
+def _null_band(jn_all, m_train, m_ho):
+    """Expected held-out gap under the nominal model (parameter-extrapolation leverage) and its
+    upper 95 % limit."""
+    if m_ho == 0:
+        return (float("nan"), float("nan"))
+    jt, jh = jn_all[:m_train], jn_all[m_train:]
+    u, s, vt = np.linalg.svd(jt, full_matrices=False)
+    keep = s > 1e-10 * s[0]
+    a = jh @ (vt[keep].T / s[keep])
+    mean = float(np.sum(a * a) / m_ho)
+    return (mean, mean + 1.96 * np.sqrt(2.0 / m_ho) * (1 + mean))
+
+
+def _onestep_display(r: Screen) -> dict:
+    return {n: float(b * ps) for n, b, ps in zip(r.sig.names, r.beta, r.sig.prior_scale)}
+
+
+def _row_json(r: Screen, prob, excess, n, c, cells):
+    names = prob.nominal_names
+    aliases = []
+    for k, en in enumerate(r.sig.names):
+        big = [(names[i], float(r.alias[i, k] * prob.nominal_scales[i] / r.sig.prior_scale[k]),
+                float(r.alias_std[i, k])) for i in range(len(names))
+               if abs(r.alias_std[i, k]) > 1]
+        if big:
+            aliases.append({"effect_param": en, "absorbed_by": [
+                {"name": a, "coefficient": x, "in_stderr": s} for a, x, s in big]})
+    strength = {}
+    for al in aliases:
+        for a in al["absorbed_by"]:
+            strength[a["name"]] = max(strength.get(a["name"], 0.0), abs(a["in_stderr"]))
+    confounded_with = sorted(strength, key=lambda k: -strength[k])
+    cons = _consistency(r, prob, n, c, cells)
+    mde = _mde(r.projected)
+    return {
+        "name": r.sig.name, "family": r.sig.family, "kind": r.sig.kind,
+        "params": list(r.sig.names), "units": list(r.sig.units),
+        "prior_scale": [float(x) for x in r.sig.prior_scale],
+        "score": r.lm, "dof": r.dof, "p": r.p, "q": getattr(r, "q", None),
+        "log_bf": r.log_bf, "posterior": r.posterior,
+        "onestep": _onestep_display(r),
+        "onestep_se": {nm: float(s * ps) for nm, s, ps in zip(r.sig.names, r.beta_se,
+                                                              r.sig.prior_scale)},
+        "grid": ({"name": r.sig.grid_name, "unit": r.sig.grid_unit,
+                  "best": r.sig.grid[r.grid_index]} if r.sig.grid else None),
+        "explained_gap_share": float(min(1.0, r.lm / excess)) if excess > 0 else 0.0,
+        "signature_consistency": cons,
+        "visible_fraction": r.visible_fraction, "identifiable": r.flag in
+        ("visible", "weakly identifiable", "partly no signature"),
+        "flag": r.flag,
+        "no_signature_directions": [format_combination(v, r.sig.names) for v in r.null_directions],
+        "confounded_directions": [format_combination(v, r.sig.names)
+                                  for v in r.confounded_directions],
+        "confounded_with": confounded_with, "aliases": aliases,
+        "mde_over_prior": mde,
+    }
+
+
+def _mde(jt):
+    """Minimum detectable effect in prior-scale units (80 % power, alpha 0.05, 1 dof) along the
+    least visible direction of the projected signature."""
+    _, s = _orth(jt, 1e-12)
+    if s.size == 0 or s[-1] == 0:
+        return float("inf")
+    if s.size < jt.shape[1]:
+        return float("inf")
+    return float(np.sqrt(LAMBDA_80) / s[-1])
+
+
+def _design_advice(prob, params0, sigma, flagged):
+    rows = []
+    names = {r.sig.name for r in flagged}
+    for label, cond, t in prob.designs():
+        jn, sigs = prob.jacobians(params0, sigma, conditions=cond, t=t)
+        u = nominal_basis(jn)
+        proj = {s.name: _project(u, s.jac[min(r.grid_index, s.jac.shape[0] - 1)])
+                for s, r in zip(sigs, _match(sigs, flagged))}
+        for s in sigs:
+            if s.name not in names:
+                continue
+            others = [canonical_correlation(proj[s.name], proj[o.name]) for o in sigs
+                      if o.name != s.name]
+            rows.append({"effect": s.name, "design": label, "mde_over_prior": _mde(proj[s.name]),
+                         "max_correlation_with_other_effects": float(max(others) if others else 0)})
+    out = []
+    for nm in sorted(names):
+        cand = sorted([r for r in rows if r["effect"] == nm],
+                      key=lambda r: (r["mde_over_prior"], r["max_correlation_with_other_effects"]))
+        out.extend(cand)
+    return out
+
+
+def _match(sigs, flagged):
+    by = {r.sig.name: r for r in flagged}
+
+    class _Zero:
+        grid_index = 0
+
+    return [by.get(s.name, _Zero()) for s in sigs]
+
+
+def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band):
+    base = {"heldout_gap_before": g_nom, "heldout_null_band": list(band)}
+    if not detected:
+        return {"kind": "no-gap", "effects": [], "heldout_gap_after": None, **base,
+                "reason": f"no gap-map cell or library test significant at q < {alpha}"}
+    sig_rows = [r for r in rows if getattr(r, "q", 1.0) < alpha]
+    if not sig_rows:
+        where = [f"{x['axis']} {x['cell']} {x['channel']}" for x in cells if x.get("significant")]
+        return {"kind": "unexplained", "effects": [], "heldout_gap_after": None, **base,
+                "cells": where[:10],
+                "reason": "the gap map is significant but no catalogued effect's score test is"}
+    if top.flag in ("structurally confounded", "no signature"):
+        return {"kind": "confounded", "effects": [top.sig.name], "heldout_gap_after": None,
+                **base, "reason": f"{top.sig.name} is {top.flag} on this design"}
+    names = [r.sig.name for r in amb]
+    single = [rf for rf in refits if len(rf["effects"]) == 1]
+    best = min(single, key=lambda rf: rf["gap_train_after"]) if single else None
+    if len(amb) > 1:
+        return {"kind": "ambiguous", "effects": names,
+                "heldout_gap_after": best["heldout_gap_after"] if best else None, **base,
+                "posterior": {r.sig.name: r.posterior for r in amb},
+                "reason": "no single effect holds 90 % of the posterior; see design_advice"}
+    chosen = next((rf for rf in refits if rf["effects"] == [top.sig.name]), None)
+    if second is not None:
+        pair = next((rf for rf in refits if len(rf["effects"]) == 2), None)
+        if pair is not None and not pair["remaining_cells"]:
+            chosen = pair
+    if chosen is None:
+        return {"kind": "unexplained", "effects": [], "heldout_gap_after": None, **base,
+                "reason": "no refit available"}
+    if chosen["remaining_cells"]:
+        cells_left = [f"{x['axis']} {x['cell']} {x['channel']}" for x in chosen["remaining_cells"]]
+        return {"kind": "unexplained", "effects": chosen["effects"],
+                "heldout_gap_after": chosen["heldout_gap_after"], **base, "cells": cells_left[:10],
+                "reason": "after refitting the best catalogued effect(s) the localised gap map "
+                          "still has significant cells"}
+    return {"kind": "attributed", "effects": chosen["effects"],
+            "heldout_gap_after": chosen["heldout_gap_after"], **base,
+            "posterior": {r.sig.name: r.posterior for r in amb},
+            "p": {r.sig.name: r.p for r in amb}}

@@ -1,0 +1,171 @@
+"""GapReport: the diagnosis as data (JSON per the DESIGN.md contract) and as Markdown."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .. import units
+
+__all__ = ["GapReport"]
+
+
+def _clean(x):
+    """JSON-safe: numpy -> Python, non-finite -> None."""
+    if isinstance(x, dict):
+        return {str(k): _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    if isinstance(x, np.ndarray):
+        return _clean(x.tolist())
+    return x
+
+
+@dataclasses.dataclass
+class GapReport:
+    """Outcome of :func:`gyrojax.diagnose.diagnose`.
+
+    - `nominal`: fitted nominal parameters (display units, see `nominal_units`); `noise`: the
+      whitening level and where it came from.
+    - `gap`: normalised gap ``G = mean(e^2) - 1`` of the whitened residual on train and held-out
+      data (0 when model and data agree) with the held-out null band, and residual RMS (SI).
+    - `where`: gap-map cells (axis, cell, channel, statistic, dof, p, q, significant).
+    - `ranking`: one row per catalogued effect (score, p, q, posterior, one-step estimate,
+      visible fraction and flag, no-signature directions, aliases by name, MDE / prior scale).
+    - `ambiguity`: the 90 %-posterior set and the canonical correlations of effect pairs.
+    - `refits`: per refitted candidate: coefficients, held-out gap before/after, reduction,
+      closure, gap-map cells still significant.
+    - `design_advice`: per flagged effect and candidate design, MDE / prior scale and the largest
+      correlation with another effect.
+    - `verdict`: kind (no-gap | attributed | ambiguous | confounded | unexplained) and effects.
+    """
+
+    rig: str
+    channels: tuple
+    n_train: int
+    n_heldout: int
+    nominal: dict
+    nominal_units: dict
+    noise: dict
+    gap: dict
+    where: list
+    ranking: list
+    ambiguity: dict
+    second: str | None
+    refits: list
+    design_advice: list
+    verdict: dict
+    alpha: float
+    timings: dict
+    residual_all: np.ndarray = dataclasses.field(repr=False)  # whitened, nominal fit, (n, c)
+    t: np.ndarray = dataclasses.field(repr=False)
+    residual_after: np.ndarray | None = dataclasses.field(default=None, repr=False)
+
+    @property
+    def kind(self) -> str:
+        return self.verdict["kind"]
+
+    def candidate(self, name: str) -> dict:
+        for r in self.ranking:
+            if r["name"] == name:
+                return r
+        raise KeyError(f"no effect {name!r} in the report; it has {[r['name'] for r in self.ranking]}")
+
+    def candidates_json(self) -> list:
+        out = []
+        for r in self.ranking:
+            rf = next((x for x in self.refits if x["effects"] == [r["name"]]), None)
+            out.append({
+                "name": r["name"], "score": r["score"], "dof": r["dof"], "p_value": r["p"],
+                "q_value": r["q"], "posterior": r["posterior"],
+                "identifiable": r["identifiable"], "visibility": r["flag"],
+                "visible_fraction": r["visible_fraction"],
+                "confounded_with": r["confounded_with"], "aliases": r["aliases"],
+                "no_signature_directions": r["no_signature_directions"],
+                "confounded_directions": r["confounded_directions"],
+                "onestep": r["onestep"], "onestep_se": r["onestep_se"], "units": r["units"],
+                "grid": r["grid"], "signature_consistency": r["signature_consistency"],
+                "mde_over_prior": r["mde_over_prior"],
+                "heldout_gap_after": rf["heldout_gap_after"] if rf else None,
+                "reduction": rf["reduction"] if rf else None,
+            })
+        return out
+
+    def to_json(self) -> dict:
+        return _clean({
+            "rig": self.rig, "channels": list(self.channels),
+            "split": {"train_samples": self.n_train, "heldout_samples": self.n_heldout,
+                      "kind": "time-ordered (held-out = the record's end)"},
+            "nominal": {"parameters": {k: {"value": v, "unit": self.nominal_units[k]}
+                                       for k, v in self.nominal.items()}},
+            "noise": self.noise, "gap": self.gap,
+            "where": [{k: v for k, v in x.items()} for x in self.where],
+            "candidates": self.candidates_json(),
+            "ambiguity": self.ambiguity, "second_effect": self.second,
+            "refits": self.refits, "design_advice": self.design_advice,
+            "verdict": self.verdict, "alpha": self.alpha, "timings": self.timings,
+        })
+
+    def markdown(self) -> str:
+        v = self.verdict
+        lines = [f"# Gap diagnosis ({self.rig})", ""]
+        eff = ", ".join(v.get("effects") or []) or "-"
+        lines.append(f"**Verdict: {v['kind']}** ({eff})" + (f" - {v['reason']}" if v.get("reason")
+                                                            else ""))
+        g0, g1 = v.get("heldout_gap_before"), v.get("heldout_gap_after")
+        band = self.gap.get("heldout_null_band") or [None, None]
+        if g0 is not None and math.isfinite(g0):
+            after = f"{g1:.3g}" if g1 is not None else "-"
+            lines.append(f"Held-out gap G = mean(e^2) - 1: before {g0:.3g}, after {after} "
+                         f"(null band <= {band[1]:.3g})")
+        sig = ", ".join(f"{s / units.ARCSEC:.3g} arcsec" if self.rig == "esg" else f"{s:.3g}"
+                        for s in self.noise["std"])
+        lines += [f"Noise level: {sig} ({self.noise['source']}); train gap {self.gap['train']:.3g}",
+                  "", "## Where (significant cells, BH q < alpha)", ""]
+        hits = [x for x in self.where if x.get("significant")]
+        if hits:
+            lines += ["| axis | cell | channel | statistic | expected | q |", "|---|---|---|---|---|---|"]
+            for x in sorted(hits, key=lambda x: x["q"])[:12]:
+                lines.append(f"| {x['axis']} | {x['cell']} | {x['channel']} | "
+                             f"{x['statistic']:.4g} | {x['expected']:.4g} | {x['q']:.2g} |")
+        else:
+            lines.append("none")
+        lines += ["", "## Which (efficient score tests at the nominal fit)", "",
+                  "| effect | score | dof | p | posterior | visible | flag | absorbed by |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in self.ranking:
+            lines.append(f"| {r['name']} | {r['score']:.3g} | {r['dof']} | {r['p']:.2g} | "
+                         f"{r['posterior']:.2f} | {r['visible_fraction']:.2g} | {r['flag']} | "
+                         f"{', '.join(r['confounded_with'][:3]) or '-'} |")
+        nulls = [(r["name"], d) for r in self.ranking for d in r["no_signature_directions"]]
+        if nulls:
+            lines += ["", "No signature on this bench: " + "; ".join(f"{d} ({n})" for n, d in nulls)]
+        conf = [(r["name"], d) for r in self.ranking for d in r["confounded_directions"]]
+        if conf:
+            lines += ["", "Absorbed by the nominal parameters (visible fraction < 1e-6): "
+                      + "; ".join(f"{d} ({n})" for n, d in conf)]
+        if self.refits:
+            lines += ["", "## How much (refit on train, gap on held-out)", "",
+                      "| effects | held-out gap before | after | reduction | closure | cells left |",
+                      "|---|---|---|---|---|---|"]
+            for rf in self.refits:
+                red = f"{rf['reduction']:.2f}" if rf["reduction"] is not None else "-"
+                lines.append(f"| {' + '.join(rf['effects'])} | {rf['heldout_gap_before']:.3g} | "
+                             f"{rf['heldout_gap_after']:.3g} | {red} | {rf['closure']} | "
+                             f"{len(rf['remaining_cells'])} |")
+        if self.design_advice:
+            lines += ["", "## Design advice (MDE in prior scales; lower is better)", "",
+                      "| effect | design | MDE / prior | max corr. with other effects |",
+                      "|---|---|---|---|"]
+            for a in self.design_advice:
+                lines.append(f"| {a['effect']} | {a['design']} | {a['mde_over_prior']:.3g} | "
+                             f"{a['max_correlation_with_other_effects']:.3f} |")
+        return "\n".join(lines)

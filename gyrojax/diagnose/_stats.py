@@ -1,0 +1,356 @@
+"""The statistics of the gap diagnosis, rig-agnostic (spec gap-diagnosis §4.2-4.3).
+
+Everything here works on *whitened* quantities: the residual ``e`` (length ``m``, unit variance
+under the nominal model) and Jacobians whose columns are derivatives of ``e``'s model per unit
+of a parameter's scale (nominal parameters: ``Param.scale``; effects: their prior scale). So an
+effect's coefficient ``b`` is in prior-scale units and its noncentrality is ``b^T I b``.
+
+- the nominal span is an orthonormal basis ``U`` of ``J_theta`` (SVD; ``I - P`` is never formed);
+- efficient score test per effect: ``J~ = J - U U^T J``, ``I = J~^T J~``, ``s = J~^T e``,
+  ``LM = s^T I^+ s ~ chi2(rank I)``; grid effects take ``sup_g LM_g`` with a parametric bootstrap
+  p-value (the scores are jointly Gaussian with covariance ``J~_g^T J~_h`` under H0);
+- score Bayes factor with ``b ~ N(0, 1)``: ``log BF = s^T (I + 1)^-1 s / 2 - log det(1 + I) / 2``;
+- visible fraction ``v = 1 - rho_max^2`` of the effect's signature after the nominal projection,
+  null directions of the raw signature ("no signature on this bench"), the alias matrix
+  ``A = J_theta^+ J_beta`` by name, and canonical correlations between projected signatures.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy import stats
+
+__all__ = ["Signature", "Screen", "screen", "bh_qvalues", "gap_map_cells", "canonical_correlation"]
+
+LAMBDA_80 = 7.85  # noncentrality giving 80 % power at alpha = 0.05, 1 dof
+NULL_TOL = 1e-6  # relative singular value of a raw signature direction counted as no signature
+
+
+@dataclasses.dataclass(frozen=True)
+class Signature:
+    """One catalogued effect as the diagnosis sees it.
+
+    - `name`, `family`: the effect's identifier (``rotor_tilt``) and family (``mounting``...).
+    - `names`, `units`: its coefficients and their display units; `prior_scale`: their prior
+      magnitude in display units.
+    - `jac`: ``(G, m, p)`` whitened Jacobian per unit prior scale, one slice per grid value.
+    - `grid`, `grid_name`, `grid_unit`: the values of a parameter identified only under the
+      alternative (decay time, onset, ...), in display units; empty for ordinary effects.
+    - `kind`: ``"model"`` (a term of the rig's equations) or ``"output"`` (added to the channels).
+    """
+
+    name: str
+    family: str
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    prior_scale: np.ndarray
+    jac: np.ndarray
+    grid: tuple[float, ...] = ()
+    grid_name: str = ""
+    grid_unit: str = ""
+    kind: str = "model"
+
+    def __post_init__(self):
+        if self.jac.ndim != 3 or self.jac.shape[2] != len(self.names):
+            raise ValueError(f"signature {self.name}: jac has shape {self.jac.shape}; expected "
+                             f"(grid, samples, {len(self.names)})")
+
+
+def nominal_basis(jn: np.ndarray, *, rtol: float = 1e-10) -> np.ndarray:
+    """Orthonormal basis of the span of the nominal Jacobian (rank-revealing SVD)."""
+    u, s, _ = np.linalg.svd(jn, full_matrices=False)
+    return u[:, s > rtol * s[0]]
+
+
+def _project(u, j):
+    return j - u @ (u.T @ j)
+
+
+def _orth(j, rtol=1e-8):
+    """Orthonormal basis of span(j) and the kept singular values."""
+    if j.shape[1] == 0:
+        return j, np.zeros(0)
+    u, s, _ = np.linalg.svd(j, full_matrices=False)
+    keep = s > rtol * max(s[0], 1e-300)
+    return u[:, keep], s[keep]
+
+
+def canonical_correlation(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest canonical correlation between the column spans of ``a`` and ``b``."""
+    qa, _ = _orth(a)
+    qb, _ = _orth(b)
+    if qa.shape[1] == 0 or qb.shape[1] == 0:
+        return 0.0
+    return float(min(1.0, np.linalg.svd(qa.T @ qb, compute_uv=False)[0]))
+
+
+def _lm(jt, e, raw_scale):
+    """Score statistic, its dof, the one-step estimate and its covariance (pseudo-inverse)."""
+    info = jt.T @ jt
+    s = jt.T @ e
+    w, v = np.linalg.eigh(info)
+    keep = w > 1e-10 * max(raw_scale, 1e-300)
+    winv = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
+    cov = (v * winv) @ v.T
+    return float(s @ cov @ s), int(keep.sum()), cov @ s, cov, info, s
+
+
+def _log_bf_g(lm, dof, lambda0):
+    """Score Bayes factor under a design-relative (Zellner g-) prior ``b ~ N(0, g I^-1)`` with
+    ``g = lambda0 / dof``: the prior expects noncentrality ``lambda0`` whatever the effect's
+    units, so over-flexible effects pay ``dof/2 log(1 + g)`` and no prior scale can tilt it."""
+    if dof == 0:
+        return 0.0
+    g = lambda0 / dof
+    return 0.5 * g / (1 + g) * lm - 0.5 * dof * math.log1p(g)
+
+
+def _log_bf(info, s):
+    p = info.shape[0]
+    a = info + np.eye(p)
+    _, logdet = np.linalg.slogdet(a)
+    return 0.5 * float(s @ np.linalg.solve(a, s)) - 0.5 * logdet
+
+
+@dataclasses.dataclass
+class Screen:
+    """Screening result of one effect (see :func:`screen`)."""
+
+    sig: Signature
+    lm: float
+    dof: int
+    p: float
+    log_bf: float
+    grid_index: int
+    beta: np.ndarray  # one-step estimate, prior-scale units
+    beta_se: np.ndarray
+    visible_fraction: float
+    flag: str
+    null_directions: list  # coefficient vectors of raw-signature null directions
+    confounded_directions: list  # directions whose signature the nominal span absorbs (v < 1e-6)
+    alias: np.ndarray  # (p_nominal, p_effect), nominal scale units per prior-scale unit
+    alias_std: np.ndarray  # the same in the nominal parameters' standard errors
+    projected: np.ndarray  # J~ at the chosen grid value
+    lm_grid: np.ndarray
+    posterior: float = 0.0
+
+
+def _visibility(j, u):
+    """Visible fraction of an effect's signature and its invisible directions.
+
+    Raw directions (in the effect's coefficients) with relative singular value <= ``NULL_TOL``
+    have no signature at all; on the rest, the generalised eigenproblem
+    ``(J~^T J~, J^T J)`` gives each direction's visible fraction ``1 - rho^2``. Returns
+    ``(v_min, no-signature directions, structurally confounded directions (v < 1e-6))``.
+    """
+    p = j.shape[1]
+    _, s, vt = np.linalg.svd(j, full_matrices=True)
+    s = np.concatenate([s, np.zeros(p - s.size)])
+    if s[0] == 0:
+        return 0.0, [vt[i] for i in range(p)], []
+    keep = s > NULL_TOL * s[0]
+    null = [vt[i] for i in range(p) if not keep[i]]
+    vr = vt[keep].T  # (p, r) signature-carrying coefficient directions
+    b = j @ vr
+    bt = _project(u, b)
+    # whiten by the raw information of the kept directions: b^T b = diag(s^2)
+    scale = 1.0 / s[keep]
+    m = (bt * scale).T @ (bt * scale)
+    w, evec = np.linalg.eigh((m + m.T) / 2)
+    w = np.clip(w, 0.0, 1.0)
+    dirs = vr @ (evec * scale[:, None])
+    confounded = [dirs[:, i] / np.linalg.norm(dirs[:, i]) for i in range(len(w)) if w[i] < 1e-6]
+    return float(w[0]), null, confounded
+
+
+def visibility_flag(v: float, has_null: bool, visible_dims: int, n_confounded: int = 0) -> str:
+    if visible_dims == 0:
+        return "no signature"
+    if v < 1e-6:
+        return ("partly structurally confounded" if n_confounded < visible_dims
+                else "structurally confounded")
+    if v < 0.05:
+        return "practically confounded"
+    if v < 0.2:
+        return "weakly identifiable"
+    return "partly no signature" if has_null else "visible"
+
+
+def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int = 2000,
+           seed: int = 0, prior_none: float = 0.5, prior: str = "design",
+           lambda0: float = 32.0) -> list[Screen]:
+    """Efficient-score screening of every signature against the residual ``e`` (whitened).
+
+    ``jn``: whitened nominal Jacobian (``m x p``, columns per nominal scale). Grid effects get the
+    sup over their grid with a bootstrap p-value from ``n_boot`` draws (seeded). Posteriors use
+    prior probability ``prior_none`` for "no effect" and the rest shared equally; the Bayes factor
+    uses ``prior="design"`` (g-prior expecting noncentrality ``lambda0``, the default) or
+    ``prior="scale"`` (``b ~ N(0, prior_scale^2)``, spec §4.2 step 5).
+    """
+    if prior not in ("design", "scale"):
+        raise ValueError(f"prior={prior!r}; use 'design' or 'scale'")
+    u = nominal_basis(jn)
+    cov_n = np.linalg.pinv(jn.T @ jn)
+    se_n = np.sqrt(np.maximum(np.diag(cov_n), 1e-300))
+    rng = np.random.default_rng(seed)
+    out = []
+    for sig in sigs:
+        lms, stats_g = [], []
+        for g in range(sig.jac.shape[0]):
+            j = sig.jac[g]
+            jt = _project(u, j)
+            raw = float(np.max(np.sum(j * j, axis=0))) if j.size else 0.0
+            lm, dof, beta, cov, info, s = _lm(jt, e, raw)
+            lms.append(lm)
+            stats_g.append((jt, dof, beta, cov, info, s))
+        gi = int(np.argmax(lms))
+        jt, dof, beta, cov, info, s = stats_g[gi]
+        if prior == "scale":
+            lbf = [_log_bf(st[4], st[5]) for st in stats_g]
+        else:
+            lbf = [_log_bf_g(lm_g, st[1], lambda0) for lm_g, st in zip(lms, stats_g)]
+        log_bf = float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
+        if dof == 0:
+            p = 1.0
+        elif len(lms) == 1:
+            p = float(stats.chi2.sf(lms[0], dof))
+        else:
+            p = _sup_pvalue(u, [st[0] for st in stats_g], lms[gi], n_boot, rng, sig.jac.shape[1])
+            if p <= 1.0 / (1 + n_boot):  # beyond every draw: the Bonferroni bound over the grid
+                p = min(p, len(lms) * float(stats.chi2.sf(lms[gi], dof)))
+        v, null, conf = _visibility(sig.jac[gi], u)
+        flag = visibility_flag(v, bool(null), sig.jac.shape[2] - len(null), len(conf))
+        alias = cov_n @ (jn.T @ sig.jac[gi])
+        alias_std = alias / se_n[:, None]
+        out.append(Screen(sig, lms[gi], dof, p, log_bf, gi, beta, np.sqrt(np.diag(cov)), v, flag,
+                          null, conf, alias, alias_std, jt, np.asarray(lms)))
+    _posteriors(out, prior_none)
+    return out
+
+
+def _sup_pvalue(u, jts, observed, n_boot, rng, m):
+    """P(sup_g LM_g >= observed) under H0 by drawing the residual z ~ N(0, I) - projection."""
+    z = rng.standard_normal((m, n_boot))
+    z = z - u @ (u.T @ z)
+    sup = np.zeros(n_boot)
+    for jt in jts:
+        w, v = np.linalg.eigh(jt.T @ jt)
+        keep = w > 1e-10 * max(w.max(), 1e-300)
+        t = (v[:, keep].T @ (jt.T @ z)) / np.sqrt(w[keep])[:, None]
+        sup = np.maximum(sup, np.sum(t * t, axis=0))
+    return float((1 + np.sum(sup >= observed)) / (1 + n_boot))
+
+
+def _posteriors(rows, prior_none):
+    if not rows:
+        return
+    k = len(rows)
+    logs = np.array([math.log(prior_none)] + [math.log((1 - prior_none) / k) + r.log_bf
+                                              for r in rows])
+    post = np.exp(logs - np.logaddexp.reduce(logs))
+    for r, pk in zip(rows, post[1:]):
+        r.posterior = float(pk)
+    return float(post[0])
+
+
+def ambiguity_set(rows: list[Screen], mass: float = 0.9) -> list[Screen]:
+    """Smallest set of effects holding ``mass`` of the posterior given that some effect is present."""
+    order = sorted(rows, key=lambda r: -r.posterior)
+    total = sum(r.posterior for r in order) or 1.0
+    chosen, acc = [], 0.0
+    for r in order:
+        chosen.append(r)
+        acc += r.posterior / total
+        if acc >= mass:
+            break
+    return chosen
+
+
+def bh_qvalues(p: np.ndarray) -> np.ndarray:
+    """Benjamini-Hochberg q-values."""
+    p = np.asarray(p, float)
+    n = p.size
+    if n == 0:
+        return p
+    order = np.argsort(p)
+    q = p[order] * n / np.arange(1, n + 1)
+    q = np.minimum.accumulate(q[::-1])[::-1]
+    out = np.empty(n)
+    out[order] = np.minimum(q, 1.0)
+    return out
+
+
+def fisher_g_pvalue(g: float, q: int) -> float:
+    """P(Fisher's g >= g) for ``q`` periodogram ordinates of white noise (exact series)."""
+    if q < 2:
+        return 1.0
+    total, j = 0.0, 1
+    while j <= q and j * g < 1:
+        total += (-1) ** (j - 1) * math.comb(q, j) * (1 - j * g) ** (q - 1)
+        j += 1
+    return float(min(max(total, 0.0), 1.0))
+
+
+def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_params: int,
+                  noise_dof: float, lines: dict[str, float], jn: np.ndarray,
+                  min_window: int = 16, levels: int = 5) -> list[dict]:
+    """The Stage-1 map of a whitened residual ``e`` (``n x c``).
+
+    - time x channel: windowed sums of squares over dyadic windows, against
+      ``E0 = n_w (1 - p/n)`` with an F reference when the noise level was estimated with
+      ``noise_dof`` degrees of freedom (``inf``: known);
+    - frequency: 2-dof score tests at the known ``lines`` (name -> period in s) per channel with
+      the nominal span projected out, and Fisher's g for the largest unlisted line.
+    Cells: dicts with axis, cell, channel, statistic, dof, expected, p.
+    """
+    n, c = e.shape
+    cells = []
+    frac = 1.0 - n_params / max(n * c, 1)
+    for lev in range(levels):
+        nw = n >> lev
+        if nw < min_window:
+            break
+        for k in range(1 << lev):
+            a, b = k * nw, (k + 1) * nw if k < (1 << lev) - 1 else n
+            for ch in range(c):
+                stat = float(np.sum(e[a:b, ch] ** 2))
+                e0 = (b - a) * frac
+                p = _f_sf(stat / e0, e0, noise_dof)
+                cells.append(dict(axis="time", cell=f"{t[a] / 3600:.2f}-{t[b - 1] / 3600:.2f} h",
+                                  channel=channels[ch], statistic=stat, dof=e0, expected=e0,
+                                  excess=stat - e0, p=p, t0=float(t[a]), t1=float(t[b - 1]),
+                                  level=lev))
+    u = nominal_basis(jn)
+    flat = e.reshape(-1)
+    for name, period in lines.items():
+        w = 2 * np.pi / period
+        for ch in range(c):
+            cols = np.zeros((n, c, 2))
+            cols[:, ch, 0], cols[:, ch, 1] = np.sin(w * t), np.cos(w * t)
+            jt = _project(u, cols.reshape(n * c, 2))
+            lm, dof, *_ = _lm(jt, flat, float(np.max(np.sum(cols.reshape(n * c, 2) ** 2, 0))))
+            p = float(stats.chi2.sf(lm, dof)) if dof else 1.0
+            cells.append(dict(axis="frequency", cell=f"{name} ({period / 3600:.4g} h)",
+                              channel=channels[ch], statistic=lm, dof=dof, expected=dof,
+                              excess=lm - dof, p=p))
+    if n >= 16:
+        for ch in range(c):
+            x = e[:, ch] - e[:, ch].mean()
+            power = np.abs(np.fft.rfft(x)[1:(n - 1) // 2 + 1]) ** 2
+            g = float(power.max() / power.sum())
+            kmax = int(np.argmax(power)) + 1
+            dt = (t[-1] - t[0]) / (n - 1)
+            cells.append(dict(axis="frequency", cell=f"largest line ({n * dt / kmax / 3600:.3g} h)",
+                              channel=channels[ch], statistic=g, dof=len(power),
+                              expected=1.0 / len(power), excess=0.0,
+                              p=fisher_g_pvalue(g, len(power)), period_s=n * dt / kmax))
+    return cells
+
+
+def _f_sf(ratio, d1, d2):
+    if not np.isfinite(d2):
+        return float(stats.chi2.sf(ratio * d1, d1))
+    return float(stats.f.sf(ratio, d1, d2))

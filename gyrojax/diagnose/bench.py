@@ -1,0 +1,355 @@
+"""Blind validation harness for the gap diagnosis (spec gap-diagnosis §5), ESG rig.
+
+:func:`generate` writes records (``case_XXXX.nc``) and, separately, a sealed manifest
+(``sealed/manifest.json``) keyed by each record file's SHA-256: the hidden effect, its
+coefficients and its noncentrality. The diagnosis reads only the record files (the diagnosis
+package never imports this module; a test enforces it). :func:`run` diagnoses every case, also
+runs two baselines on the same records (B1: Ljung-Box whiteness of the nominal residual; B2:
+refit every candidate and pick by BIC), and :func:`score` unseals and computes the metrics of
+§5.6 with Monte Carlo standard errors.
+
+Case families: ``null``; each library effect; ``two_effects``; and two effects the library omits
+(``heater_cycle``: a 2 h square wave on the gimbal angles; ``hvac_line``: a 5 h line).
+Magnitudes: the noncentrality ``lambda = b^T I_eff b`` of the hidden effect on the train split
+with the nominal parameters projected out, computed here from the truth model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import units
+from ..estimate.least_squares import trajectory_jacobian
+from ..io import load_record, save_record, write_json
+from ..models.esg import ESGConditions, ESGRig
+from ..record import BenchRecord
+
+__all__ = ["generate", "run", "score", "LIBRARY_FAMILIES", "OUT_OF_LIBRARY"]
+
+LIBRARY_FAMILIES = ("rotor_tilt", "base_misalignment", "drift_transient", "drift_ramp",
+                    "drift_step", "diurnal_line")
+OUT_OF_LIBRARY = ("heater_cycle", "hvac_line")
+SIDEREAL_DAY = 2 * math.pi / units.EARTH_RATE
+_TRUTH_RIG = ESGRig(base_param="rotvec")
+_EFFECT_PARAMS = {
+    "rotor_tilt": ("theta1", "theta2"),
+    "base_misalignment": ("dchi1", "dchi2", "dchi3"),
+    "drift_transient": ("dm11_0", "dm12_0", "dm21_0", "dm22_0", "dmc1_0", "dmc2_0"),
+    "drift_ramp": ("rmc1", "rmc2"),
+    "drift_step": ("smc1", "smc2"),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Design:
+    """A test design of the blind suite (spec §5.2, D3-like): scheme, latitude, length, noise."""
+
+    scheme: str = "vertical"
+    latitude_deg: float = 55.75
+    hours: float = 24.0
+    sample_s: float = 60.0
+    noise_arcsec: float = 1.0
+    holdout: float = 0.25
+
+    @property
+    def ts(self):
+        return np.arange(int(round(self.hours * 3600 / self.sample_s)) + 1) * self.sample_s
+
+
+@jax.jit
+def _square_wave(t):
+    return jnp.sign(jnp.sin(2 * jnp.pi * t / 7200.0))
+
+
+def _truth_params(rng, design):
+    sp = _TRUTH_RIG.param_space
+    vals = {n: rng.uniform(-0.2, 0.2) for n in ("m11", "m12", "m21", "m22", "mc1", "mc2")}
+    vals["alpha10"] = rng.uniform(-20, 20)
+    vals["alpha20"] = rng.uniform(-20, 20)
+    return sp.make(vals, display=True)
+
+
+def _output_columns(family, t, extra):
+    """Output-side signatures (n, c, k) in rad per unit coefficient."""
+    if family == "diurnal_line":
+        w = 2 * math.pi / SIDEREAL_DAY
+        cols = np.zeros((len(t), 2, 4))
+        for ch in range(2):
+            cols[:, ch, 2 * ch] = np.sin(w * t) * units.ARCSEC
+            cols[:, ch, 2 * ch + 1] = np.cos(w * t) * units.ARCSEC
+        return cols
+    raise KeyError(family)
+
+
+def _model_jac(params, cond, ts, names):
+    return np.asarray(trajectory_jacobian(_TRUTH_RIG, params, cond, jnp.asarray(ts), names))
+
+
+def _efficient(jn, jb):
+    q, _ = np.linalg.qr(jn)
+    jt = jb - q @ (q.T @ jb)
+    return jt.T @ jt
+
+
+def _hidden(rng, family, p, cond, design, lam):
+    """Set the hidden effect into ``p`` (or return an output term) with noncentrality ``lam``."""
+    ts = design.ts
+    n_train = len(ts) - int(round(design.holdout * len(ts)))
+    sigma = design.noise_arcsec * units.ARCSEC
+    nominal = _TRUTH_RIG.param_space.nominal_names()
+    truth = {"family": family}
+    p = dict(p)
+    out_term = np.zeros((len(ts), 2))
+    if family in _EFFECT_PARAMS or family in OUT_OF_LIBRARY:
+        if family == "drift_transient":
+            tau_h = float(rng.uniform(0.25, 3.0))
+            p["k_tr"] = jnp.asarray(1.0 / (tau_h * 3600 * units.EARTH_RATE))
+            truth["decay_time_h"] = tau_h
+        if family == "drift_step":
+            onset_h = float(rng.uniform(0.1, 0.65) * design.hours)
+            p["t_step"] = jnp.asarray(onset_h * 3600 * units.EARTH_RATE)
+            truth["onset_h"] = onset_h
+        if family in OUT_OF_LIBRARY:
+            jn = _model_jac(p, cond, ts[:n_train], nominal) / sigma
+            jb = _ool_columns(family, ts)[: n_train * 2] / sigma
+            b = np.ones(1)
+        else:
+            names = _EFFECT_PARAMS[family]
+            j = _model_jac(p, cond, ts[:n_train], nominal + names) / sigma
+            jn, jb = j[:, : len(nominal)], j[:, len(nominal):]
+            b = rng.standard_normal(len(names))
+        info = _efficient(jn, jb)
+        scale = math.sqrt(lam / float(b @ info @ b))
+        b = b * scale
+        if family in OUT_OF_LIBRARY:
+            out_term = (_ool_columns(family, ts)[:, 0] * b[0]).reshape(len(ts), 2)
+            truth["amplitude"] = float(b[0])
+        else:
+            for name, v in zip(_EFFECT_PARAMS[family], b):
+                p[name] = jnp.asarray(v)
+            truth["coefficients"] = {n: float(v) for n, v in zip(_EFFECT_PARAMS[family], b)}
+    elif family == "diurnal_line":
+        jn = _model_jac(p, cond, ts[:n_train], nominal) / sigma
+        cols = _output_columns(family, ts, None)
+        jb = cols[:n_train].reshape(n_train * 2, 4) / sigma
+        b = rng.standard_normal(4)
+        b = b * math.sqrt(lam / float(b @ _efficient(jn, jb) @ b))
+        out_term = cols @ b
+        truth["coefficients_arcsec"] = [float(x) for x in b]
+    elif family != "null":
+        raise ValueError(f"unknown case family {family!r}")
+    truth["lambda"] = float(lam) if family != "null" else 0.0
+    return p, out_term, truth
+
+
+def _ool_columns(family, ts):
+    """Signature (n*c, 1) of an out-of-library output term at 1 arcsec amplitude: a 2 h
+    square-wave heater cycle, or a 5 h HVAC line, on both gimbal angles (unit-norm mix)."""
+    if family == "heater_cycle":
+        prof = np.asarray(_square_wave(jnp.asarray(ts)))
+    else:
+        prof = np.sin(2 * math.pi * ts / (5 * 3600.0))
+    return (np.stack([prof, 0.6 * prof], axis=1) * units.ARCSEC).reshape(-1, 1)
+
+
+def generate(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = None,
+             lambdas=(8.0, 16.0, 32.0, 64.0), null_fraction: float = 0.25,
+             families=None) -> list[Path]:
+    """Write ``n_cases`` blind records into ``out_dir`` and the sealed manifest beside them."""
+    design = design or Design()
+    out = Path(out_dir)
+    (out / "sealed").mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    cond = ESGConditions.from_scheme(design.scheme, design.latitude_deg)
+    fams = list(families or (LIBRARY_FAMILIES + OUT_OF_LIBRARY + ("two_effects",)))
+    manifest, paths = {}, []
+    key = jax.random.key(seed)
+    for i in range(n_cases):
+        family = "null" if rng.uniform() < null_fraction else fams[i % len(fams)]
+        lam = float(rng.choice(lambdas))
+        p = _truth_params(rng, design)
+        if family == "two_effects":
+            a, b = rng.choice(len(LIBRARY_FAMILIES) - 1, 2, replace=False)
+            pa = [LIBRARY_FAMILIES[a], LIBRARY_FAMILIES[b]]
+            p, out1, t1 = _hidden(rng, pa[0], p, cond, design, lam)
+            p, out2, t2 = _hidden(rng, pa[1], p, cond, design, lam)
+            out_term, truth = out1 + out2, {"family": "two_effects", "effects": [t1, t2],
+                                            "lambda": lam}
+        else:
+            p, out_term, truth = _hidden(rng, family, p, cond, design, lam)
+        key, sub = jax.random.split(key)
+        from ..simulate import simulate
+
+        rec = simulate(_TRUTH_RIG, p, cond, jnp.asarray(design.ts), key=sub,
+                       noise_std=design.noise_arcsec * units.ARCSEC,
+                       attrs=dict(scheme=design.scheme, latitude_deg=design.latitude_deg))
+        rec = BenchRecord(rec.t, rec.y + jnp.asarray(out_term), rec.channels, rec.attrs)
+        path = out / f"case_{i:04d}.nc"
+        save_record(rec, path)
+        manifest[_sha(path)] = truth | {"file": path.name}
+        paths.append(path)
+    write_json({"design": dataclasses.asdict(design), "cases": manifest},
+               out / "sealed" / "manifest.json")
+    return paths
+
+
+def _sha(path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _ljung_box_p(e, lags=20):
+    from scipy import stats
+
+    e = e - e.mean()
+    n = len(e)
+    acf = np.array([np.sum(e[k:] * e[:-k]) for k in range(1, lags + 1)]) / np.sum(e * e)
+    q = n * (n + 2) * np.sum(acf**2 / (n - np.arange(1, lags + 1)))
+    return float(stats.chi2.sf(q, lags))
+
+
+def run(case_dir, *, design: Design | None = None, baselines: bool = True, progress=None) -> list:
+    """Diagnose every record in ``case_dir`` (never reading ``sealed/``); returns one result dict
+    per case with the verdict, ranking summary, held-out gaps, timings and baseline answers."""
+    from ._diagnose import diagnose
+    from ._esg import ESGProblem
+
+    design = design or Design()
+    results = []
+    paths = sorted(Path(case_dir).glob("case_*.nc"))
+    for k, path in enumerate(paths):
+        rec = load_record(path, channels=("alpha1", "alpha2"))
+        t0 = time.perf_counter()
+        rep = diagnose(rec, holdout=design.holdout, design_advice=False)
+        t_diag = time.perf_counter() - t0
+        ranking = rep.ranking
+        res = {
+            "sha": _sha(path), "file": path.name, "verdict": rep.verdict["kind"],
+            "effects": rep.verdict.get("effects") or [],
+            "ranking": [r["name"] for r in ranking],
+            "posterior": {r["name"]: r["posterior"] for r in ranking},
+            "p": {r["name"]: r["p"] for r in ranking},
+            "flags": {r["name"]: r["flag"] for r in ranking},
+            "visible_fraction": {r["name"]: r["visible_fraction"] for r in ranking},
+            "ambiguity": rep.ambiguity["set"],
+            "heldout_gap_before": rep.verdict.get("heldout_gap_before"),
+            "heldout_gap_after": rep.verdict.get("heldout_gap_after"),
+            "null_band": rep.gap.get("heldout_null_band"),
+            "null_band_after": next((rf["heldout_null_band_after"] for rf in rep.refits
+                                     if rf["effects"] == (rep.verdict.get("effects") or [])),
+                                    None),
+            "time_diagnose_s": t_diag,
+            "time_screen_s": rep.timings.get("screening_s", 0.0) + rep.timings.get("jacobians_s",
+                                                                                   0.0),
+        }
+        if baselines:
+            e = np.asarray(rep.residual_all)[: rep.n_train]
+            lb = [_ljung_box_p(e[:, ch]) for ch in range(e.shape[1])]
+            res["b1_detect"] = bool(min(lb) * len(lb) < 0.05)
+            t0 = time.perf_counter()
+            prob = ESGProblem(rec, holdout=design.holdout)
+            params0 = prob.fit_nominal()
+            sigma = np.asarray(rep.noise["std"])
+            n = prob.n_train
+            rss0 = float(np.sum(((prob.y[:n] - prob.predict(params0)[:n]) / sigma) ** 2))
+            m = n * len(prob.channels)
+            _, sigs = prob.jacobians(params0, sigma)
+            bic = {"none": m * math.log(rss0 / m)}
+            for sig in sigs:
+                g = int(len(sig.grid) // 2) if sig.grid else 0
+                pred, _, _ = prob.refit(params0, [(sig, g)], sigma)
+                rss = float(np.sum(((prob.y[:n] - pred[:n]) / sigma) ** 2))
+                bic[sig.name] = m * math.log(rss / m) + len(sig.names) * math.log(m)
+            res["b2_choice"] = min(bic, key=bic.get)
+            res["time_refit_all_s"] = time.perf_counter() - t0
+        results.append(res)
+        if progress is not None:
+            progress(k + 1, len(paths))
+    return results
+
+
+def _se(p, n):
+    return math.sqrt(max(p * (1 - p), 1e-12) / max(n, 1))
+
+
+def score(case_dir, results) -> dict:
+    """Unseal the manifest and compute the §5.6 metrics (rate, its Monte Carlo standard error,
+    and the count behind it)."""
+    manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
+    rows = []
+    for r in results:
+        truth = manifest[r["sha"]]
+        rows.append((truth, r))
+
+    def rate(pairs, fn):
+        pairs = list(pairs)
+        if not pairs:
+            return None
+        k = sum(bool(fn(t, r)) for t, r in pairs)
+        p = k / len(pairs)
+        return {"rate": p, "se": _se(p, len(pairs)), "n": len(pairs)}
+
+    nulls = [(t, r) for t, r in rows if t["family"] == "null"]
+    lib = [(t, r) for t, r in rows if t["family"] in LIBRARY_FAMILIES]
+    ool = [(t, r) for t, r in rows if t["family"] in OUT_OF_LIBRARY]
+    two = [(t, r) for t, r in rows if t["family"] == "two_effects"]
+    out = {"far": rate(nulls, lambda t, r: r["verdict"] != "no-gap"),
+           "b1_far": rate(nulls, lambda t, r: r.get("b1_detect")),
+           "b2_false_selection": rate(nulls, lambda t, r: r.get("b2_choice", "none") != "none")}
+    for lam in sorted({t["lambda"] for t, _ in lib}):
+        sub = [(t, r) for t, r in lib if t["lambda"] == lam]
+        out[f"lambda={lam:g}"] = {
+            "power": rate(sub, lambda t, r: r["verdict"] != "no-gap"),
+            "top1": rate(sub, lambda t, r: r["ranking"] and _top(r) == t["family"]),
+            "top3": rate(sub, lambda t, r: t["family"] in _top3(r)),
+            "set_coverage": rate([(t, r) for t, r in sub if r["ambiguity"]],
+                                 lambda t, r: t["family"] in r["ambiguity"]),
+            "mean_set_size": (float(np.mean([len(r["ambiguity"]) for t, r in sub
+                                             if r["ambiguity"]]))
+                              if any(r["ambiguity"] for _, r in sub) else None),
+            "confident_misattribution": rate(sub, lambda t, r: max(r["posterior"].values()) > 0.9
+                                             and _top(r) != t["family"]),
+            "b1_power": rate(sub, lambda t, r: r.get("b1_detect")),
+            "b2_top1": rate(sub, lambda t, r: r.get("b2_choice") == t["family"]),
+        }
+    red = [_reduction(r) for t, r in lib if r["verdict"] in ("attributed", "ambiguous")]
+    red = [x for x in red if x is not None]
+    out["heldout_reduction_median"] = float(np.median(red)) if red else None
+    out["heldout_closure"] = rate([(t, r) for t, r in lib if r["heldout_gap_after"] is not None
+                                   and r["null_band_after"] is not None],
+                                  lambda t, r: r["heldout_gap_after"] <= r["null_band_after"][1])
+    out["out_of_library_honest"] = rate(ool, lambda t, r: r["verdict"] in
+                                        ("unexplained", "ambiguous", "no-gap")
+                                        or max(r["posterior"].values()) <= 0.9)
+    out["two_effects_both_named"] = rate(two, lambda t, r: {e["family"] for e in t["effects"]}
+                                         <= set(r["effects"]) | set(r["ambiguity"]))
+    diag = [r["time_diagnose_s"] for _, r in rows]
+    scr = [r["time_screen_s"] for _, r in rows]
+    refit = [r["time_refit_all_s"] for _, r in rows if "time_refit_all_s" in r]
+    out["cost"] = {"median_diagnose_s": float(np.median(diag)),
+                   "median_screen_s": float(np.median(scr)),
+                   "median_refit_all_s": float(np.median(refit)) if refit else None}
+    return out
+
+
+def _top(r):
+    return max(r["posterior"], key=r["posterior"].get) if r["posterior"] else None
+
+
+def _top3(r):
+    return sorted(r["posterior"], key=lambda k: -r["posterior"][k])[:3]
+
+
+def _reduction(r):
+    g0, g1 = r["heldout_gap_before"], r["heldout_gap_after"]
+    if g0 is None or g1 is None or g0 <= r["null_band"][1]:
+        return None
+    return 1 - g1 / g0
