@@ -113,7 +113,7 @@ def main(argv=None):
 
     batched = jax.jit(jax.vmap(single))
     t = time.perf_counter()
-    jax.block_until_ready(batched(z[:runs_vmap]))
+    x_batched = jax.block_until_ready(batched(z[:runs_vmap]))
     c_batched = time.perf_counter() - t
     t_batched = best_time(lambda: batched(z[:runs_vmap]), repeat=2)
 
@@ -137,6 +137,7 @@ def main(argv=None):
     scale = np.where(np.asarray(sig).max(axis=1) > 0, np.asarray(sig).max(axis=1), 1.0)
     diff = float(np.max(np.abs((np.asarray(x_single) - x_np) / scale)))
     diff_shared = float(np.max(np.abs((np.asarray(x_shared[0]) - x_np) / scale)))
+    diff_batched = float(np.max(np.abs((np.asarray(x_batched[0]) - x_np) / scale)))
     rate_np = n / t_np
     rows = [("numpy loop (Joseph form)", 1, n / t_np, None, FLOPS_KF),
             ("filterpy KalmanFilter", 1, None if t_fp is None else n / t_fp, None, FLOPS_KF),
@@ -161,7 +162,7 @@ def main(argv=None):
         lines.append(f"| {name} | {r:,} | {rate:,.0f} | {rate / rate_np:,.1f}x | "
                      f"{rate * flops / PEAK:.1%} | {'' if comp is None else f'{comp:.1f}'} |")
     lines += ["", f"Max difference of the final estimates, gyrojax vs numpy (in prior standard "
-              f"deviations): single {diff:.1e}, shared gains {diff_shared:.1e}"
+              f"deviations): single {diff:.1e}, vmap {diff_batched:.1e}, shared gains {diff_shared:.1e}"
               + ("" if x_fp is None else
                  f"; filterpy vs numpy {float(np.max(np.abs((x_fp - x_np) / scale))):.1e}") + ".",
               ""]

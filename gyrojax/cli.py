@@ -112,6 +112,10 @@ def cmd_simulate(args):
 
         args.sample = 1.0 if args.sample is None else args.sample
         return _cli_schuler.simulate(args, _parse_sets, _emit_json)
+    if args.rig == "platform":
+        from . import _cli_platform
+
+        return _cli_platform.simulate(args, _parse_sets, _emit_json)
     args.sample = 60.0 if args.sample is None else args.sample
     rig, cond, scheme, lat = _rig_and_conditions(args)
     _positive("--hours", args.hours)
@@ -157,6 +161,10 @@ def cmd_fit(args):
         from . import _cli_schuler
 
         return _cli_schuler.fit(args, _load, _emit_json)
+    if args.rig == "platform":
+        from . import _cli_platform
+
+        return _cli_platform.fit(args, _load, _emit_json)
     rec0 = _load(args, ("alpha1", "alpha2"))
     rig, cond, scheme, lat = _rig_and_conditions(args, rec0)
     effects = _parse_effects(args.effects, rig)
@@ -180,6 +188,10 @@ def cmd_observability(args):
 
         args.sample = 1.0 if args.sample is None else args.sample
         return _cli_schuler.observability(args, _emit_json)
+    if args.rig == "platform":
+        from . import _cli_platform
+
+        return _cli_platform.observability(args, _emit_json)
     args.sample = 60.0 if args.sample is None else args.sample
     rig, cond, scheme, lat = _rig_and_conditions(args)
     effects = _parse_effects(args.effects, rig)
@@ -289,6 +301,11 @@ def cmd_demo(args):
     gap = diagnose(rec)
     print(gap.markdown())
     summary["diagnosis"] = gap.to_json()
+    v = gap.verdict
+    after = v.get("heldout_gap_after")
+    print(f"\ndiagnosis verdict: {v['kind']} ({', '.join(v.get('effects') or []) or '-'}); "
+          f"held-out gap {v['heldout_gap_before']:.3g} -> "
+          f"{'-' if after is None else f'{after:.3g}'} (0 = model and data agree)")
     if args.plot:
         from .plots import plot_fit
 
@@ -382,8 +399,13 @@ def cmd_diagnose(args):
 def _common(p, *, record=False, scheme=True):
     if record:
         p.add_argument("record", help="record file (.nc or .csv; t in s, alpha1 alpha2 in rad)")
-    p.add_argument("--rig", default="esg", choices=["esg", "schuler"],
-                   help="rig: esg (default) or schuler (platform INS Schuler test)")
+    p.add_argument("--rig", default="esg", choices=["esg", "schuler", "platform"],
+                   help="rig: esg (default), schuler (platform INS Schuler test) or platform "
+                        "(three-gimbal platform under vibration)")
+    p.add_argument("--schedule", metavar="JSON",
+                   help="platform: test schedule file (positions_deg, table_amplitudes_g, "
+                        "attenuation, frequency_hz, dwell_s, sample_s, latitude_deg, mounting); "
+                        "default Table 1 at 9 and 7 g")
     if scheme:
         p.add_argument("--scheme", help="mounting scheme: polar, equatorial, horizontal, vertical "
                                         "(default: from the record's attributes)")
@@ -452,8 +474,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated effects to estimate: rotor_tilt, base_misalignment, "
                         "drift_transient (default none)")
     p.add_argument("--method", default="gauss-newton",
-                   choices=["regression", "gauss-newton", "levenberg-marquardt", "kalman"],
-                   help="estimator (default gauss-newton on the exact model)")
+                   choices=["regression", "gauss-newton", "levenberg-marquardt", "kalman", "joint",
+                            "s21"],
+                   help="estimator (esg default gauss-newton on the exact model; platform: joint "
+                        "regression of all amplitudes (default) or s21, the source's two-amplitude "
+                        "resolution)")
     p.add_argument("--noise-arcsec", type=float,
                    help="angle noise for --method kalman (default: estimated)")
     _schuler_options(p, length=False)
@@ -472,6 +497,8 @@ def build_parser() -> argparse.ArgumentParser:
     _schuler_options(p)
     p.add_argument("--channels", default="all", choices=["all", "velocity"],
                    help="schuler: measurements used (all, or the classical test's velocities)")
+    p.add_argument("--propose", action="store_true",
+                   help="platform: also search a better position set (Fisher information)")
     p.add_argument("--method", default="regression", choices=["regression", "trajectory"],
                    help="sensitivity: regression design A (linear model, the spec's check) or "
                         "trajectory Jacobian of the exact model (default regression)")

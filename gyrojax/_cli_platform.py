@@ -1,0 +1,225 @@
+"""``gyrojax simulate|fit|observability --rig platform``: the platform under linear vibration.
+
+A test is a *schedule* (JSON): positions and table amplitudes, run as 100 s dwells. A record
+holds every dwell one after another (time runs on), with channels ``alpha beta gamma`` (rad),
+``ax ay az`` (g) and the labels ``position`` (row of the schedule) and ``amplitude`` (index into
+the table amplitudes); the schedule travels as the NetCDF attribute ``schedule_json``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+CHANNELS = ("alpha", "beta", "gamma", "ax", "ay", "az", "position", "amplitude")
+SCHEDULE_FIELDS = {
+    "positions_deg": "rows (alpha, beta, gamma) in deg (default: Table 1)",
+    "table_amplitudes_g": "table vibration amplitudes in g (default [9, 7])",
+    "attenuation": "table / platform amplitude ratio of the shock mount (default 1.5)",
+    "frequency_hz": "vibration frequency (default 15)",
+    "dwell_s": "dwell per position in s (default 100)",
+    "sample_s": "sampling interval in s (default 0.025)",
+    "latitude_deg": "latitude (default 45.75)",
+    "mounting": "'default' (y_b Up), 'enu' (z_b Up) or a 3x3 C_r^b",
+}
+
+
+def load_schedule(source) -> dict:
+    """Read and validate a schedule (path, JSON text or dict); fills the defaults."""
+    from .estimate.platform import check_sampling
+    from .models.platform import DEFAULT_MOUNTING, ENU_MOUNTING, TABLE1_DEG
+
+    if isinstance(source, dict):
+        raw = dict(source)
+    else:
+        text = str(source)
+        if not text.lstrip().startswith("{"):  # a file name
+            try:
+                text = Path(text).read_text()
+            except OSError as exc:
+                raise ValueError(f"schedule file {source}: {exc.strerror}; give a JSON file "
+                                 "or JSON text") from None
+        try:
+            raw = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"schedule {source}: not valid JSON ({exc}); see "
+                             "`gyrojax simulate --help` for the fields") from None
+    unknown = sorted(set(raw) - set(SCHEDULE_FIELDS))
+    if unknown:
+        raise ValueError(f"schedule: unknown field(s) {unknown}; allowed: "
+                         + "; ".join(f"{k}: {v}" for k, v in SCHEDULE_FIELDS.items()))
+    s = {"positions_deg": TABLE1_DEG.tolist(), "table_amplitudes_g": [9.0, 7.0],
+         "attenuation": 1.5, "frequency_hz": 15.0, "dwell_s": 100.0, "sample_s": 0.025,
+         "latitude_deg": 45.75, "mounting": "default"} | raw
+    amps = [float(a) for a in s["table_amplitudes_g"]]
+    if not amps or any(a < 0 for a in amps):
+        raise ValueError(f"schedule: table_amplitudes_g {amps} must be one or more values >= 0")
+    if len(set(amps)) < len(amps):
+        raise ValueError(f"schedule: table_amplitudes_g {amps} repeats an amplitude; the "
+                         "two-amplitude method needs different amplitudes")
+    if s["attenuation"] <= 0 or s["dwell_s"] <= 0:
+        raise ValueError("schedule: attenuation and dwell_s must be > 0")
+    check_sampling(float(s["sample_s"]), float(s["frequency_hz"]))
+    m = s["mounting"]
+    s["mounting_matrix"] = (DEFAULT_MOUNTING if m == "default" else ENU_MOUNTING if m == "enu"
+                            else np.asarray(m, float)).tolist()
+    return s
+
+
+def _schedules(s):
+    from .models.platform import schedule
+
+    rng = np.random.default_rng(0)
+    pos = np.asarray(s["positions_deg"], float)
+    return [schedule(pos, a0=a / s["attenuation"], latitude_deg=s["latitude_deg"],
+                     frequency_hz=s["frequency_hz"], phases=rng.uniform(0, 2 * np.pi, len(pos)),
+                     mounting=s["mounting_matrix"]) for a in s["table_amplitudes_g"]]
+
+
+def _ts(s):
+    n = int(round(s["dwell_s"] / s["sample_s"]))
+    return np.arange(n + 1) * s["sample_s"]
+
+
+def simulate(args, parse_sets, emit_json):
+    import jax
+    import jax.numpy as jnp
+
+    from . import units
+    from .io import save_record
+    from .models.platform import TRUE_TABLE2, PlatformRig
+    from .record import BenchRecord, freeze
+    from .simulate import integrate
+
+    s = load_schedule(args.schedule) if args.schedule else load_schedule({})
+    rig = PlatformRig()
+    space = rig.param_space
+    params = space.make(TRUE_TABLE2, display=True) | parse_sets(args.set, space)
+    ts = jnp.asarray(_ts(s))
+    key = jax.random.key(args.seed)
+    blocks, t_all, t0 = [], [], 0.0
+    for k, conds in enumerate(_schedules(s)):
+        y = np.array(jax.vmap(lambda c: integrate(rig, params, c, ts))(conds))
+        key, k1, k2 = jax.random.split(key, 3)
+        y[..., :3] += args.noise_arcsec * units.ARCSEC * np.asarray(
+            jax.random.normal(k1, y[..., :3].shape))
+        y[..., 3:] += 1e-4 * np.asarray(jax.random.normal(k2, y[..., 3:].shape))
+        for p in range(y.shape[0]):
+            lab = np.stack([np.full(len(ts), p), np.full(len(ts), k)], axis=1)
+            blocks.append(np.concatenate([y[p], lab], axis=1))
+            t_all.append(t0 + np.asarray(ts))
+            t0 += float(ts[-1]) + s["sample_s"]
+    rec = BenchRecord(jnp.asarray(np.concatenate(t_all)), jnp.asarray(np.concatenate(blocks)),
+                      CHANNELS, freeze({"schedule_json": json.dumps(
+                          {k: v for k, v in s.items() if k != "mounting_matrix"}),
+                          "latitude_deg": s["latitude_deg"]}))
+    save_record(rec, args.out)
+    print(f"wrote {args.out}: {len(s['positions_deg'])} positions x "
+          f"{len(s['table_amplitudes_g'])} amplitudes ({s['table_amplitudes_g']} g), "
+          f"{len(ts)} samples per dwell")
+
+
+def _split(record, s):
+    y = np.asarray(record.y)
+    n_pos, n_amp = len(s["positions_deg"]), len(s["table_amplitudes_g"])
+    n = len(_ts(s))
+    if y.shape[0] != n_pos * n_amp * n:
+        raise ValueError(f"record has {y.shape[0]} samples; the schedule needs {n_pos} positions "
+                         f"x {n_amp} amplitudes x {n} samples = {n_pos * n_amp * n}: give the "
+                         "schedule the record was taken with (--schedule)")
+    return y.reshape(n_amp, n_pos, n, len(CHANNELS))
+
+
+def fit(args, load, emit_json):
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from . import units
+    from .estimate.platform import (
+        kappa_from_accelerometers,
+        platform_regression,
+        two_amplitude_resolution,
+    )
+    from .models.platform import COEFF_NAMES, PlatformRig
+
+    record = load(args, CHANNELS)
+    attrs = record.conditions
+    if args.schedule:
+        s = load_schedule(args.schedule)
+    elif "schedule_json" in attrs:
+        s = load_schedule(attrs["schedule_json"])
+    else:
+        raise ValueError("the record carries no schedule; give --schedule FILE")
+    data = _split(record, s)
+    ts = jnp.asarray(_ts(s))
+    recs, conds, kappas = [], [], []
+    for k, c in enumerate(_schedules(s)):
+        acc = data[k, :, :, 3:6]
+        kap = float(np.mean(np.asarray(kappa_from_accelerometers(acc, ts, s["frequency_hz"]))))
+        kappas.append(kap)
+        recs.append(jnp.asarray(data[k, :, :, :3]))
+        conds.append(eqx.tree_at(lambda x: x.kappa, c, jnp.full(len(s["positions_deg"]), kap)))
+    space = PlatformRig().param_space
+    method = args.method if args.method in ("joint", "s21") else "joint"
+    if method == "s21":
+        if len(recs) != 2:
+            raise ValueError("--method s21 needs a schedule with exactly two amplitudes")
+        if min(s["table_amplitudes_g"]) == 0:
+            raise ValueError("--method s21 with a 0 g amplitude: the amplitude prior (17) divides "
+                             "by the first amplitude; use --method joint")
+        free = tuple(n for n in COEFF_NAMES if not n.startswith("D_oo"))
+        fits = [platform_regression(ts, [r], [c], free=free) for r, c in zip(recs, conds)]
+        est = two_amplitude_resolution(fits[0].full(), fits[1].full(), kappas[0], kappas[1])
+        se = {}
+        noise = float(fits[0].noise_std)
+    else:
+        res = platform_regression(ts, recs, conds)
+        est, se, noise = res.as_dict(), res.stderr_dict(), float(res.noise_std)
+    print(f"platform fit ({method}); kappa from the accelerometers: "
+          + ", ".join(f"{k:.4f}" for k in kappas) + f"; angle noise {noise / units.ARCSEC:.3f} "
+          "arcsec")
+    print(f"{'coefficient':12s} {'estimate':>12s} {'stderr':>10s}  unit")
+    out = {}
+    for n in COEFF_NAMES:
+        p = space[n]
+        v = float(p.to_display(est[n]))
+        e = float(p.to_display(se[n])) if n in se else None
+        out[n] = {"value": v, "stderr": e, "unit": p.display_unit}
+        print(f"{n:12s} {v:12.5f} {'' if e is None else f'{e:10.2g}'}  {p.display_unit}")
+    emit_json({"method": method, "parameters": out, "kappa": kappas,
+               "noise_std_arcsec": noise / units.ARCSEC, "converged": True}, args.json)
+
+
+def observability(args, emit_json):
+    from .analysis.observability import analyse_jacobian
+    from .analysis.platform_design import (
+        design_information,
+        dwell_jacobians,
+        propose_positions,
+        score_design,
+    )
+    from .models.platform import COEFF_NAMES, PlatformRig
+
+    s = load_schedule(args.schedule) if args.schedule else load_schedule({})
+    pos = np.asarray(s["positions_deg"], float)
+    a0s = [a / s["attenuation"] for a in s["table_amplitudes_g"]]
+    jacs = [dwell_jacobians(pos, a, mounting=s["mounting_matrix"]) for a in a0s]
+    # null directions in the coefficients' own units (all rad/s inside: deg/h, deg/h/g, ...)
+    scales = PlatformRig().param_space.scales(COEFF_NAMES)
+    rep = analyse_jacobian(np.concatenate([j.reshape(-1, 30) for j in jacs]) / scales,
+                           COEFF_NAMES)
+    print(rep.summary())
+    info = sum(design_information(j, dwell_s=s["dwell_s"], dt=s["sample_s"]) for j in jacs)
+    sc = score_design(info)
+    print(f"design: rank {sc.rank}/30, log det {sc.log_det:.2f}, worst standard error "
+          f"{sc.worst_se:.3g} coefficient scales ({sc.worst})")
+    out = {"observability": rep.to_json(), "design": sc.__dict__}
+    if args.propose and sc.rank == 30:
+        best_pos, best = propose_positions(a0s, n_positions=len(pos), dwell_s=s["dwell_s"],
+                                           dt=s["sample_s"], mounting=s["mounting_matrix"])
+        print(f"proposed {len(pos)}-position design: log det {best.log_det:.2f}, worst standard "
+              f"error {best.worst_se:.3g} ({best.worst}); positions (deg): {best_pos.tolist()}")
+        out["proposed"] = {"positions_deg": best_pos.tolist(), **best.__dict__}
+    emit_json(out, args.json)
