@@ -105,18 +105,24 @@ def accelerometer_amplitude_error(n, dk, misalignment, bias, a0):
 
 
 @eqx.filter_jit
-def _position_design(ts, angles, conditions):
-    """Rows of (S22) for one position: centred ``y - h`` and centred ``F`` (n, 3) and (n, 3, 30)."""
+def _position_design(ts, angles, conditions, acc=None):
+    """Rows of (S22) for one position: centred ``y - h`` and centred ``F`` (n, 3) and (n, 3, 30).
+    With ``acc`` (n, 3; g) the drift uses the measured vibration sample by sample (the original,
+    non-averaged model (S10) with ``1 + A_1 = f . n``) instead of ``kappa``."""
     dt = jnp.diff(ts)
 
-    def integrands(y):
+    def integrands(y, f):
         mk = kinematic_matrix(y[1], y[2])
         n = specific_force_direction(y, conditions.mounting)
-        g = drift_regressor(n, jnp.ones_like(conditions.kappa), conditions.kappa)
+        if f is None:
+            g = drift_regressor(n, jnp.ones_like(conditions.kappa), conditions.kappa)
+        else:
+            f1 = f @ n
+            g = drift_regressor(n, f1, f1 * f1)
         we = platform_matrix(y).T @ conditions.earth_rate_base()
         return -mk @ g, -mk @ we
 
-    fg, fh = jax.vmap(integrands)(angles)
+    fg, fh = jax.vmap(integrands)(angles, acc)
 
     def cumtrapz(f):
         inc = 0.5 * (f[1:] + f[:-1]) * dt.reshape((-1,) + (1,) * (f.ndim - 1))
@@ -127,10 +133,12 @@ def _position_design(ts, angles, conditions):
     return y - y.mean(0), big_f - big_f.mean(0)
 
 
-def regression_design(ts, angles, conditions):
-    """Stack (S22) over positions: ``angles`` (P, n, 3), ``conditions`` stacked over P.
-    Returns ``(b, A)`` with ``A`` (P*n*3, 30) and ``b`` (P*n*3,)."""
-    y, f = jax.vmap(_position_design, in_axes=(None, 0, 0))(jnp.asarray(ts), angles, conditions)
+def regression_design(ts, angles, conditions, acc=None):
+    """Stack (S22) over positions: ``angles`` (P, n, 3), ``conditions`` stacked over P (and the
+    accelerometers (P, n, 3) for the non-averaged model). Returns ``(b, A)`` with ``A``
+    (P*n*3, 30) and ``b`` (P*n*3,)."""
+    y, f = jax.vmap(_position_design, in_axes=(None, 0, 0, 0))(jnp.asarray(ts), angles,
+                                                                conditions, acc)
     return y.reshape(-1), f.reshape(-1, 30)
 
 
@@ -153,8 +161,10 @@ class PlatformFit(AbstractNamedEstimate):
 
 
 def platform_regression(ts, records: Sequence, conditions: Sequence, *,
-                        free: Sequence[str] = COEFF_NAMES, noise_std=None) -> PlatformFit:
-    """Batch regression (S22) of the averaged model.
+                        free: Sequence[str] = COEFF_NAMES, noise_std=None,
+                        accelerations: Sequence | None = None) -> PlatformFit:
+    """Batch regression (S22) of the averaged model, or of the original model (S10) with the
+    measured vibration.
 
     **Arguments:**
     - `ts`: sample times of one dwell (s, shared by every position).
@@ -164,6 +174,8 @@ def platform_regression(ts, records: Sequence, conditions: Sequence, *,
     - `free`: coefficients to estimate (e.g. all but ``D_oo_*`` for a one-amplitude fit); with a
       rank-deficient choice the solution is the minimum-norm one in scaled units.
     - `noise_std`: angle noise (rad); default estimated from the residual.
+    - `accelerations`: the accelerometer records (one (P, n, 3) array in g per record): use the
+      non-averaged drift law with ``1 + A_1 = f . n^p`` at every sample instead of ``kappa``.
     """
     free = tuple(free)
     unknown = [n for n in free if n not in COEFF_NAMES]
@@ -173,24 +185,39 @@ def platform_regression(ts, records: Sequence, conditions: Sequence, *,
     if len(records) != len(conditions):
         raise ValueError(f"{len(records)} records but {len(conditions)} conditions; give one "
                          "stacked PlatformConditions per record")
+    n_pos = sum(int(np.shape(r)[0]) for r in records)
+    accs = (None,) * len(records) if accelerations is None else tuple(
+        jnp.asarray(a) for a in accelerations)
+    x, cov_unit, s, rss, m = _regression_core(jnp.asarray(ts),
+                                              tuple(jnp.asarray(r) for r in records),
+                                              tuple(conditions), accs, free)
+    scale = _scales(free)
+    k = int(jnp.sum(s > 1e-12 * s[0]))
+    dof = max(m - k - 3 * n_pos, 1)
+    sigma2 = rss / dof if noise_std is None else jnp.asarray(noise_std) ** 2
+    cov = sigma2 * cov_unit * jnp.outer(scale, scale)
+    return PlatformFit(free, x * scale, jnp.sqrt(jnp.diag(cov)), cov, jnp.sqrt(sigma2), s, n_pos)
+
+
+def _scales(free):
+    return jnp.array([1.0 if n.startswith(("D_f", "D_i_", "D_o_", "D_s_")) else 0.03
+                      for n in free]) * (np.pi / 180 / 3600)
+
+
+@eqx.filter_jit
+def _regression_core(ts, records, conditions, accs, free):
+    """Design of every record, column selection and scaling, and the QR/SVD solve, in one jit."""
     bs, As = [], []
-    for ang, cond in zip(records, conditions):
-        b, a = regression_design(ts, jnp.asarray(ang), cond)
+    for ang, cond, acc in zip(records, conditions, accs):
+        b, a = regression_design(ts, ang, cond, acc)
         bs.append(b)
         As.append(a)
     b, a = jnp.concatenate(bs), jnp.concatenate(As)
-    idx = jnp.array([COEFF_NAMES.index(n) for n in free])
-    scale = jnp.array([1.0 if n.startswith(("D_f", "D_i_", "D_o_", "D_s_")) else 0.03
-                       for n in free]) * (np.pi / 180 / 3600)
-    a = a[:, idx] * scale
+    idx = np.array([COEFF_NAMES.index(n) for n in free])
+    a = a[:, idx] * _scales(free)
     x, cov_unit, s = scaled_lstsq(a, b)
     res = b - a @ x
-    n_pos = sum(int(np.shape(r)[0]) for r in records)
-    k = int(jnp.sum(s > 1e-12 * s[0]))
-    dof = max(res.shape[0] - k - 3 * n_pos, 1)
-    sigma2 = jnp.sum(res**2) / dof if noise_std is None else jnp.asarray(noise_std) ** 2
-    cov = sigma2 * cov_unit * jnp.outer(scale, scale)
-    return PlatformFit(free, x * scale, jnp.sqrt(jnp.diag(cov)), cov, jnp.sqrt(sigma2), s, n_pos)
+    return x, cov_unit, s, jnp.sum(res**2), b.shape[0]
 
 
 def two_amplitude_resolution(fit1: dict, fit2: dict, kappa1: float, kappa2: float) -> dict:
@@ -210,3 +237,156 @@ def two_amplitude_resolution(fit1: dict, fit2: dict, kappa1: float, kappa2: floa
         out[f"D_ii_{ax}"] = fit1[f"D_ii_{ax}"] + doo
         out[f"D_ss_{ax}"] = fit1[f"D_ss_{ax}"] + doo
     return out
+
+
+class PlatformKalman(eqx.Module):
+    """Outcome of :func:`platform_kalman`: final estimates and standard errors of the free
+    coefficients (rad/s), and their history at the end of every dwell (``history``, ``(R*P, k)``)
+    and every ``stride`` samples (``trace``, ``(R*P*n/stride, k)``) for identification curves."""
+
+    names: tuple[str, ...] = eqx.field(static=True)
+    values: jax.Array
+    stderr: jax.Array
+    history: jax.Array
+    trace: jax.Array
+    trace_t: jax.Array
+
+    def as_dict(self) -> dict:
+        return dict(zip(self.names, self.values))
+
+    def stderr_dict(self) -> dict:
+        return dict(zip(self.names, self.stderr))
+
+
+@eqx.filter_jit
+def _kalman_scan(angles, conds, p_d, noise_std, q_coeff, dt, free, stride):
+    from ..models.platform import PlatformRig
+
+    rig = PlatformRig()
+    base = rig.param_space.make()
+    idx = np.array([COEFF_NAMES.index(n) for n in free])
+    k = len(free)
+    r = noise_std**2 * jnp.eye(3)
+    h = jnp.concatenate([jnp.eye(3), jnp.zeros((3, k))], axis=1)
+    q = jnp.zeros((3 + k, 3 + k)).at[3:, 3:].set(q_coeff * dt * jnp.eye(k))
+    eye = jnp.eye(3 + k)
+
+    def step_fn(cond):
+        def f(x):
+            ang, d = x[:3], x[3:]
+            p = base | dict(zip(COEFF_NAMES, jnp.zeros(30).at[idx].set(d)))
+            k1 = rig.vector_field(0.0, ang, p, cond)
+            k2 = rig.vector_field(0.0, ang + dt * k1, p, cond)
+            return jnp.concatenate([ang + 0.5 * dt * (k1 + k2), d])
+
+        return f
+
+    def dwell(carry, inp):
+        d, pd = carry
+        ang, cond = inp
+        x = jnp.concatenate([ang[0], d])
+        pmat = jnp.zeros((3 + k, 3 + k)).at[:3, :3].set(r).at[3:, 3:].set(pd)
+        f = step_fn(cond)
+
+        def sample(c, z):
+            x, pm = c
+            fx, jac = f(x), jax.jacfwd(f)(x)
+            pm = jac @ pm @ jac.T + q
+            s = h @ pm @ h.T + r
+            gain = jnp.linalg.solve(s, h @ pm).T
+            x = fx + gain @ (z - fx[:3])
+            a = eye - gain @ h
+            pm = a @ pm @ a.T + gain @ r @ gain.T  # Joseph form
+            return (x, pm), x[3:]
+
+        (x, pm), xs = jax.lax.scan(sample, (x, pmat), ang[1:])
+        return (x[3:], pm[3:, 3:]), (x[3:], xs[::stride])
+
+    (d, pd), (hist, trace) = jax.lax.scan(dwell, (jnp.zeros(k), p_d), (angles, conds))
+    return d, pd, hist, trace
+
+
+def platform_kalman(ts, records: Sequence, conditions: Sequence, *,
+                    free: Sequence[str] = COEFF_NAMES, noise_std: float = 4.84813681109536e-06,
+                    prior_std=None, q_coeff: float = 0.0, stride: int = 100) -> PlatformKalman:
+    """The source's identification (spec §10.3 (a)): an extended Kalman filter on the averaged
+    model with state ``(alpha, beta, gamma, D_free)`` over every dwell of every record in turn
+    (``lax.scan``). The angle states restart at each dwell from its first sample; ``D`` and its
+    covariance carry over. Transition: one Heun step of (S12)-(S14) per sample, linearised by
+    autodiff; measurement: the three angles with white noise ``noise_std`` (rad).
+
+    ``prior_std``: initial standard deviation of the coefficients (default 10x their scales);
+    ``q_coeff``: random-walk PSD of the coefficients ((rad/s)^2/s; 0 = constants).
+    """
+    from ..models.platform import PlatformRig
+
+    space = PlatformRig().param_space
+    free = tuple(free)
+    k = len(free)
+    ts = jnp.asarray(ts)
+    dt = float(ts[1] - ts[0])
+    scales = space.scales(free)
+    p_d = jnp.diag(jnp.asarray((10 * scales if prior_std is None
+                                else np.broadcast_to(prior_std, (k,))) ** 2))
+    angles = jnp.concatenate([jnp.asarray(a) for a in records])
+    conds = jax.tree.map(lambda *c: jnp.concatenate(c), *conditions)
+    d, pd, hist, trace = _kalman_scan(angles, conds, p_d, jnp.asarray(noise_std),
+                                      jnp.asarray(q_coeff), dt, free, stride)
+    n_dw = angles.shape[0]
+    t_tr = (jnp.arange(n_dw)[:, None] * (ts[-1] + dt) + ts[1::stride][None, :trace.shape[1]])
+    return PlatformKalman(free, d, jnp.sqrt(jnp.diag(pd)), hist, trace.reshape(-1, k),
+                          t_tr.reshape(-1))
+
+
+@eqx.filter_jit
+def _gn_solve(ts, angles, conds, x0, free, rtol, atol, max_steps):
+    import diffrax
+    import optimistix as optx
+
+    from ..models.platform import PlatformRig
+    from ..simulate import integrate
+
+    rig = PlatformRig()
+    base = rig.param_space.make()
+    k = len(free)
+    scale = _scales(free)
+    off_scale = np.pi / 180 / 3600  # arcsec
+
+    def residual(x, args):
+        p = base | dict(zip(free, x[:k] * scale))
+        c0 = eqx.tree_at(lambda c: c.angles0, conds,
+                         angles[:, 0, :] + x[k:].reshape(-1, 3) * off_scale)
+        pred = jax.vmap(lambda c: integrate(rig, p, c, ts, adjoint=diffrax.ForwardMode(),
+                                            throw=False))(c0)[..., :3]
+        return (pred - angles).reshape(-1)
+
+    sol = optx.least_squares(residual, optx.GaussNewton(rtol=rtol, atol=atol), x0,
+                             options=dict(jac="fwd"), max_steps=max_steps, throw=False)
+    x = sol.value
+    res = residual(x, None)
+    jac = jax.jacfwd(lambda z: residual(z, None))(x)
+    _, cov_unit, s = scaled_lstsq(jac, res)
+    return x, cov_unit, jnp.sum(res**2), sol.result, sol.stats["num_steps"]
+
+
+def platform_gauss_newton(ts, records: Sequence, conditions: Sequence, *,
+                          free: Sequence[str] = COEFF_NAMES, start: dict | None = None,
+                          noise_std=None, rtol: float = 1e-8, atol: float = 1e-10,
+                          max_steps: int = 20) -> PlatformFit:
+    """Batch Gauss-Newton (optimistix, forward sensitivities through diffrax) of the averaged ODE
+    model on the gimbal-angle records: unknowns the free coefficients and the initial angles of
+    every dwell; started from ``start`` (e.g. the regression estimate) or zero."""
+    free = tuple(free)
+    angles = jnp.concatenate([jnp.asarray(a) for a in records])
+    conds = jax.tree.map(lambda *c: jnp.concatenate(c), *conditions)
+    scale = _scales(free)
+    d0 = jnp.array([float((start or {}).get(n, 0.0)) for n in free]) / scale
+    x0 = jnp.concatenate([d0, jnp.zeros(3 * angles.shape[0])])
+    x, cov_unit, rss, result, steps = _gn_solve(jnp.asarray(ts), angles, conds, x0, free, rtol,
+                                                atol, max_steps)
+    k = len(free)
+    m = angles.size
+    sigma2 = rss / max(m - x.shape[0], 1) if noise_std is None else jnp.asarray(noise_std) ** 2
+    cov = sigma2 * cov_unit[:k, :k] * jnp.outer(scale, scale)
+    return PlatformFit(free, x[:k] * scale, jnp.sqrt(jnp.diag(cov)), cov, jnp.sqrt(sigma2),
+                       jnp.zeros(0), int(angles.shape[0]))

@@ -37,7 +37,8 @@ from ._base import AbstractRig
 
 __all__ = ["PlatformRig", "PlatformConditions", "COEFF_NAMES", "TABLE1_DEG", "TRUE_TABLE2",
            "DEFAULT_MOUNTING", "ENU_MOUNTING", "EARTH_RATE_SOURCE", "platform_matrix",
-           "specific_force_direction", "kinematic_matrix", "drift_regressor", "schedule"]
+           "specific_force_direction", "kinematic_matrix", "drift_regressor", "schedule",
+           "ShockMount"]
 
 EARTH_RATE_SOURCE = 7.2921151467e-5
 AXES = ("x", "y", "z")
@@ -117,15 +118,14 @@ def drift_regressor(n, f1, f2):
     """``G`` (3 x 30): drift of the three gyros per unit coefficient, for specific-force direction
     ``n`` (platform axes) with factor ``f1`` on the linear and ``f2`` on the quadratic/cross terms
     (averaged model: 1 and kappa; instantaneous: 1 + A1 and (1 + A1)^2)."""
-    rows = []
+    terms = []
     for k in range(3):
         ai, ao, as_ = n[k], n[(k + 1) % 3], n[(k + 2) % 3]
-        terms = jnp.stack([jnp.ones_like(ai), ai * f1, ao * f1, as_ * f1, ai * ai * f2,
-                           ao * ao * f2, as_ * as_ * f2, ai * ao * f2, ai * as_ * f2,
-                           ao * as_ * f2])
-        row = jnp.zeros(30, dtype=terms.dtype).at[10 * k:10 * k + 10].set(terms)
-        rows.append(row)
-    return jnp.stack(rows)
+        terms.append(jnp.stack([jnp.ones_like(ai), ai * f1, ao * f1, as_ * f1, ai * ai * f2,
+                                ao * ao * f2, as_ * as_ * f2, ai * ao * f2, ai * as_ * f2,
+                                ao * as_ * f2]))
+    # block-diagonal placement by a product with the identity (no scatter: cheap under vmap)
+    return (jnp.eye(3)[:, :, None] * jnp.stack(terms)[None, :, :]).reshape(3, 30)
 
 
 class PlatformConditions(eqx.Module):
@@ -252,3 +252,53 @@ def schedule(positions_deg=TABLE1_DEG, *, a0: float = 0.0, latitude_deg: float =
                                        frequency_hz=frequency_hz, phase=float(ph), kappa=kappa,
                                        mounting=mounting) for p, ph in zip(pos, phases)]
     return jax.tree.map(lambda *xs: jnp.stack(xs), *conds)
+
+
+class ShockMount(eqx.Module):
+    """The second-order shock mount of spec §3 between the table and the platform (S4):
+    ``(m + k2) X'' + k1 X' + k0 X = k2 Y'' + k1 Y' + k0 Y`` with the table acceleration
+    ``Y'' = a sin(omega t)``. Fields in SI: mass ``m`` (kg), stiffness ``k0`` (N/m), damping ``k1``
+    (N s/m), inertance ``k2`` (kg)."""
+
+    m: float
+    k0: float
+    k1: float
+    k2: float = 0.0
+
+    def __check_init__(self):
+        if not (self.m > 0 and self.k0 > 0 and self.k1 > 0 and self.k2 >= 0):
+            raise ValueError(f"shock mount: m={self.m}, k0={self.k0}, k1={self.k1} must be > 0 and "
+                             f"k2={self.k2} >= 0 (kg, N/m, N s/m, kg)")
+
+    @staticmethod
+    def from_resonance(natural_hz: float, damping_ratio: float, m: float = 1.0) -> ShockMount:
+        """A mount with ``k2 = 0`` of the given natural frequency and damping ratio."""
+        wn = 2 * np.pi * natural_hz
+        return ShockMount(m=m, k0=m * wn**2, k1=2 * damping_ratio * np.sqrt(m * m * wn**2))
+
+    def response(self, omega):
+        """Amplitude ratio ``a0/a`` (S6) and phase ``arg H`` (S7, four-quadrant) at ``omega``."""
+        k1w = self.k1 * omega
+        big_k1 = self.k0 - (self.m + self.k2) * omega**2
+        big_k2 = self.k0 - self.k2 * omega**2
+        ratio = jnp.sqrt((big_k2**2 + k1w**2) / (big_k1**2 + k1w**2))
+        phase = jnp.arctan2(k1w * (big_k1 - big_k2), big_k1 * big_k2 + k1w**2)
+        return ratio, phase
+
+    def roots(self):
+        """Roots ``lambda_1,2`` of ``(m + k2) l^2 + k1 l + k0 = 0`` (complex)."""
+        mm = self.m + self.k2
+        disc = np.sqrt(complex(self.k1**2 - 4 * mm * self.k0))
+        return (-self.k1 + disc) / (2 * mm), (-self.k1 - disc) / (2 * mm)
+
+    def platform_acceleration(self, t, a, omega):
+        """Platform acceleration ``X''(t)`` (m/s^2) for a platform at rest at ``t = 0``: the steady
+        state ``a0 sin(omega t + phi)`` plus the start transient (S8)-(S9)."""
+        ratio, phase = self.response(omega)
+        a0 = a * ratio
+        l1, l2 = self.roots()
+        c1 = a0 * (omega * jnp.cos(phase) - l2 * jnp.sin(phase)) / (omega**2 * (l1 - l2))
+        c2 = -a0 * (omega * jnp.cos(phase) - l1 * jnp.sin(phase)) / (omega**2 * (l1 - l2))
+        t = jnp.asarray(t, dtype=complex)
+        trans = l1**2 * c1 * jnp.exp(l1 * t) + l2**2 * c2 * jnp.exp(l2 * t)
+        return jnp.real(trans) + a0 * jnp.sin(omega * jnp.real(t) + phase)
