@@ -56,3 +56,15 @@ def best_time(fn, repeat: int = 3) -> float:
         jax.block_until_ready(fn())
         times.append(time.perf_counter() - t)
     return min(times)
+
+
+def first_and_best(fn, repeat: int = 3):
+    """``(result, first call s (compile included), best of repeat s)`` of ``fn()``."""
+    import time
+
+    import jax
+
+    t = time.perf_counter()
+    out = jax.block_until_ready(fn())
+    first = time.perf_counter() - t
+    return out, first, best_time(fn, repeat)

@@ -18,7 +18,7 @@ import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _results import best_time, machine_line, publish  # noqa: E402
+from _results import first_and_best, machine_line, publish  # noqa: E402
 from scipy.integrate import cumulative_trapezoid  # noqa: E402
 
 from gyrojax import units  # noqa: E402
@@ -117,21 +117,11 @@ def main(argv=None):
     recs, conds = data()
     ts = jnp.asarray(TS)
 
-    def run_reg():
-        return platform_regression(ts, recs, conds, noise_std=units.ARCSEC).values
-
-    t = time.perf_counter()
-    x_j = np.asarray(jax.block_until_ready(run_reg()))
-    c_reg = time.perf_counter() - t
-    t_reg = best_time(run_reg, repeat=3)
-
-    def run_kf():
-        return platform_kalman(ts, recs, conds, noise_std=units.ARCSEC).values
-
-    t = time.perf_counter()
-    x_kf = np.asarray(jax.block_until_ready(run_kf()))
-    c_kf = time.perf_counter() - t
-    t_kf = best_time(run_kf, repeat=2)
+    x_j, c_reg, t_reg = first_and_best(
+        lambda: platform_regression(ts, recs, conds, noise_std=units.ARCSEC).values)
+    x_kf, c_kf, t_kf = first_and_best(
+        lambda: platform_kalman(ts, recs, conds, noise_std=units.ARCSEC).values, repeat=2)
+    x_j, x_kf = np.asarray(x_j), np.asarray(x_kf)
 
     t = time.perf_counter()
     x_np = numpy_regression(recs, conds)
