@@ -139,6 +139,8 @@ def fit(args, load, emit_json):
     from . import units
     from .estimate.platform import (
         kappa_from_accelerometers,
+        platform_gauss_newton,
+        platform_kalman,
         platform_regression,
         two_amplitude_resolution,
     )
@@ -162,7 +164,11 @@ def fit(args, load, emit_json):
         recs.append(jnp.asarray(data[k, :, :, :3]))
         conds.append(eqx.tree_at(lambda x: x.kappa, c, jnp.full(len(s["positions_deg"]), kap)))
     space = PlatformRig().param_space
-    method = args.method if args.method in ("joint", "s21") else "joint"
+    method = args.method or "joint"
+    if method not in ("joint", "s21", "kalman", "gauss-newton"):
+        raise ValueError(f"--method {method!r} is not a platform method; use joint (regression "
+                         "(S22) of all amplitudes, the default), s21, kalman (the source's EKF) "
+                         "or gauss-newton (batch fit of the ODE model)")
     if method == "s21":
         if len(recs) != 2:
             raise ValueError("--method s21 needs a schedule with exactly two amplitudes")
@@ -176,7 +182,12 @@ def fit(args, load, emit_json):
         noise = float(fits[0].noise_std)
     else:
         res = platform_regression(ts, recs, conds)
-        est, se, noise = res.as_dict(), res.stderr_dict(), float(res.noise_std)
+        noise = float(res.noise_std)
+        if method == "kalman":
+            res = platform_kalman(ts, recs, conds, noise_std=noise)
+        elif method == "gauss-newton":
+            res = platform_gauss_newton(ts, recs, conds, start=res.as_dict(), noise_std=noise)
+        est, se = res.as_dict(), res.stderr_dict()
     print(f"platform fit ({method}); kappa from the accelerometers: "
           + ", ".join(f"{k:.4f}" for k in kappas) + f"; angle noise {noise / units.ARCSEC:.3f} "
           "arcsec")

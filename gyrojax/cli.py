@@ -157,14 +157,15 @@ def cmd_fit(args):
     from . import units
     from .estimate import fit
 
-    if args.rig == "schuler":
-        from . import _cli_schuler
-
-        return _cli_schuler.fit(args, _load, _emit_json)
     if args.rig == "platform":
         from . import _cli_platform
 
         return _cli_platform.fit(args, _load, _emit_json)
+    args.method = args.method or "gauss-newton"
+    if args.rig == "schuler":
+        from . import _cli_schuler
+
+        return _cli_schuler.fit(args, _load, _emit_json)
     rec0 = _load(args, ("alpha1", "alpha2"))
     rig, cond, scheme, lat = _rig_and_conditions(args, rec0)
     effects = _parse_effects(args.effects, rig)
@@ -473,12 +474,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--effects", default="",
                    help="comma-separated effects to estimate: rotor_tilt, base_misalignment, "
                         "drift_transient (default none)")
-    p.add_argument("--method", default="gauss-newton",
+    p.add_argument("--method", default=None,
                    choices=["regression", "gauss-newton", "levenberg-marquardt", "kalman", "joint",
                             "s21"],
-                   help="estimator (esg default gauss-newton on the exact model; platform: joint "
-                        "regression of all amplitudes (default) or s21, the source's two-amplitude "
-                        "resolution)")
+                   help="estimator (esg and schuler: default gauss-newton; platform: joint "
+                        "regression of all amplitudes (default), s21 (the source's two-amplitude "
+                        "resolution), kalman (the source's EKF) or gauss-newton)")
     p.add_argument("--noise-arcsec", type=float,
                    help="angle noise for --method kalman (default: estimated)")
     _schuler_options(p, length=False)

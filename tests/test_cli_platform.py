@@ -33,3 +33,20 @@ def test_bad_schedules_exit_2(tmp_path, capsys):
     assert main(["simulate", "--rig", "platform", "--schedule", str(sched), "--out", str(rec)]) == 0
     assert main(["fit", str(rec), "--rig", "platform", "--method", "s21"]) == 2
     assert "0 g amplitude" in capsys.readouterr().err
+
+
+def test_fit_methods_agree_and_unknown_method_refused(tmp_path, capsys):
+    sched = tmp_path / "s.json"
+    sched.write_text(json.dumps({"dwell_s": 10, "table_amplitudes_g": [9, 7]}))
+    rec = tmp_path / "p.nc"
+    assert main(["simulate", "--rig", "platform", "--schedule", str(sched), "--out", str(rec)]) == 0
+    out = {}
+    for m in ("joint", "kalman"):
+        assert main(["fit", str(rec), "--rig", "platform", "--method", m, "--json",
+                     str(tmp_path / f"{m}.json")]) == 0
+        out[m] = json.loads((tmp_path / f"{m}.json").read_text())["parameters"]
+    for name in TRUE_TABLE2:  # the EKF ends on the regression (the model is linear in D)
+        assert abs(out["kalman"][name]["value"] - out["joint"][name]["value"]) < \
+            0.05 * out["joint"][name]["stderr"]
+    assert main(["fit", str(rec), "--rig", "platform", "--method", "levenberg-marquardt"]) == 2
+    assert "not a platform method" in capsys.readouterr().err

@@ -12,6 +12,7 @@ cell and every library test together; detection = any q < alpha.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -91,11 +92,10 @@ def _noise(problem, resid):
 def _greedy_second(e, span, rows, first: Screen, alpha):
     """Rescore the library on the residual ``e`` of the first effect's refit, with the span of
     the nominal and first-effect Jacobians projected out; Bonferroni over the rest."""
-    jn2 = span
     others = [r.sig for r in rows if r is not first and r.dof > 0]
     if not others:
         return None
-    resc = screen(e, jn2, others)
+    resc = screen(e, span, others)
     best = max(resc, key=lambda r: r.lm)
     p_bonf = min(1.0, best.p * len(others))
     return best if p_bonf < alpha and best.flag not in ("no signature",
@@ -180,8 +180,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         x["significant"] = bool(q < alpha)
     for r, q in zip(rows, q_all[len(cells):]):
         r.q = float(q)
-    excess = sum(max(0.0, x["excess"]) for x in cells if x["axis"] == "time"
-                 and x["cell"] == cells[0]["cell"])
+    # excess energy of the whole-record windows (level 0), all channels
+    excess = sum(max(0.0, x["excess"]) for x in cells if x["axis"] == "time" and x["level"] == 0)
     detected = bool(np.any(q_all < alpha))
     amb = ambiguity_set(rows) if detected else []
     timings["screening_s"] = time.perf_counter() - t0
@@ -277,8 +277,6 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
 
 
 def _train_slice(sig, m):
-    import dataclasses
-
     return dataclasses.replace(sig, jac=sig.jac[:, :m, :])
 
 
@@ -353,12 +351,13 @@ def _mde(jt):
 
 def _design_advice(prob, params0, sigma, flagged):
     rows = []
-    names = {r.sig.name for r in flagged}
+    grid = {r.sig.name: r.grid_index for r in flagged}  # screened grid value of flagged effects
+    names = set(grid)
     for label, cond, t in prob.designs():
         jn, sigs = prob.jacobians(params0, sigma, conditions=cond, t=t)
         u = nominal_basis(jn)
-        proj = {s.name: _project(u, s.jac[min(r.grid_index, s.jac.shape[0] - 1)])
-                for s, r in zip(sigs, _match(sigs, flagged))}
+        proj = {s.name: _project(u, s.jac[min(grid.get(s.name, 0), s.jac.shape[0] - 1)])
+                for s in sigs}
         for s in sigs:
             if s.name not in names:
                 continue
@@ -373,14 +372,6 @@ def _design_advice(prob, params0, sigma, flagged):
         out.extend(cand)
     return out
 
-
-def _match(sigs, flagged):
-    by = {r.sig.name: r for r in flagged}
-
-    class _Zero:
-        grid_index = 0
-
-    return [by.get(s.name, _Zero()) for s in sigs]
 
 
 def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band):

@@ -1,6 +1,6 @@
 """Blind validation harness for the gap diagnosis (spec gap-diagnosis §5), ESG rig.
 
-:func:`generate` writes records (``case_XXXX.nc``) and, separately, a sealed manifest
+:func:`generate` writes records (``case_<index>.nc``) and, separately, a sealed manifest
 (``sealed/manifest.json``) keyed by each record file's SHA-256: the hidden effect, its
 coefficients and its noncentrality. The diagnosis reads only the record files (the diagnosis
 package never imports this module; a test enforces it). :func:`run` diagnoses every case, also
@@ -78,7 +78,7 @@ def _truth_params(rng, design):
     return sp.make(vals, display=True)
 
 
-def _output_columns(family, t, extra):
+def _output_columns(family, t):
     """Output-side signatures (n, c, k) in rad per unit coefficient."""
     if family == "diurnal_line":
         w = 2 * math.pi / SIDEREAL_DAY
@@ -139,7 +139,7 @@ def _hidden(rng, family, p, cond, design, lam):
             truth["coefficients"] = {n: float(v) for n, v in zip(_EFFECT_PARAMS[family], b)}
     elif family == "diurnal_line":
         jn = _model_jac(p, cond, ts[:n_train], nominal) / sigma
-        cols = _output_columns(family, ts, None)
+        cols = _output_columns(family, ts)
         jb = cols[:n_train].reshape(n_train * 2, 4) / sigma
         b = rng.standard_normal(4)
         b = b * math.sqrt(lam / float(b @ _efficient(jn, jb) @ b))
