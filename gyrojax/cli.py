@@ -366,15 +366,43 @@ def cmd_observer(args):
     _emit_json(out, args.json)
 
 
+def _load_imu(args):
+    """An IMU record: a file (any subset of wx wy wz ax ay az) or ``dataset:NAME`` for one of
+    the real records in ../shared/data/real (gyrojax.datasets.REAL_DATA_SETS)."""
+    from .datasets import REAL_DATA_SETS, DataFileError
+
+    if args.record.startswith("dataset:"):
+        name = args.record.split(":", 1)[1]
+        if name not in REAL_DATA_SETS:
+            raise UsageError(f"unknown data set {name!r}; known: {', '.join(REAL_DATA_SETS)}")
+        try:
+            record = REAL_DATA_SETS[name]()
+        except (DataFileError, FileNotFoundError) as exc:
+            raise UsageError(str(exc)) from None
+    else:
+        record = _load(args, None)
+    if args.latitude is not None:
+        if not -90.0 <= args.latitude <= 90.0:
+            raise UsageError(f"--latitude {args.latitude} is outside [-90, 90] deg")
+        record = record.with_conditions(latitude_deg=float(args.latitude))
+    return record
+
+
 def cmd_diagnose(args):
     from .diagnose import diagnose
     from .models.esg import ESGRig
 
-    if args.rig != "esg":
-        raise UsageError(f"--rig {args.rig!r} has no diagnosis yet; rigs with one: esg")
-    record = _load(args, ESGRig().channels)
-    _, _, scheme, lat = _rig_and_conditions(args, record)
-    record = record.with_conditions(scheme=scheme, latitude_deg=lat)
+    if args.rig not in ("esg", "imu"):
+        raise UsageError(f"--rig {args.rig!r} has no diagnosis yet; rigs with one: esg, imu")
+    if args.rig == "imu":
+        if args.noise_arcsec is not None:
+            raise UsageError("--noise-arcsec is for the esg rig; the imu rig estimates its noise "
+                             "model (AR prewhitening) from the record")
+        record = _load_imu(args)
+    else:
+        record = _load(args, ESGRig().channels)
+        _, _, scheme, lat = _rig_and_conditions(args, record)
+        record = record.with_conditions(scheme=scheme, latitude_deg=lat)
     effects = None
     if args.effects:
         effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
@@ -399,10 +427,14 @@ def cmd_diagnose(args):
 # -- parser --------------------------------------------------------------------------------
 def _common(p, *, record=False, scheme=True):
     if record:
-        p.add_argument("record", help="record file (.nc or .csv; t in s, alpha1 alpha2 in rad)")
-    p.add_argument("--rig", default="esg", choices=["esg", "schuler", "platform"],
-                   help="rig: esg (default), schuler (platform INS Schuler test) or platform "
-                        "(three-gimbal platform under vibration)")
+        p.add_argument("record", help="record file (.nc or .csv; t in s, channels in SI: "
+                                      "alpha1 alpha2 in rad for esg, wx..az for imu); for "
+                                      "--rig imu also dataset:NAME (a real record, e.g. "
+                                      "dataset:ln100_pair)")
+    p.add_argument("--rig", default="esg", choices=["esg", "schuler", "platform", "imu"],
+                   help="rig: esg (default), schuler (platform INS Schuler test), platform "
+                        "(three-gimbal platform under vibration) or imu (strapdown IMU on a "
+                        "stand; diagnose only)")
     p.add_argument("--schedule", metavar="JSON",
                    help="platform: test schedule file (positions_deg, table_amplitudes_g, "
                         "attenuation, frequency_hz, dwell_s, sample_s, latitude_deg, mounting); "
@@ -544,9 +576,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("diagnose", help="sim-to-real gap: where, which effect, how much")
     _common(p, record=True)
     p.add_argument("--effects", default="",
-                   help="comma-separated library to screen (default: the rig's whole catalogue: "
-                        "rotor_tilt, base_misalignment, drift_transient, drift_ramp, drift_step, "
-                        "diurnal_line)")
+                   help="comma-separated library to screen (default: the rig's whole catalogue; "
+                        "esg: rotor_tilt, base_misalignment, drift_transient, drift_ramp, "
+                        "drift_step, diurnal_line; imu: earth_rate, scale_factor, misalignment, "
+                        "g_sensitivity, time_drift, warmup_transient, quantization, "
+                        "bias_instability, rate_random_walk, outliers)")
     p.add_argument("--holdout", type=float, default=0.25,
                    help="fraction of the record (its end) held out for the before/after gap "
                         "(default 0.25)")

@@ -46,6 +46,18 @@ _DISPLAY = {
     "m/s^2": 1.0,
     "g": G0,
     "ppm": PPM,
+    "deg/s": DEG,
+    "mrad": 1e-3,
+    "mg": 1e-3 * G0,
+    "mg/h": 1e-3 * G0 / HOUR,
+    "deg/h/h": DEG_PER_HOUR / HOUR,
+    "deg/h/g": DEG_PER_HOUR / G0,
+    "deg/sqrt(h)": DEG / 60.0,
+    "deg/h/sqrt(h)": DEG_PER_HOUR / 60.0,
+    "m/s/sqrt(h)": 1.0 / 60.0,
+    "m/s^2/sqrt(s)": 1.0,
+    "mg/sqrt(h)": 1e-3 * G0 / 60.0,
+    "m/s": 1.0,
 }
 
 

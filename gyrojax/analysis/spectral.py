@@ -14,6 +14,13 @@
   in the units of Std 952 (continuous-time densities): for a gyro in rad/s, Q in rad, N in
   rad/s/sqrt(Hz) = rad/sqrt(s), B in rad/s, K in rad/s/sqrt(s) (= rad/s^(3/2)), R in rad/s^2.
   A discrete white-noise sample std ``sigma`` at ``rate_hz`` is ``N = sigma / sqrt(rate_hz)``.
+- :func:`fit_noise_likelihood`: the same terms (Q, N, B, K) by maximum Whittle likelihood on the
+  periodogram, with the exact sampled spectra of each term (``S_d(f)`` per sample, ``dt = 1/rate``):
+  white ``N^2/dt``; quantization ``4 sin^2(pi f dt) Q^2/dt^2`` (a differenced white angle error);
+  bias instability (flicker) ``B^2/(2 pi f dt)``; rate random walk ``K^2 dt / (4 sin^2(pi f dt))``
+  — the two-sided IEEE densities divided by ``dt`` at low frequency, consistent with the Allan
+  forms above. Each term gets a likelihood-ratio test against the model without it (boundary:
+  p = P(chi2_1 > LR)/2), and its confidence interval from the observed information.
 """
 
 from __future__ import annotations
@@ -25,7 +32,8 @@ import numpy as np
 from scipy import optimize, stats
 
 __all__ = ["AllanDeviation", "allan_deviation", "equivalent_dof", "NoiseTerms",
-           "fit_noise_terms", "octave_clusters"]
+           "fit_noise_terms", "octave_clusters", "periodogram", "fit_noise_likelihood",
+           "NoiseLikelihoodFit", "term_spectra"]
 
 NOISE_ALPHA = {"white_pm": 2, "flicker_pm": 1, "white_fm": 0, "flicker_fm": -1, "rw_fm": -2}
 """Power-law exponent of each noise type in fractional-frequency terms. For a gyro the rate is
@@ -168,3 +176,167 @@ def fit_noise_terms(ad: AllanDeviation, *, terms=("quantization", "angle_random_
     full = dict.fromkeys(names, 0.0)
     full.update({t: float(math.sqrt(c)) for t, c in zip(terms, coef)})
     return NoiseTerms(**full)
+
+
+# -- likelihood (Whittle) fit of the IEEE terms -------------------------------------------------
+LIK_TERMS = ("quantization", "angle_random_walk", "bias_instability", "rate_random_walk")
+
+
+def periodogram(pieces, rate_hz: float, *, taper: bool = True):
+    """Pooled periodogram of one or more contiguous pieces (each mean-removed): returns the
+    Fourier frequencies ``f_k`` (Hz, 2 <= k < n/2) of every piece and ``I_k``, whose
+    expectation is the per-sample spectrum ``S_d(f_k)`` (for white noise: its variance).
+
+    With ``taper`` (default) a Hann window, ``I_k = |FFT(w x)|^2 / sum w^2``: IMU spectra span
+    many decades (a random walk's 1/f^2 against a white floor) and the untapered periodogram's
+    leakage (sidelobes falling as 1/f^2) would bias every red term; Hann's fall as 1/f^6. The
+    ordinates are then correlated in neighbouring pairs (:data:`HANN_DOF_FACTOR`)."""
+    fs, ps = [], []
+    for x in pieces:
+        x = np.asarray(x, float)
+        n = x.size
+        if n < 16:
+            continue
+        w = np.hanning(n) if taper else np.ones(n)
+        spec = np.abs(np.fft.rfft((x - x.mean()) * w)) ** 2 / np.sum(w * w)
+        k = np.arange(2, (n - 1) // 2 + 1)
+        fs.append(k * rate_hz / n)
+        ps.append(spec[k])
+    if not fs:
+        raise ValueError("periodogram: no piece of at least 16 samples")
+    return np.concatenate(fs), np.concatenate(ps)
+
+
+HANN_DOF_FACTOR = 35.0 / 18.0
+"""n sum(w^4) / (sum w^2)^2 for the Hann window: the Whittle log-likelihood over the tapered
+periodogram counts each independent ordinate about this many times, so likelihood-ratio
+statistics are divided by it."""
+
+
+def term_spectra(f, rate_hz: float):
+    """``(len(f), 4)`` unit spectra of Q^2, N^2, B^2, K^2 (columns in LIK_TERMS order)."""
+    dt = 1.0 / rate_hz
+    s2 = np.sin(np.pi * np.asarray(f) * dt) ** 2
+    return np.stack([4 * s2 / dt ** 2, np.full_like(s2, 1 / dt), 1 / (2 * np.pi * f * dt),
+                     dt / (4 * s2)], axis=1)
+
+
+@dataclasses.dataclass
+class NoiseLikelihoodFit:
+    """Maximum-Whittle-likelihood noise terms (units as :class:`NoiseTerms`), per-term
+    likelihood-ratio statistics and boundary p-values, and 68 % intervals (NaN at a boundary)."""
+
+    terms: NoiseTerms
+    loglik: float
+    lr: dict
+    p: dict
+    interval: dict
+    n_freq: int
+
+    def spectrum(self, f, rate_hz):
+        """The fitted per-sample spectrum ``S_d(f)`` of the rate (not differenced)."""
+        c = np.array([getattr(self.terms, t) ** 2 for t in LIK_TERMS])
+        return term_spectra(f, rate_hz) @ c
+
+
+def _bin(f, pk, keep: int = 256, n_bins: int = 1500):
+    """Average periodogram ordinates in geometrically growing bins above the lowest ``keep``
+    frequencies: returns bin frequencies (mean), mean ordinates and counts. The Whittle sum over
+    the original ordinates is ``sum count * (log S + I_bar / S)`` to first order, at a fraction of
+    the cost for long records."""
+    order = np.argsort(f)
+    f, pk = f[order], pk[order]
+    n = f.size
+    if n <= keep + n_bins:
+        return f, pk, np.ones(n)
+    edges = np.unique(np.concatenate([np.arange(keep), np.round(np.geomspace(
+        keep, n, n_bins)).astype(int)]))
+    edges = edges[edges < n]
+    counts = np.diff(np.append(edges, n)).astype(float)
+    return (np.add.reduceat(f, edges) / counts, np.add.reduceat(pk, edges) / counts, counts)
+
+
+def _whittle_nll(theta, args):
+    import jax.numpy as jnp
+
+    hs, p, w = args
+    sd = hs @ jnp.exp(theta)
+    return jnp.sum(w * (jnp.log(sd) + p / sd)) / jnp.sum(w)
+
+
+def _whittle_solve(x0, hs, p, w):
+    import jax
+    import optimistix as optx
+
+    sol = optx.minimise(_whittle_nll, optx.BFGS(rtol=1e-10, atol=1e-12), x0, args=(hs, p, w),
+                        max_steps=500, throw=False)
+    th = sol.value
+    return th, _whittle_nll(th, (hs, p, w)), jax.hessian(_whittle_nll)(th, (hs, p, w))
+
+
+_WHITTLE_JIT = None
+
+
+def _whittle_fit(h, pk, active, x0, w=None):
+    """Maximise -sum w (log S + I/S), S = h @ exp(theta) over the active terms (optimistix BFGS
+    on log-coefficients, spectra normalised to the data's mean level). One compiled solver per
+    (frequencies, terms) shape."""
+    global _WHITTLE_JIT
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    if _WHITTLE_JIT is None:
+        _WHITTLE_JIT = eqx.filter_jit(_whittle_solve)
+    w = np.ones(len(pk)) if w is None else np.asarray(w)
+    th, nll, hess = _WHITTLE_JIT(jnp.asarray(x0, float), jnp.asarray(h[:, active]),
+                                 jnp.asarray(pk), jnp.asarray(w))
+    tot = float(np.sum(w))
+    return np.asarray(th), -float(nll) * tot, np.asarray(hess) * tot
+
+
+def fit_noise_likelihood(pieces, rate_hz: float, *, terms=LIK_TERMS,
+                         start: NoiseTerms | None = None) -> NoiseLikelihoodFit:
+    """Fit the IEEE terms named in ``terms`` by maximum Whittle likelihood on the pooled
+    periodogram of ``pieces`` (one record, or several static intervals of one channel), and test
+    each against the model without it.
+
+    Start values come from the Allan NNLS fit (``start``, or computed from the longest piece);
+    coefficients are fitted as logs, so a term absent from the data goes to its boundary (0)."""
+    bad = [t for t in terms if t not in LIK_TERMS]
+    if bad:
+        raise ValueError(f"unknown noise term(s) {bad}; the likelihood fit knows "
+                         f"{', '.join(LIK_TERMS)}")
+    if isinstance(pieces, np.ndarray) and pieces.ndim == 1:
+        pieces = [pieces]
+    f, pk, wk = _bin(*periodogram(pieces, rate_hz))
+    h = term_spectra(f, rate_hz)
+    level = float(np.sum(wk * pk) / np.sum(wk))
+    pn = pk / level  # coefficients are fitted relative to this level
+    if start is None:
+        longest = max(pieces, key=len)
+        start = fit_noise_terms(allan_deviation(longest, rate_hz))
+    c0 = np.array([getattr(start, t) ** 2 for t in LIK_TERMS]) / level
+    # floor start values a few decades under the white level's share so logs are finite
+    floor = np.array([np.mean(pn) / np.mean(h[:, j]) for j in range(4)]) * 1e-3
+    x0 = np.log(np.maximum(c0, floor))
+    idx = [LIK_TERMS.index(t) for t in terms]
+    th, ll, hess = _whittle_fit(h, pn, idx, x0[idx], wk)
+    coef = np.zeros(4)
+    coef[idx] = np.exp(th)
+    lr, p, ci = {}, {}, {}
+    cov = np.linalg.pinv(hess / HANN_DOF_FACTOR)
+    for j, t in enumerate(terms):
+        rest = [i for i in idx if i != LIK_TERMS.index(t)]
+        if rest:
+            _, ll0, _ = _whittle_fit(h, pn, rest, np.array([th[idx.index(i)] for i in rest]), wk)
+            lr[t] = max(0.0, 2 * (ll - ll0) / HANN_DOF_FACTOR)
+            p[t] = 0.5 * float(stats.chi2.sf(lr[t], 1)) if lr[t] > 0 else 1.0
+        sd = math.sqrt(max(cov[j, j], 0.0))
+        val = math.sqrt(coef[LIK_TERMS.index(t)] * level)
+        # interval on the log-variance scale -> on the term (sqrt): exp(+-sd/2)
+        ci[t] = (val * math.exp(-sd / 2), val * math.exp(sd / 2)) if sd < 5 else \
+            (float("nan"), float("nan"))
+    vals = {t: math.sqrt(coef[LIK_TERMS.index(t)] * level) for t in LIK_TERMS}
+    return NoiseLikelihoodFit(NoiseTerms(vals["quantization"], vals["angle_random_walk"],
+                                         vals["bias_instability"], vals["rate_random_walk"], 0.0),
+                              ll - float(np.sum(wk)) * math.log(level), lr, p, ci, int(np.sum(wk)))

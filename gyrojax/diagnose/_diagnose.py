@@ -35,7 +35,7 @@ from ._stats import (
 
 __all__ = ["diagnose", "RIGS"]
 
-RIGS = ("esg",)
+RIGS = ("esg", "imu")
 
 
 def _problem(record, rig, holdout, noise_std, effects, order):
@@ -56,6 +56,15 @@ def _problem(record, rig, holdout, noise_std, effects, order):
             raise ValueError(f"order={order!r}; use 'exact' (model 5.1) or 'first' (model 3.1)")
         return ESGProblem(record, holdout=holdout, noise_std=noise_std, effects=effects,
                           order=order)
+    if rig == "imu":
+        from ._imu import IMU_LIBRARY, IMUProblem
+
+        if effects is not None:
+            bad = [e for e in effects if e not in IMU_LIBRARY]
+            if bad:
+                raise ValueError(f"unknown effect(s) {bad} for --rig imu; the catalogue is "
+                                 f"{', '.join(IMU_LIBRARY)}")
+        return IMUProblem(record, holdout=holdout, noise_std=noise_std, effects=effects)
     raise ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: {', '.join(RIGS)}")
 
 
@@ -156,7 +165,20 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     params0 = prob.fit_nominal()
     pred0 = prob.predict(params0)
     resid_all = prob.y - pred0
-    sigma, noise_dof, noise_src = _noise(prob, resid_all[:n])
+    sigma, noise_dof, noise_src = (prob.noise_level(resid_all[:n]) if hasattr(prob, "noise_level")
+                                   else _noise(prob, resid_all[:n]))
+
+    def standardize(resid):
+        if hasattr(prob, "standardize"):
+            return prob.standardize(resid, sigma)
+        return resid / sigma
+
+    ho_dof = getattr(prob, "heldout_dof", 0)
+
+    def heldout_gap(ea):
+        """Held-out G, corrected for terms fitted on the held-out rows (IMU poses)."""
+        m = ea[n:].size
+        return float(np.sum(ea[n:] ** 2) / max(m - ho_dof, 1) - 1)
     timings["nominal_fit_s"] = time.perf_counter() - t_start
 
     t0 = time.perf_counter()
@@ -165,7 +187,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     jn = jn_all[rows_tr]
     sigs = [_train_slice(s, n * c) for s in sigs_all]
     s_full = {s.name: s for s in sigs_all}
-    e_all = (resid_all / sigma).reshape(-1)
+    e_all = standardize(resid_all).reshape(-1)
     e = e_all[rows_tr]
     timings["jacobians_s"] = time.perf_counter() - t0
 
@@ -173,16 +195,21 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     rows = screen(e, jn, sigs, prior=prior)
     cells = gap_map_cells(e.reshape(n, c), prob.t[:n], prob.channels, n_params=jn.shape[1],
                           noise_dof=noise_dof, lines=prob.lines, jn=jn)
-    p_all = np.array([x["p"] for x in cells] + [r.p for r in rows])
+    noise_rows = prob.noise_screen(params0) if hasattr(prob, "noise_screen") else []
+    p_all = np.array([x["p"] for x in cells] + [r.p for r in rows] + [x["p"] for x in noise_rows])
     q_all = bh_qvalues(p_all)
     for x, q in zip(cells, q_all[: len(cells)]):
         x["q"] = float(q)
         x["significant"] = bool(q < alpha)
-    for r, q in zip(rows, q_all[len(cells):]):
+    for r, q in zip(rows, q_all[len(cells): len(cells) + len(rows)]):
         r.q = float(q)
+    for x, q in zip(noise_rows, q_all[len(cells) + len(rows):]):
+        x["q"] = float(q)
+        x["significant"] = bool(q < alpha)
+    q_mean = q_all[: len(cells) + len(rows)]
     # excess energy of the whole-record windows (level 0), all channels
     excess = sum(max(0.0, x["excess"]) for x in cells if x["axis"] == "time" and x["level"] == 0)
-    detected = bool(np.any(q_all < alpha))
+    detected = bool(np.any(q_mean < alpha))
     amb = ambiguity_set(rows) if detected else []
     timings["screening_s"] = time.perf_counter() - t0
 
@@ -198,13 +225,13 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     t0 = time.perf_counter()
     n_ho = len(e_all) - n * c
     band = _null_band(jn_all, n * c, n_ho)
-    g_nom = float(np.mean(e_all[n * c:] ** 2) - 1) if n_ho else float("nan")
+    g_nom = heldout_gap(e_all.reshape(-1, c)) if n_ho else float("nan")
     g_nom_train = float(np.mean(e ** 2) - 1)
 
     def run_refit(combo):
         pred, coeffs, _ = prob.refit(params0, [(r.sig, r.grid_index) for r in combo], sigma)
-        ea = (prob.y - pred) / sigma
-        g_aug = float(np.mean(ea[n:] ** 2) - 1) if n_ho else float("nan")
+        ea = standardize(prob.y - pred)
+        g_aug = heldout_gap(ea) if n_ho else float("nan")
         span = np.concatenate([jn] + [r.sig.jac[r.grid_index] for r in combo], axis=1)
         span_all = np.concatenate([jn_all] + [s_full[r.sig.name].jac[r.grid_index]
                                               for r in combo], axis=1)
@@ -245,6 +272,9 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     timings["refit_s"] = time.perf_counter() - t0
 
     verdict = _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band)
+    verdict = _with_noise(verdict, noise_rows)
+    if getattr(prob, "notes", None):
+        verdict["notes"] = list(prob.notes)
 
     advice = []
     if design_advice:
@@ -272,8 +302,23 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
                    "pairs": {f"{a} ~ {b}": v for (a, b), v in pairs.items()}},
         second=second.sig.name if second is not None else None,
         refits=refits, design_advice=advice, verdict=verdict, alpha=alpha, timings=timings,
+        noise_effects=noise_rows,
         residual_all=resid_all / sigma, t=prob.t,
         residual_after=resid_after.get(tuple(verdict.get("effects") or ())))
+
+
+def _with_noise(verdict, noise_rows):
+    """Noise-model effects join the verdict: listed under ``noise_effects``; when the mean model
+    has no gap they are the attribution (several significant terms: all named, by strength)."""
+    sig = sorted([x for x in noise_rows if x.get("significant")], key=lambda x: x["p"])
+    if not noise_rows:
+        return verdict
+    verdict = dict(verdict, noise_effects=[x["name"] for x in sig])
+    if sig and verdict["kind"] == "no-gap":
+        verdict.update(kind="attributed", effects=[x["name"] for x in sig],
+                       reason="the mean model fits; the noise model lacks "
+                              + ", ".join(x["name"] for x in sig))
+    return verdict
 
 
 def _train_slice(sig, m):

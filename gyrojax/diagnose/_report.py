@@ -68,6 +68,7 @@ class GapReport:
     residual_all: np.ndarray = dataclasses.field(repr=False)  # whitened, nominal fit, (n, c)
     t: np.ndarray = dataclasses.field(repr=False)
     residual_after: np.ndarray | None = dataclasses.field(default=None, repr=False)
+    noise_effects: list = dataclasses.field(default_factory=list)
 
     @property
     def kind(self) -> str:
@@ -110,6 +111,7 @@ class GapReport:
             "where": [{k: v for k, v in x.items()} for x in self.where],
             "candidates": self.candidates_json(),
             "ambiguity": self.ambiguity, "second_effect": self.second,
+            "noise_effects": self.noise_effects,
             "refits": self.refits, "design_advice": self.design_advice,
             "verdict": self.verdict, "alpha": self.alpha, "timings": self.timings,
         })
@@ -126,7 +128,7 @@ class GapReport:
             after = f"{g1:.3g}" if g1 is not None else "-"
             lines.append(f"Held-out gap G = mean(e^2) - 1: before {g0:.3g}, after {after} "
                          f"(null band <= {band[1]:.3g})")
-        sig = ", ".join(f"{s / units.ARCSEC:.3g} arcsec" if self.rig == "esg" else f"{s:.3g}"
+        sig = ", ".join(f"{s / units.ARCSEC:.3g} arcsec" if self.rig == "esg" else f"{s:.3g} SI"
                         for s in self.noise["std"])
         lines += [f"Noise level: {sig} ({self.noise['source']}); train gap {self.gap['train']:.3g}",
                   "", "## Where (significant cells, BH q < alpha)", ""]
@@ -145,6 +147,17 @@ class GapReport:
             lines.append(f"| {r['name']} | {r['score']:.3g} | {r['dof']} | {r['p']:.2g} | "
                          f"{r['posterior']:.2f} | {r['visible_fraction']:.2g} | {r['flag']} | "
                          f"{', '.join(r['confounded_with'][:3]) or '-'} |")
+        if self.noise_effects:
+            lines += ["", "## Noise-model effects (full-rate static residual)", "",
+                      "| effect | p (Bonferroni over channels) | q | channel | fitted per channel |",
+                      "|---|---|---|---|---|"]
+            for x in self.noise_effects:
+                fit = ", ".join(f"{ch} {v:.3g}" for ch, v in x["fitted"].items())
+                unit = next(iter(x["unit"].values()), "")
+                lines.append(f"| {x['name']} | {x['p']:.2g} | {x.get('q', float('nan')):.2g} | "
+                             f"{x['channel']} | {fit} ({unit}; gyro/accel units differ) |")
+        if self.verdict.get("notes"):
+            lines += [""] + [f"Note: {x}" for x in self.verdict["notes"]]
         nulls = [(r["name"], d) for r in self.ranking for d in r["no_signature_directions"]]
         if nulls:
             lines += ["", "No signature on this bench: " + "; ".join(f"{d} ({n})" for n, d in nulls)]

@@ -5,7 +5,9 @@ from .esg import ESGConditions as ESGConditions
 from .esg import ESGRig as ESGRig
 from .gyrotheodolite import GyrotheodoliteConditions as GyrotheodoliteConditions
 from .gyrotheodolite import GyrotheodoliteRig as GyrotheodoliteRig
+from .imu import IMURig as IMURig
 from .schuler import SchulerConditions as SchulerConditions
 from .schuler import SchulerRig as SchulerRig
 
-RIGS = {"esg": ESGRig, "gyrotheodolite": GyrotheodoliteRig, "schuler": SchulerRig}
+RIGS = {"esg": ESGRig, "gyrotheodolite": GyrotheodoliteRig, "schuler": SchulerRig,
+        "imu": IMURig}

@@ -1,0 +1,539 @@
+"""The strapdown IMU rig as the diagnosis sees it (``--rig imu``).
+
+Rows are block means of the static samples (static intervals from
+:func:`gyrojax.estimate.multiposition.detect_static`; masked spans excluded), so long records stay
+small; the turns between poses are not modelled (the poses' up vectors are nuisance parameters,
+two small-angle terms per pose about the accelerometer's first guess). Mean effects are screened
+on these rows exactly as for the other rigs, after **prewhitening**: an AR(p) noise model per
+channel (order by BIC, p <= 5), fitted to the residual of the nominal model plus *every* catalogued
+mean effect (so a catalogued drift is not taken for coloured noise), filters the residual and every
+Jacobian column — the nominal model's colour would otherwise make every slow effect "significant".
+
+Noise-model effects (``quantization``, ``bias_instability``, ``rate_random_walk``) are tested at the
+full sampling rate on the static residual of the same full model, by the likelihood-ratio tests of
+the Whittle fit (:func:`gyrojax.analysis.spectral.fit_noise_likelihood`); ``outliers`` by the excess
+kurtosis of non-overlapping first differences (one-sided). Each effect's p-value is the smallest
+over channels, Bonferroni-corrected.
+
+Held-out split: time-ordered (the last ``holdout`` of the static rows). Poses that lie wholly in
+the held-out part get their two pose terms fitted there with everything else fixed (the
+calibration is what is being checked; the held-out gap is corrected for those dofs).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy import stats
+
+from .. import units
+from ..analysis.spectral import fit_noise_likelihood
+from ..datasets import masked
+from ..estimate.multiposition import detect_static
+from ..models.imu import IMU_CHANNELS, MEAN_EFFECTS, NOISE_EFFECTS, IMUConditions, IMURig, imu_measure
+from ..record import BenchRecord
+from ._stats import Signature
+
+__all__ = ["IMUProblem", "IMU_LIBRARY"]
+
+# effect -> (family, prior scale per coefficient, in each coefficient's display unit)
+IMU_LIBRARY = {
+    "earth_rate": ("earth", 1.0),
+    "scale_factor": ("scale", 3000.0),  # ppm
+    "misalignment": ("mounting", 3.0),  # mrad
+    "g_sensitivity": ("g", 100.0),  # deg/h/g
+    "time_drift": ("trend", None),  # per channel type, below
+    "warmup_transient": ("transient", None),
+    "quantization": ("noise", None),
+    "bias_instability": ("noise", None),
+    "rate_random_walk": ("noise", None),
+    "outliers": ("noise", None),
+}
+_PRIOR_BY_UNIT = {"deg/h/h": 10.0, "mg/h": 1.0, "deg/h": 100.0, "mg": 5.0}
+POSE_SCALE = 1e-2  # rad, scale of the pose terms (conditioning only)
+MIN_NOISE_PIECE_S = 100.0  # s, shortest static piece that tests bias instability / RRW
+
+
+class IMUProblem:
+    """One IMU record reduced to static block means, split by time into train / held-out."""
+
+    rig_name = "imu"
+
+    def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
+                 effects=None, order=None, block_s: float | None = None, max_rows: int = 1500):
+        bad = [c for c in record.channels if c not in IMU_CHANNELS]
+        if bad:
+            raise ValueError(f"channels {bad} are not IMU channels; use {IMU_CHANNELS}")
+        self.record = record
+        self.cond = IMUConditions.from_record(record)
+        self.rig = IMURig()
+        self.space = self.rig.param_space
+        self.channels = tuple(record.channels)
+        self.ch_idx = np.array([IMU_CHANNELS.index(c) for c in self.channels])
+        self.has_accel = any(c.startswith("a") for c in self.channels)
+        self.segments = detect_static(record)
+        if not self.segments:
+            raise ValueError("no static interval found (>= 1 s still): the IMU diagnosis needs a "
+                             "static or multi-position record")
+        self.noise_std = noise_std
+        self.rate_hz = self.cond.rate_hz
+        lib = list(effects) if effects is not None else list(IMU_LIBRARY)
+        self.notes = []
+        if "earth_rate" in lib and np.isnan(self.cond.latitude_deg):
+            lib.remove("earth_rate")
+            self.notes.append("earth_rate not screened: the record gives no latitude "
+                              "(--latitude DEG)")
+        self.effects = tuple(e for e in lib if e in MEAN_EFFECTS)
+        self.noise_effects = tuple(e for e in lib if e in NOISE_EFFECTS)
+        self._build_rows(block_s, max_rows)
+        n = len(self.t)
+        self.n_train = n - int(round(holdout * n)) if holdout > 0 else n
+        # poses with no train row are fitted on the held-out rows (profiled)
+        self.heldout_poses = sorted(set(self.seg[self.n_train:]) - set(self.seg[: self.n_train]))
+        self.heldout_dof = 2 * len(self.heldout_poses) * self.has_accel
+        self.nominal_names = tuple(n for n in self.space.nominal_names()
+                                   if n[1] in "ga" and _channel_of(n) in self.channels)
+        self.pose_names = tuple(f"pose{k}_{ab}" for k in range(self.n_pose) for ab in "ab") \
+            if self.has_accel else ()
+        self.nominal_scales = np.concatenate([self.space.scales(self.nominal_names),
+                                              np.full(len(self.pose_names), POSE_SCALE)])
+        self.nominal_units = tuple(self.space[k].display_unit for k in self.nominal_names) + \
+            ("rad",) * len(self.pose_names)
+        self.effect_names = {e: tuple(n for n in self.space.effect_names(e) if n != "tau_w"
+                                      and _relevant(n, self.channels)) for e in self.effects}
+        span = self.t[self.n_train - 1] - self.t[0]
+        self.tau_grid_s = tuple(float(x) for x in np.geomspace(span / 30, span / 2, 6))
+        self.lines = {}
+        self._ar = None
+        self._cache = {}
+
+    # -- data reduction --------------------------------------------------------------------
+    def _build_rows(self, block_s, max_rows):
+        t = np.asarray(self.record.t, float)
+        y = np.asarray(self.record.y, float)
+        bad = masked(self.record)
+        total = sum(s.n for s in self.segments)
+        dt = 1.0 / self.rate_hz
+        m = max(1, int(np.ceil(total / max_rows))) if block_s is None else \
+            max(1, int(round(block_s / dt)))
+        self.block = m
+        ts, ys, seg = [], [], []
+        for k, s in enumerate(self.segments):
+            keep = ~bad[s.i0:s.i1]
+            tk, yk = t[s.i0:s.i1][keep], y[s.i0:s.i1][keep]
+            nb = len(tk) // m
+            if nb == 0:
+                continue
+            ts.append(tk[: nb * m].reshape(nb, m).mean(1))
+            ys.append(yk[: nb * m].reshape(nb, m, -1).mean(1))
+            seg.append(np.full(nb, k))
+        self.t = np.concatenate(ts)
+        self.y = np.concatenate(ys)
+        self.seg = np.concatenate(seg)
+        self.n_pose = len(self.segments)
+        # first guess of each pose's up vector: the accelerometer mean (or z up)
+        u0 = np.tile([0.0, 0.0, 1.0], (self.n_pose, 1))
+        acc = [i for i, c in enumerate(self.channels) if c.startswith("a")]
+        if len(acc) == 3:
+            for k in range(self.n_pose):
+                rows = self.seg == k
+                if rows.any():
+                    v = self.y[rows][:, acc].mean(0)
+                    u0[k] = v / np.linalg.norm(v)
+        e1 = np.cross(u0, np.where(np.abs(u0[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+        self.u0, self.e1, self.e2 = u0, e1, np.cross(u0, e1)
+
+    # -- model -----------------------------------------------------------------------------
+    def _params(self, vec, names, base):
+        p = dict(base)
+        pose = base.get("_pose", {})
+        pa = jnp.asarray([pose.get(f"pose{k}_a", 0.0) for k in range(self.n_pose)])
+        pb = jnp.asarray([pose.get(f"pose{k}_b", 0.0) for k in range(self.n_pose)])
+        for i, n in enumerate(names):
+            if n.startswith("pose"):
+                k, ab = n[4:].split("_")
+                if ab == "a":
+                    pa = pa.at[int(k)].set(vec[i] * POSE_SCALE)
+                else:
+                    pb = pb.at[int(k)].set(vec[i] * POSE_SCALE)
+            else:
+                p[n] = vec[i] * self.space[n].scale
+        return p, pa, pb
+
+    def _pred(self, p, pa, pb, t, seg, u0=None, e1=None, e2=None):
+        u0 = self.u0 if u0 is None else u0
+        e1 = self.e1 if e1 is None else e1
+        e2 = self.e2 if e2 is None else e2
+        u = u0[seg] + pa[seg][:, None] * e1[seg] + pb[seg][:, None] * e2[seg]
+        u = u / jnp.linalg.norm(u, axis=1, keepdims=True)
+        return imu_measure(p, u, t, self.cond)[:, self.ch_idx]
+
+    def _compiled(self, names):
+        """Jitted model and Jacobian for the free parameters ``names`` (cached per problem: the
+        base values, rows and pose geometry are arguments, so refits reuse the compilation)."""
+        if names not in self._cache:
+            def f(vec, base, t, seg, geo):
+                p, pa, pb = self._params(vec, names, base)
+                return self._pred(p, pa, pb, t, seg, *geo)
+
+            self._cache[names] = (jax.jit(f), jax.jit(jax.jacfwd(f)))
+        return self._cache[names]
+
+    def _call(self, which, names, base, t, seg, vec=None, design=None):
+        names = tuple(names)
+        geo = tuple(jnp.asarray(g) for g in (design or (self.u0, self.e1, self.e2)))
+        vec = jnp.zeros(len(names)) if vec is None else jnp.asarray(vec)
+        base = {k: (dict(v) if k == "_pose" else float(v)) for k, v in base.items()}
+        return np.asarray(self._compiled(names)[which](vec, base, jnp.asarray(t),
+                                                       jnp.asarray(seg), geo))
+
+    def _vector(self, params, names):
+        return jnp.asarray([params["_pose"][n] / POSE_SCALE if n.startswith("pose")
+                            else params[n] / self.space[n].scale for n in names])
+
+    def predict(self, params, extra=None):
+        """Model rows (block means) over train + held-out for a params dict (effects included)."""
+        names = self.nominal_names + self.pose_names
+        out = self._call(0, names, params, self.t, self.seg, self._vector(params, names))
+        return out if extra is None else out + extra
+
+    # -- fits ------------------------------------------------------------------------------
+    def _gn(self, params, free, rows, iters: int = 8):
+        """Gauss-Newton on ``free`` over ``rows`` (the model is nearly linear: converges in a few
+        steps); returns the updated params."""
+        names = tuple(free)
+        vec = np.asarray(self._vector(params, names))
+        w = 1.0 / self._scale_rows()
+        yr = self.y[rows]
+        t, seg = self.t[rows], self.seg[rows]
+        for _ in range(iters):
+            r = ((yr - self._call(0, names, params, t, seg, vec)) * w).reshape(-1)
+            j = (self._call(1, names, params, t, seg, vec) * w[None, :, None]).reshape(
+                -1, len(names))
+            step, *_ = np.linalg.lstsq(j, r, rcond=None)
+            vec = vec + step
+            if np.max(np.abs(step)) < 1e-10:
+                break
+        return self._unpack(params, names, vec)
+
+    def _unpack(self, params, names, vec):
+        out = dict(params)
+        out["_pose"] = dict(params["_pose"])
+        for i, n in enumerate(names):
+            if n.startswith("pose"):
+                out["_pose"][n] = float(vec[i]) * POSE_SCALE
+            else:
+                out[n] = float(vec[i]) * self.space[n].scale
+        return out
+
+    def _scale_rows(self):
+        """Per-channel scale for the fit weights (robust noise of the block means)."""
+        d = np.diff(self.y[: self.n_train], axis=0)
+        s = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2)
+        return np.maximum(s, 1e-12)
+
+    def _base(self):
+        p = {k: float(v) for k, v in self.space.make().items()}
+        p["_pose"] = dict.fromkeys(self.pose_names, 0.0)
+        return p
+
+    def fit_nominal(self):
+        p = self._base()
+        tr = np.arange(self.n_train)
+        train_poses = self.pose_names if not self.heldout_poses else tuple(
+            n for n in self.pose_names if int(n[4:].split("_")[0]) not in self.heldout_poses)
+        p = self._gn(p, self.nominal_names + train_poses, tr)
+        p = self._fit_heldout_poses(p)
+        self._fit_ar(p)
+        return p
+
+    def _fit_heldout_poses(self, p):
+        if not self.heldout_poses or not self.has_accel:
+            return p
+        names = tuple(f"pose{k}_{ab}" for k in self.heldout_poses for ab in "ab")
+        return self._gn(p, names, np.arange(self.n_train, len(self.t)))
+
+    # -- prewhitening ----------------------------------------------------------------------
+    def _full_effect_columns(self, params, t=None, seg=None):
+        """Raw (unwhitened) Jacobian columns of every catalogued mean effect at the null, all
+        warm-up grid values included: ``(rows, channels, k)``."""
+        t = self.t if t is None else t
+        seg = self.seg if seg is None else seg
+        cols = []
+        for e in self.effects:
+            names = self.effect_names[e]
+            if not names:
+                continue
+            taus = self.tau_grid_s if e == "warmup_transient" else (None,)
+            for tau in taus:
+                base = dict(params) | ({"tau_w": tau} if tau else {})
+                cols.append(self._call(1, names, base, t, seg))
+        return np.concatenate(cols, axis=2) if cols else np.zeros((len(t), len(self.channels), 0))
+
+    def _fit_ar(self, params, max_order: int = 5):
+        """AR(p) per channel on the full-model train residual, p by BIC; stores the filters."""
+        n = self.n_train
+        names = self.nominal_names + self.pose_names
+        jn = self._call(1, names, params, self.t, self.seg, self._vector(params, names))
+        je = self._full_effect_columns(params)
+        resid = self.y - self.predict(params)
+        self._ar, sig = [], []
+        for c in range(len(self.channels)):
+            x = np.concatenate([jn[:n, c], je[:n, c]], axis=1)
+            beta, *_ = np.linalg.lstsq(x, resid[:n, c], rcond=None)
+            r = resid[:n, c] - x @ beta
+            best = None
+            for p in range(max_order + 1):
+                phi, s2, m = _ar_fit(r, self.seg[:n], p)
+                bic = m * np.log(s2) + p * np.log(max(m, 2))
+                if best is None or bic < best[0]:
+                    best = (bic, phi, s2)
+            self._ar.append(best[1])
+            sig.append(np.sqrt(best[2]))
+        self._ar_sigma = np.array(sig)
+        self._mean_part = None
+
+    def whiten(self, x):
+        """Apply the per-channel AR prewhitening filters (within each pose) to ``x`` of shape
+        ``(rows, channels, ...)``."""
+        out = np.array(x, float, copy=True)
+        for c, phi in enumerate(self._ar):
+            if len(phi) == 0:
+                continue
+            for k in np.unique(self.seg[: len(x)]):
+                idx = np.flatnonzero(self.seg[: len(x)] == k)
+                xs = np.asarray(x)[idx, c]
+                ys = xs.copy()
+                for i, ph in enumerate(phi, start=1):
+                    ys[i:] -= ph * xs[:-i]
+                out[idx, c] = ys
+        return out
+
+    def noise_level(self, resid):
+        if self.noise_std is not None:
+            s = np.broadcast_to(np.asarray(self.noise_std, float), (len(self.channels),)).copy()
+            return s, np.inf, "given"
+        order = [len(p) for p in self._ar]
+        return self._ar_sigma, float(self.n_train - max(order) - 1), \
+            f"AR prewhitening per channel, orders {order} (BIC), on the full-model residual"
+
+    def standardize(self, resid, sigma):
+        return self.whiten(resid) / sigma
+
+    # -- Jacobians -------------------------------------------------------------------------
+    def jacobians(self, params, sigma, *, conditions=None, t=None):
+        """Whitened (AR-filtered, per-channel scaled) Jacobians: nominal (biases, poses) and one
+        Signature per mean effect (warm-up: one slice per decay time)."""
+        if conditions is not None:
+            return self._design_jacobians(params, sigma, conditions)
+        t, seg = self.t, self.seg
+        names = self.nominal_names + self.pose_names
+        jn = self._call(1, names, params, t, seg, self._vector(params, names))
+        jn = (self.whiten(jn) / sigma[None, :, None]).reshape(-1, len(names))
+        sigs = [self._signature(e, params, sigma, t, seg, self.whiten) for e in self.effects
+                if self.effect_names[e]]
+        return jn, sigs
+
+    def _signature(self, e, params, sigma, t, seg, whiten, design=None):
+        names = self.effect_names[e]
+        fam, prior = IMU_LIBRARY[e]
+        pri = np.array([prior if prior is not None else
+                        _PRIOR_BY_UNIT[self.space[n].display_unit] for n in names])
+        factor = np.array([self.space[n].display_factor / self.space[n].scale for n in names])
+        taus = self.tau_grid_s if e == "warmup_transient" else (None,)
+        slices = []
+        for tau in taus:
+            base = dict(params) | ({"tau_w": tau} if tau else {})
+            j = whiten(self._call(1, names, base, t, seg, design=design)) / sigma[None, :, None]
+            slices.append(j.reshape(-1, len(names)) * factor * pri)
+        grid = tuple(x / 3600 for x in self.tau_grid_s) if e == "warmup_transient" else ()
+        return Signature(e, fam, names, tuple(self.space[n].display_unit for n in names), pri,
+                         np.stack(slices), grid, "decay time" if grid else "",
+                         "h" if grid else "")
+
+    # -- refits ----------------------------------------------------------------------------
+    def refit(self, params0, sig_choices, sigma):
+        p = dict(params0)
+        p["_pose"] = dict(params0["_pose"])
+        free = list(self.nominal_names) + [n for n in self.pose_names if int(
+            n[4:].split("_")[0]) not in self.heldout_poses]
+        for sig, g in sig_choices:
+            free += list(sig.names)
+            if sig.name == "warmup_transient":
+                p["tau_w"] = self.tau_grid_s[g]
+        p = self._gn(p, tuple(free), np.arange(self.n_train))
+        p = self._fit_heldout_poses(p)
+        coeffs = {n: float(self.space[n].to_display(p[n])) for sig, _ in sig_choices
+                  for n in sig.names}
+        return self.predict(p), coeffs, p
+
+    # -- designs ---------------------------------------------------------------------------
+    def designs(self):
+        """Candidate designs: the record twice as long (same poses), and 12 poses (the six
+        axis-up poses and six tilted ones) of the same total static time."""
+        from ..models.imu import cube_poses
+
+        out = [("record twice as long", ("long", None), None)]
+        if self.has_accel and len(self.channels) == 6:
+            ups = np.array([p.up for p in cube_poses(12, seed=1)])
+            out.append(("12 poses (axes up/down + 6 tilted)", ("poses", ups), None))
+        return out
+
+    def _design_jacobians(self, params, sigma, design):
+        kind, ups = design
+        if kind == "long":
+            t = np.concatenate([self.t, self.t + (self.t[-1] - self.t[0]) + 1.0])
+            seg = np.concatenate([self.seg, self.seg])
+            geo = None
+        else:
+            per = max(1, len(self.t) // len(ups))
+            seg = np.repeat(np.arange(len(ups)), per)
+            t = np.linspace(self.t[0], self.t[-1], len(seg))
+            u0 = ups / np.linalg.norm(ups, axis=1, keepdims=True)
+            e1 = np.cross(u0, np.where(np.abs(u0[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+            e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+            geo = (u0, e1, np.cross(u0, e1))
+            params = dict(params)
+        names = self.nominal_names + (tuple(f"pose{k}_{ab}" for k in range(len(ups))
+                                            for ab in "ab") if geo else self.pose_names)
+        vec = jnp.zeros(len(names)) if geo else self._vector(params, names)
+        if geo:
+            vec = vec.at[: len(self.nominal_names)].set(self._vector(params, self.nominal_names))
+        jn = self._call(1, names, params, t, seg, vec, geo) / sigma[None, :, None]
+        sigs = [self._signature(e, params, sigma, t, seg, lambda x: x, geo)
+                for e in self.effects if self.effect_names[e]]
+        return jn.reshape(-1, len(names)), sigs
+
+    def display_nominal(self, params):
+        out = {k: float(self.space[k].to_display(params[k])) for k in self.nominal_names}
+        return out
+
+    # -- noise-model effects ---------------------------------------------------------------
+    def noise_screen(self, params, alpha: float = 0.05):
+        """Noise-model effects on the full-rate static residual (train part) of the full mean
+        model. Returns one row per noise effect: p (min over channels, Bonferroni), the channel,
+        the statistic and the fitted term per channel in display units."""
+        if not self.noise_effects:
+            return []
+        t_all = np.asarray(self.record.t, float)
+        y_all = np.asarray(self.record.y, float)
+        bad = masked(self.record)
+        t_split = self.t[self.n_train - 1]
+        # full-model mean part at the block rows -> interpolated to the samples
+        names = self.nominal_names + self.pose_names
+        jn = self._call(1, names, params, self.t, self.seg, self._vector(params, names))
+        je = self._full_effect_columns(params)
+        resid_rows = self.y - self.predict(params)
+        pieces = {c: [] for c in range(len(self.channels))}
+        n = self.n_train
+        for c in range(len(self.channels)):
+            x = np.concatenate([jn[:n, c], je[:n, c]], axis=1)
+            beta, *_ = np.linalg.lstsq(x, resid_rows[:n, c], rcond=None)
+            fitted_rows = self.predict(params)[:, c] + np.concatenate([jn[:, c], je[:, c]],
+                                                                      axis=1) @ beta
+            for k, s in enumerate(self.segments):
+                rows = np.flatnonzero(self.seg == k)
+                if rows.size < 2:
+                    continue
+                idx = np.arange(s.i0, s.i1)
+                idx = idx[(~bad[idx]) & (t_all[idx] <= t_split)]
+                if idx.size < 64:
+                    continue
+                mean = np.interp(t_all[idx], self.t[rows], fitted_rows[rows])
+                pieces[c].append(y_all[idx, c] - mean)
+        rows_out = []
+        fits = {}
+        # bias instability and rate random walk live at long tau: only static pieces of at
+        # least MIN_NOISE_PIECE_S test them (short hand-held poses carry settling motion)
+        long_pieces = {c: [x for x in pcs if x.size >= MIN_NOISE_PIECE_S * self.rate_hz]
+                       for c, pcs in pieces.items()}
+        for c, pcs in long_pieces.items():
+            if pcs:
+                fits[c] = fit_noise_likelihood(pcs, self.rate_hz)
+        longest = max((x.size for pcs in pieces.values() for x in pcs), default=0) / self.rate_hz
+        term = {"quantization": "quantization", "bias_instability": "bias_instability",
+                "rate_random_walk": "rate_random_walk"}
+        for e in self.noise_effects:
+            per = {}
+            if e != "outliers" and not fits:
+                rows_out.append({"name": e, "family": "noise", "kind": "noise", "p": 1.0,
+                                 "channel": None, "statistic": 0.0, "fitted": {}, "unit": {},
+                                 "testable": False,
+                                 "statistic_kind": f"not testable: the longest static piece is "
+                                 f"{longest:.0f} s < {MIN_NOISE_PIECE_S:.0f} s"})
+                continue
+            for c, pcs in pieces.items():
+                if not pcs or (e != "outliers" and c not in fits):
+                    continue
+                if e == "outliers":
+                    d = np.concatenate([np.diff(p)[::2] for p in pcs])
+                    d = d - d.mean()
+                    k = float(np.mean(d ** 4) / np.mean(d ** 2) ** 2 - 3)
+                    z = k / np.sqrt(24.0 / d.size)
+                    per[self.channels[c]] = (float(stats.norm.sf(z)), z, k)
+                else:
+                    fit = fits[c]
+                    per[self.channels[c]] = (fit.p[term[e]], fit.lr[term[e]],
+                                             getattr(fit.terms, term[e]))
+            if not per:
+                continue
+            best = min(per, key=lambda ch: per[ch][0])
+            p = min(1.0, per[best][0] * len(per))
+            rows_out.append({
+                "name": e, "family": "noise", "kind": "noise", "p": p, "channel": best,
+                "statistic": float(per[best][1]),
+                "statistic_kind": "excess kurtosis z" if e == "outliers" else
+                "likelihood ratio (Whittle, boundary-corrected)",
+                "fitted": {ch: _noise_display(e, ch, v[2]) for ch, v in per.items()},
+                "testable": True,
+                "unit": {ch: _noise_unit(e, ch) for ch in per},
+            })
+        self.noise_fits = {self.channels[c]: f for c, f in fits.items()}
+        return rows_out
+
+
+def _noise_unit(e, ch):
+    gyro = ch.startswith("w")
+    return {"quantization": "arcsec" if gyro else "m/s",
+            "bias_instability": "deg/h" if gyro else "mg",
+            "rate_random_walk": "deg/h/sqrt(h)" if gyro else "mg/sqrt(h)",
+            "outliers": "excess kurtosis"}[e]
+
+
+def _noise_display(e, ch, v):
+    return float(v) if e == "outliers" else float(units.to_unit(v, _noise_unit(e, ch)))
+
+
+def _channel_of(name):
+    """Channel a nominal bias belongs to: bgx -> wx, bay -> ay."""
+    return ("w" if name[1] == "g" else "a") + name[2]
+
+
+def _relevant(name, channels):
+    """Does effect parameter ``name`` touch a channel the record has?"""
+    gyro = any(c.startswith("w") for c in channels)
+    accel = any(c.startswith("a") for c in channels)
+    if name == "k_earth" or name[:2] in ("sg", "mg", "gs", "dg", "wg"):
+        return gyro and (accel or name[:2] in ("dg", "wg"))
+    return accel
+
+
+def _ar_fit(r, seg, p):
+    """Least-squares AR(p) within poses; returns (phi, innovation variance, rows used)."""
+    if p == 0:
+        return np.zeros(0), float(np.mean(r ** 2)), len(r)
+    xs, ys = [], []
+    for k in np.unique(seg):
+        rk = r[seg == k]
+        if len(rk) <= p + 1:
+            continue
+        ys.append(rk[p:])
+        xs.append(np.stack([rk[p - i: len(rk) - i] for i in range(1, p + 1)], 1))
+    if not ys:
+        return np.zeros(0), float(np.mean(r ** 2)), len(r)
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    phi, *_ = np.linalg.lstsq(x, y, rcond=None)
+    e = y - x @ phi
+    return phi, float(np.mean(e ** 2)), len(y)
