@@ -68,3 +68,10 @@ def first_and_best(fn, repeat: int = 3):
     out = jax.block_until_ready(fn())
     first = time.perf_counter() - t
     return out, first, best_time(fn, repeat)
+
+
+def fmt_rate(r) -> str:
+    """``rate ± se (n=...)`` of a blind-suite metric, or ``-``."""
+    if r is None:
+        return "-"
+    return f"{r['rate']:.2f} ± {r['se']:.2f} (n={r['n']})"

@@ -20,16 +20,11 @@ import time
 
 sys.path.insert(0, os.path.dirname(__file__))
 
+from _results import fmt_rate as _fmt  # noqa: E402
 from _results import machine_line, publish  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from gyrojax.diagnose import bench  # noqa: E402
-
-
-def _fmt(r):
-    if r is None:
-        return "-"
-    return f"{r['rate']:.2f} ± {r['se']:.2f} (n={r['n']})"
 
 
 def main(argv=None):

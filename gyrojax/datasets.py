@@ -19,6 +19,7 @@ the source gives it, the nominal conversion used, and ``masked_s``: a flat tuple
 
 from __future__ import annotations
 
+import os
 import warnings
 from pathlib import Path
 
@@ -39,12 +40,16 @@ class DataFileError(ValueError):
 
 
 def data_root(path=None) -> Path:
-    """``../shared/data/real`` beside the project root (or ``path``); a clear error if absent."""
-    root = Path(path) if path is not None else Path(__file__).resolve().parents[2] / "shared" \
-        / "data" / "real"
+    """``path``, else ``$GYROJAX_REAL_DATA``, else ``../shared/data/real`` beside the project
+    root; a clear error if absent."""
+    if path is None:
+        path = os.environ.get("GYROJAX_REAL_DATA") or \
+            Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+    root = Path(path)
     if not root.is_dir():
         raise FileNotFoundError(f"real data not found at {root}: the data sets live in "
-                                "../shared/data/real beside the project (not in this repository)")
+                                "../shared/data/real beside the project (not in this repository); "
+                                "point GYROJAX_REAL_DATA at a copy elsewhere")
     return root
 
 

@@ -161,3 +161,31 @@ def plot_gap_report(report, path=None):
     if path:
         _save(fig, path)
     return fig
+
+
+def plot_allan(ad, fits=None, *, unit="deg/h", title="", path=None, ax=None):
+    """Overlapping Allan deviation with its confidence intervals, and the AVAR curves of fitted
+    noise terms (``fits``: label -> :class:`gyrojax.analysis.spectral.NoiseTerms`), in ``unit``
+    (deg/h for a gyro, mg for an accelerometer)."""
+    plt = _plt()
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    else:
+        fig = ax.figure
+    k = units.from_unit(1.0, unit)
+    ax.errorbar(ad.tau, ad.adev / k, yerr=[(ad.adev - ad.lo) / k, (ad.hi - ad.adev) / k], fmt="o",
+                ms=3, capsize=2, label=f"ADEV ({ad.confidence:.0%} interval, edf)")
+    tau = np.geomspace(ad.tau[0], ad.tau[-1], 200)
+    for (label, terms), style in zip((fits or {}).items(), ("-", "--", ":", "-.")):
+        ax.plot(tau, np.sqrt(terms.avar(tau)) / k, style, lw=1.2, label=label)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("tau [s]")
+    ax.set_ylabel(f"Allan deviation [{unit}]")
+    ax.grid(True, which="both", lw=0.3)
+    ax.legend(fontsize=8)
+    if title:
+        ax.set_title(title, fontsize=9)
+    if path:
+        _save(fig, path)
+    return fig

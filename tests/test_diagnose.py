@@ -158,7 +158,7 @@ def test_blind_harness_is_sealed_and_scores(tmp_path):
     from gyrojax.diagnose import bench
 
     pkg = Path(__file__).parents[1] / "gyrojax" / "diagnose"
-    for f in ("_diagnose.py", "_esg.py", "_stats.py", "_report.py", "__init__.py"):
+    for f in ("_diagnose.py", "_esg.py", "_imu.py", "_stats.py", "_report.py", "__init__.py"):
         tree = ast.parse((pkg / f).read_text())
         imported = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
         imported |= {f"{n.module}.{a.name}" for n in ast.walk(tree)
@@ -181,6 +181,22 @@ def test_blind_harness_is_sealed_and_scores(tmp_path):
     assert block["top3"]["rate"] == 1.0
     manifest = json.loads((sealed / "manifest.json").read_text())["cases"]
     assert {r["sha"] for r in results} == set(manifest)
+
+
+def test_imu_blind_harness_design_shift(tmp_path):
+    """Two sealed IMU cases (scale factor at lambda = 400, design-shift split: six other poses
+    held out): both detected and attributed; the truth-side lambda and the records agree (the
+    diagnosis' score is of the order of lambda)."""
+    from gyrojax.diagnose import bench_imu
+
+    design = bench_imu.IMUDesign(split="design-shift")
+    bench_imu.generate(tmp_path, 2, seed=5, design=design, null_fraction=0.0,
+                       lambdas=(400.0,), families=("scale_factor",))
+    results = bench_imu.run(tmp_path, design=design)
+    s = bench_imu.score(tmp_path, results)
+    assert s["by_lambda"]["400"]["power"]["rate"] == 1.0
+    assert s["by_lambda"]["400"]["top1"]["rate"] == 1.0
+    assert s["heldout_closure"]["rate"] == 1.0
 
 
 # -- bad input -------------------------------------------------------------------------------

@@ -2,12 +2,15 @@
 likelihood fit against the simulated terms, the diagnosis on simulated records (null and a hidden
 scale-factor error), and loaders' errors on bad files."""
 
+import json
+
 import jax
 import numpy as np
 import pytest
 
 from gyrojax import units
-from gyrojax.analysis.spectral import fit_noise_likelihood
+from gyrojax.analysis.spectral import allan_deviation, fit_noise_likelihood, fit_noise_terms
+from gyrojax.cli import main
 from gyrojax.datasets import DataFileError, load_mpu6050, load_smac
 from gyrojax.diagnose import diagnose
 from gyrojax.estimate.multiposition import (
@@ -19,7 +22,9 @@ from gyrojax.estimate.multiposition import (
     leave_one_position_out,
     segment_means,
 )
+from gyrojax.io import save_record
 from gyrojax.models.imu import IMURig, cube_poses, imu_noise, simulate_imu
+from gyrojax.plots import plot_allan
 
 SPACE = IMURig().param_space
 BIAS = dict(bax=0.05, bay=-0.03, baz=0.08, bgx=0.01, bgy=-0.02, bgz=0.005)
@@ -53,7 +58,7 @@ def test_multiposition_calibration_recovers_the_generating_parameters():
     assert not few.determined and "not determined" in few.message
 
 
-def test_noise_likelihood_fit_recovers_white_and_rate_random_walk():
+def test_noise_likelihood_fit_recovers_white_and_rate_random_walk(tmp_path):
     """White (N = 0.05 deg/sqrt(h)) + RRW (K = 5 deg/h/sqrt(h)), 2000 s at 100 Hz: N within 2 %,
     K within 40 %, the RRW term significant; on white noise alone no term is."""
     n_true = 0.05 * units.DEG / 60
@@ -64,6 +69,10 @@ def test_noise_likelihood_fit_recovers_white_and_rate_random_walk():
     assert fit.terms.angle_random_walk == pytest.approx(n_true, rel=0.02)
     assert fit.terms.rate_random_walk == pytest.approx(k_true, rel=0.4)
     assert fit.p["rate_random_walk"] < 1e-3
+    ad = allan_deviation(x, 100.0)
+    plot_allan(ad, {"Allan NNLS": fit_noise_terms(ad), "Whittle": fit.terms},
+               path=tmp_path / "adev.png")
+    assert (tmp_path / "adev.png").stat().st_size > 10_000
     w = np.asarray(imu_noise(jax.random.PRNGKey(1), SPACE.make(), 200_000, 100.0,
                              arw=n_true))[:, 0]
     white = fit_noise_likelihood(w, 100.0)
@@ -76,23 +85,30 @@ def _record(extra, seed=1):
                         vrw=1e-3, key=jax.random.PRNGKey(seed), latitude_deg=45.0)
 
 
-def test_imu_diagnosis_null_and_hidden_scale_factor():
-    """No effect -> no-gap (mean and noise model); accelerometer scale errors of 1000-3000 ppm ->
-    scale_factor attributed, and its refit closes the held-out gap (within the null band)."""
+def test_imu_diagnosis_null_and_hidden_scale_factor(tmp_path, capsys):
+    """No effect -> no-gap (mean and noise model); accelerometer scale errors of 1000-3000 ppm,
+    through the CLI on a CSV record -> scale_factor attributed, its refit recovers them within
+    100 ppm and closes the held-out gap (within the refitted model's null band)."""
     rep = diagnose(_record({}), rig="imu", design_advice=False)
     assert rep.kind == "no-gap"
-    rep = diagnose(_record(dict(sax=3e-3, say=-2e-3, saz=1e-3)), rig="imu", design_advice=False)
-    v = rep.verdict
+    path = save_record(_record(dict(sax=3e-3, say=-2e-3, saz=1e-3)), tmp_path / "imu.csv")
+    out = tmp_path / "gap.json"
+    assert main(["diagnose", str(path), "--rig", "imu", "--latitude", "45", "--json",
+                 str(out)]) == 0
+    assert "Verdict: attributed" in capsys.readouterr().out
+    rep = json.loads(out.read_text())
+    v = rep["verdict"]
     assert v["kind"] == "attributed" and v["effects"] == ["scale_factor"]
-    rf = next(r for r in rep.refits if r["effects"] == ["scale_factor"])
+    rf = next(r for r in rep["refits"] if r["effects"] == ["scale_factor"])
     # the refit's own null band includes the refitted terms' extrapolation leverage
     assert v["heldout_gap_before"] > 1
     assert v["heldout_gap_after"] < rf["heldout_null_band_after"][1]
     for k, truth in (("sax", 3000), ("say", -2000), ("saz", 1000)):
         assert rf["coefficients"][k] == pytest.approx(truth, abs=100)  # ppm
     # gyro scale factors have no signature on a static stand: said so by name
-    sf = rep.candidate("scale_factor")
+    sf = next(c for c in rep["candidates"] if c["name"] == "scale_factor")
     assert {"sgx", "sgy", "sgz"} <= set(sf["no_signature_directions"])
+    assert main(["diagnose", str(path), "--rig", "imu", "--noise-arcsec", "1"]) == 2
 
 
 def test_loaders_bad_files(tmp_path):
@@ -118,3 +134,17 @@ def test_loaders_bad_files(tmp_path):
     (root / "smac_imudata" / "adis16405_run2.npz").write_bytes(b"PK\x03\x04 truncated")
     with pytest.raises(DataFileError, match=r"adis16405_run2.npz: cannot be read as .npz"):
         load_smac("adis", 2, root=root)
+
+
+def test_simulated_bias_instability_has_the_allan_floor():
+    """The Gauss-Markov-sum flicker of ``imu_noise`` has ADEV = 0.664 B (IEEE) within 15 % from
+    2 s to 400 s; simulated quantization has ADEV = sqrt(3) Q / tau at short tau."""
+    b = 2 * units.DEG_PER_HOUR
+    x = np.asarray(imu_noise(jax.random.PRNGKey(4), SPACE.make(b_g=b), 400_000, 100.0))[:, 0]
+    ad = allan_deviation(x, 100.0)
+    band = (ad.tau >= 2) & (ad.tau <= 400)
+    assert np.all(np.abs(ad.adev[band] / (0.664 * b) - 1) < 0.15), ad.adev[band] / (0.664 * b)
+    q = 5 * units.ARCSEC
+    x = np.asarray(imu_noise(jax.random.PRNGKey(5), SPACE.make(q_g=q), 100_000, 100.0))[:, 0]
+    ad = allan_deviation(x, 100.0, m=np.array([1, 4, 16]))
+    np.testing.assert_allclose(ad.adev, np.sqrt(3) * q / ad.tau, rtol=0.05)

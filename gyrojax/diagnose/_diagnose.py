@@ -38,15 +38,18 @@ __all__ = ["diagnose", "RIGS"]
 RIGS = ("esg", "imu")
 
 
+def _check_effects(effects, library, rig):
+    bad = [e for e in (effects or ()) if e not in library]
+    if bad:
+        raise ValueError(f"unknown effect(s) {bad} for --rig {rig}; the catalogue is "
+                         f"{', '.join(library)}")
+
+
 def _problem(record, rig, holdout, noise_std, effects, order):
     if rig == "esg":
         from ._esg import ESG_LIBRARY, ESGProblem
 
-        if effects is not None:
-            bad = [e for e in effects if e not in ESG_LIBRARY]
-            if bad:
-                raise ValueError(f"unknown effect(s) {bad} for --rig esg; the catalogue is "
-                                 f"{', '.join(ESG_LIBRARY)}")
+        _check_effects(effects, ESG_LIBRARY, rig)
         c = record.conditions
         missing = [k for k in ("latitude_deg", "scheme") if k not in c]
         if missing:
@@ -59,11 +62,7 @@ def _problem(record, rig, holdout, noise_std, effects, order):
     if rig == "imu":
         from ._imu import IMU_LIBRARY, IMUProblem
 
-        if effects is not None:
-            bad = [e for e in effects if e not in IMU_LIBRARY]
-            if bad:
-                raise ValueError(f"unknown effect(s) {bad} for --rig imu; the catalogue is "
-                                 f"{', '.join(IMU_LIBRARY)}")
+        _check_effects(effects, IMU_LIBRARY, rig)
         return IMUProblem(record, holdout=holdout, noise_std=noise_std, effects=effects)
     raise ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: {', '.join(RIGS)}")
 
@@ -272,7 +271,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     timings["refit_s"] = time.perf_counter() - t0
 
     verdict = _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band)
-    verdict = _with_noise(verdict, noise_rows)
+    verdict = _with_noise(verdict, noise_rows, alpha)
     if getattr(prob, "notes", None):
         verdict["notes"] = list(prob.notes)
 
@@ -307,17 +306,33 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         residual_after=resid_after.get(tuple(verdict.get("effects") or ())))
 
 
-def _with_noise(verdict, noise_rows):
-    """Noise-model effects join the verdict: listed under ``noise_effects``; when the mean model
-    has no gap they are the attribution (several significant terms: all named, by strength)."""
-    sig = sorted([x for x in noise_rows if x.get("significant")], key=lambda x: x["p"])
+SLOW_MEAN = ("time_drift", "warmup_transient", "drift_ramp", "drift_transient")
+STOCHASTIC_SLOW = ("rate_random_walk", "bias_instability")
+
+
+def _with_noise(verdict, noise_rows, alpha):
+    """Noise-model effects join the verdict: listed under ``noise_effects`` (strongest first);
+    when the mean model has no gap they are the attribution. A slow mean effect (drift,
+    warm-up) named while a random walk or bias instability is significant on the *nominal*
+    residual (and absorbed by the drift columns on the full one) cannot be told from it on this
+    record: the verdict becomes ambiguous between them."""
     if not noise_rows:
         return verdict
+    sig = sorted([x for x in noise_rows if x.get("significant")], key=lambda x: -x["statistic"])
     verdict = dict(verdict, noise_effects=[x["name"] for x in sig])
     if sig and verdict["kind"] == "no-gap":
         verdict.update(kind="attributed", effects=[x["name"] for x in sig],
                        reason="the mean model fits; the noise model lacks "
                               + ", ".join(x["name"] for x in sig))
+    slow = [e for e in (verdict.get("effects") or []) if e in SLOW_MEAN]
+    rival = [x["name"] for x in noise_rows if x["name"] in STOCHASTIC_SLOW
+             and not x.get("significant") and x.get("p_nominal", 1.0) < alpha]
+    if slow and rival and verdict["kind"] in ("attributed", "ambiguous", "unexplained"):
+        verdict.update(kind="ambiguous", effects=list(dict.fromkeys(
+            (verdict.get("effects") or []) + rival)),
+            reason=f"{', '.join(slow)} and {', '.join(rival)} both explain the slow residual of "
+                   "the nominal model; one record cannot tell a deterministic drift from a "
+                   "random walk (repeat the run: a drift repeats, a random walk does not)")
     return verdict
 
 

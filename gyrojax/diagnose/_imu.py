@@ -106,7 +106,6 @@ class IMUProblem:
         self.tau_grid_s = tuple(float(x) for x in np.geomspace(span / 30, span / 2, 6))
         self.lines = {}
         self._ar = None
-        self._cache = {}
 
     # -- data reduction --------------------------------------------------------------------
     def _build_rows(self, block_s, max_rows):
@@ -146,48 +145,26 @@ class IMUProblem:
         self.u0, self.e1, self.e2 = u0, e1, np.cross(u0, e1)
 
     # -- model -----------------------------------------------------------------------------
-    def _params(self, vec, names, base):
-        p = dict(base)
-        pose = base.get("_pose", {})
-        pa = jnp.asarray([pose.get(f"pose{k}_a", 0.0) for k in range(self.n_pose)])
-        pb = jnp.asarray([pose.get(f"pose{k}_b", 0.0) for k in range(self.n_pose)])
-        for i, n in enumerate(names):
-            if n.startswith("pose"):
-                k, ab = n[4:].split("_")
-                if ab == "a":
-                    pa = pa.at[int(k)].set(vec[i] * POSE_SCALE)
-                else:
-                    pb = pb.at[int(k)].set(vec[i] * POSE_SCALE)
-            else:
-                p[n] = vec[i] * self.space[n].scale
-        return p, pa, pb
-
-    def _pred(self, p, pa, pb, t, seg, u0=None, e1=None, e2=None):
-        u0 = self.u0 if u0 is None else u0
-        e1 = self.e1 if e1 is None else e1
-        e2 = self.e2 if e2 is None else e2
-        u = u0[seg] + pa[seg][:, None] * e1[seg] + pb[seg][:, None] * e2[seg]
-        u = u / jnp.linalg.norm(u, axis=1, keepdims=True)
-        return imu_measure(p, u, t, self.cond)[:, self.ch_idx]
-
-    def _compiled(self, names):
-        """Jitted model and Jacobian for the free parameters ``names`` (cached per problem: the
-        base values, rows and pose geometry are arguments, so refits reuse the compilation)."""
-        if names not in self._cache:
-            def f(vec, base, t, seg, geo):
-                p, pa, pb = self._params(vec, names, base)
-                return self._pred(p, pa, pb, t, seg, *geo)
-
-            self._cache[names] = (jax.jit(f), jax.jit(jax.jacfwd(f)))
-        return self._cache[names]
-
     def _call(self, which, names, base, t, seg, vec=None, design=None):
+        """Model (``which=0``) or its Jacobian in the free parameters ``names`` (``which=1``) at
+        ``base`` with ``names`` set from ``vec`` (per-scale units; default zeros). One compiled
+        function per poses count, conditions and channels serves every name set: it takes the
+        whole mean-model vector and the Jacobian's columns are selected here."""
         names = tuple(names)
         geo = tuple(jnp.asarray(g) for g in (design or (self.u0, self.e1, self.e2)))
-        vec = jnp.zeros(len(names)) if vec is None else jnp.asarray(vec)
-        base = {k: (dict(v) if k == "_pose" else float(v)) for k, v in base.items()}
-        return np.asarray(self._compiled(names)[which](vec, base, jnp.asarray(t),
-                                                       jnp.asarray(seg), geo))
+        n_pose = len(geo[0])
+        allp = _ALL_SCALAR + tuple(f"pose{k}_{ab}" for k in range(n_pose) for ab in "ab")
+        pose = {} if design is not None else base.get("_pose", {})
+        full = np.array([pose.get(n, 0.0) / POSE_SCALE if n.startswith("pose")
+                         else float(base[n]) / _SPACE[n].scale for n in allp])
+        idx = [allp.index(n) for n in names]
+        full[idx] = 0.0 if vec is None else np.asarray(vec, float)
+        key = (n_pose, self.cond, tuple(int(i) for i in self.ch_idx))
+        if key not in _COMPILED:
+            _COMPILED[key] = _build(allp, *key)
+        out = np.asarray(_COMPILED[key][which](jnp.asarray(full), float(base["tau_w"]),
+                                               jnp.asarray(t), jnp.asarray(seg), geo))
+        return out if which == 0 else out[..., idx]
 
     def _vector(self, params, names):
         return jnp.asarray([params["_pose"][n] / POSE_SCALE if n.startswith("pose")
@@ -200,21 +177,41 @@ class IMUProblem:
         return out if extra is None else out + extra
 
     # -- fits ------------------------------------------------------------------------------
-    def _gn(self, params, free, rows, iters: int = 8):
-        """Gauss-Newton on ``free`` over ``rows`` (the model is nearly linear: converges in a few
-        steps); returns the updated params."""
+    def _gn(self, params, free, rows, iters: int = 30):
+        """Levenberg-Marquardt on ``free`` over ``rows`` (steps accepted only when the cost falls;
+        the damping keeps directions the rows barely determine, e.g. two antipodal poses and the
+        accelerometer biases, from wandering). The model is nearly linear, so a few steps do."""
         names = tuple(free)
         vec = np.asarray(self._vector(params, names))
         w = 1.0 / self._scale_rows()
         yr = self.y[rows]
-        t, seg = self.t[rows], self.seg[rows]
+        t, seg = self.t, self.seg  # all rows, one compiled shape; the fit uses ``rows``
+
+        def resid(v):
+            return ((yr - self._call(0, names, params, t, seg, v)[rows]) * w).reshape(-1)
+
+        r = resid(vec)
+        cost = float(r @ r)
+        mu = None
         for _ in range(iters):
-            r = ((yr - self._call(0, names, params, t, seg, vec)) * w).reshape(-1)
-            j = (self._call(1, names, params, t, seg, vec) * w[None, :, None]).reshape(
+            j = (self._call(1, names, params, t, seg, vec)[rows] * w[None, :, None]).reshape(
                 -1, len(names))
-            step, *_ = np.linalg.lstsq(j, r, rcond=None)
-            vec = vec + step
-            if np.max(np.abs(step)) < 1e-10:
+            jtj, g = j.T @ j, j.T @ r
+            if mu is None:
+                mu = 1e-6 * float(np.max(np.diag(jtj)))
+            for _ in range(12):
+                step = np.linalg.solve(jtj + mu * np.diag(np.maximum(np.diag(jtj), 1e-12)), g)
+                r_new = resid(vec + step)
+                c_new = float(r_new @ r_new)
+                if c_new <= cost:
+                    break
+                mu *= 10
+            else:
+                break
+            vec, r, done = vec + step, r_new, cost - c_new <= 1e-12 * max(cost, 1e-300)
+            cost = c_new
+            mu = max(mu / 10, 1e-12)
+            if done or np.max(np.abs(step)) < 1e-10:
                 break
         return self._unpack(params, names, vec)
 
@@ -425,14 +422,17 @@ class IMUProblem:
         names = self.nominal_names + self.pose_names
         jn = self._call(1, names, params, self.t, self.seg, self._vector(params, names))
         je = self._full_effect_columns(params)
-        resid_rows = self.y - self.predict(params)
-        pieces = {c: [] for c in range(len(self.channels))}
+        pred = self.predict(params)
+        resid_rows = self.y - pred
         n = self.n_train
+        # two residuals at full rate: of the full mean model (noise beyond every catalogued mean
+        # effect) and of the nominal model (where a slow drift and a random walk compete)
+        pieces = {c: [] for c in range(len(self.channels))}
+        nominal = {c: [] for c in range(len(self.channels))}
         for c in range(len(self.channels)):
             x = np.concatenate([jn[:n, c], je[:n, c]], axis=1)
             beta, *_ = np.linalg.lstsq(x, resid_rows[:n, c], rcond=None)
-            fitted_rows = self.predict(params)[:, c] + np.concatenate([jn[:, c], je[:, c]],
-                                                                      axis=1) @ beta
+            fitted_rows = pred[:, c] + np.concatenate([jn[:, c], je[:, c]], axis=1) @ beta
             for k, s in enumerate(self.segments):
                 rows = np.flatnonzero(self.seg == k)
                 if rows.size < 2:
@@ -441,26 +441,27 @@ class IMUProblem:
                 idx = idx[(~bad[idx]) & (t_all[idx] <= t_split)]
                 if idx.size < 64:
                     continue
-                mean = np.interp(t_all[idx], self.t[rows], fitted_rows[rows])
-                pieces[c].append(y_all[idx, c] - mean)
+                pieces[c].append(y_all[idx, c] - np.interp(t_all[idx], self.t[rows],
+                                                           fitted_rows[rows]))
+                nominal[c].append(y_all[idx, c] - np.interp(t_all[idx], self.t[rows],
+                                                            pred[rows, c]))
         rows_out = []
-        fits = {}
         # bias instability and rate random walk live at long tau: only static pieces of at
         # least MIN_NOISE_PIECE_S test them (short hand-held poses carry settling motion)
-        long_pieces = {c: [x for x in pcs if x.size >= MIN_NOISE_PIECE_S * self.rate_hz]
-                       for c, pcs in pieces.items()}
-        for c, pcs in long_pieces.items():
-            if pcs:
-                fits[c] = fit_noise_likelihood(pcs, self.rate_hz)
+        fits, fits_nom = {}, {}
+        for c in pieces:
+            long_full = [x for x in pieces[c] if x.size >= MIN_NOISE_PIECE_S * self.rate_hz]
+            long_nom = [x for x in nominal[c] if x.size >= MIN_NOISE_PIECE_S * self.rate_hz]
+            if long_full:
+                fits[c] = fit_noise_likelihood(long_full, self.rate_hz)
+                fits_nom[c] = fit_noise_likelihood(long_nom, self.rate_hz)
         longest = max((x.size for pcs in pieces.values() for x in pcs), default=0) / self.rate_hz
-        term = {"quantization": "quantization", "bias_instability": "bias_instability",
-                "rate_random_walk": "rate_random_walk"}
         for e in self.noise_effects:
             per = {}
             if e != "outliers" and not fits:
                 rows_out.append({"name": e, "family": "noise", "kind": "noise", "p": 1.0,
-                                 "channel": None, "statistic": 0.0, "fitted": {}, "unit": {},
-                                 "testable": False,
+                                 "p_nominal": 1.0, "channel": None, "statistic": 0.0,
+                                 "fitted": {}, "unit": {}, "testable": False,
                                  "statistic_kind": f"not testable: the longest static piece is "
                                  f"{longest:.0f} s < {MIN_NOISE_PIECE_S:.0f} s"})
                 continue
@@ -472,26 +473,70 @@ class IMUProblem:
                     d = d - d.mean()
                     k = float(np.mean(d ** 4) / np.mean(d ** 2) ** 2 - 3)
                     z = k / np.sqrt(24.0 / d.size)
-                    per[self.channels[c]] = (float(stats.norm.sf(z)), z, k)
+                    p_z = float(stats.norm.sf(z))
+                    per[self.channels[c]] = (p_z, z * abs(z), k, p_z)
                 else:
                     fit = fits[c]
-                    per[self.channels[c]] = (fit.p[term[e]], fit.lr[term[e]],
-                                             getattr(fit.terms, term[e]))
+                    per[self.channels[c]] = (fit.p[e], fit.lr[e], getattr(fit.terms, e),
+                                             fits_nom[c].p[e])
             if not per:
                 continue
-            best = min(per, key=lambda ch: per[ch][0])
-            p = min(1.0, per[best][0] * len(per))
+            best = max(per, key=lambda ch: per[ch][1])
             rows_out.append({
-                "name": e, "family": "noise", "kind": "noise", "p": p, "channel": best,
+                "name": e, "family": "noise", "kind": "noise",
+                "p": min(1.0, per[best][0] * len(per)), "channel": best,
+                "p_nominal": min(1.0, min(v[3] for v in per.values()) * len(per)),
                 "statistic": float(per[best][1]),
-                "statistic_kind": "excess kurtosis z" if e == "outliers" else
-                "likelihood ratio (Whittle, boundary-corrected)",
+                "statistic_kind": "excess kurtosis z * |z|" if e == "outliers" else
+                "likelihood ratio (Whittle, boundary-corrected), chi2_1 scale",
                 "fitted": {ch: _noise_display(e, ch, v[2]) for ch, v in per.items()},
                 "testable": True,
                 "unit": {ch: _noise_unit(e, ch) for ch in per},
             })
         self.noise_fits = {self.channels[c]: f for c, f in fits.items()}
         return rows_out
+
+
+_COMPILED: dict = {}
+_SPACE = IMURig().param_space
+
+
+def _params(vec, names, base, n_pose):
+    """Parameter dict and pose terms from the free vector ``vec`` (per-scale units) over
+    ``base``."""
+    p = dict(base)
+    pose = base.get("_pose", {})
+    pa = jnp.asarray([pose.get(f"pose{k}_a", 0.0) for k in range(n_pose)])
+    pb = jnp.asarray([pose.get(f"pose{k}_b", 0.0) for k in range(n_pose)])
+    for i, n in enumerate(names):
+        if n.startswith("pose"):
+            k, ab = n[4:].split("_")
+            if ab == "a":
+                pa = pa.at[int(k)].set(vec[i] * POSE_SCALE)
+            else:
+                pb = pb.at[int(k)].set(vec[i] * POSE_SCALE)
+        else:
+            p[n] = vec[i] * _SPACE[n].scale
+    return p, pa, pb
+
+
+# every mean-model parameter (the nominal biases and the mean effects' terms, not tau_w)
+_ALL_SCALAR = tuple(n for n in _SPACE.names if _SPACE[n].effect in (None,) + MEAN_EFFECTS
+                    and n != "tau_w")
+
+
+def _build(allp, n_pose, cond, ch_idx):
+    ch = np.asarray(ch_idx)
+    base = {n: 0.0 for n in _SPACE.names}
+
+    def f(vec, tau_w, t, seg, geo):
+        p, pa, pb = _params(vec, allp, base | {"tau_w": tau_w}, n_pose)
+        u0, e1, e2 = geo
+        u = u0[seg] + pa[seg][:, None] * e1[seg] + pb[seg][:, None] * e2[seg]
+        u = u / jnp.linalg.norm(u, axis=1, keepdims=True)
+        return imu_measure(p, u, t, cond)[:, ch]
+
+    return jax.jit(f), jax.jit(jax.jacfwd(f))
 
 
 def _noise_unit(e, ch):

@@ -166,16 +166,13 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = No
              families=None) -> list[Path]:
     """Write ``n_cases`` blind records into ``out_dir`` and the sealed manifest beside them."""
     design = design or Design()
-    out = Path(out_dir)
-    (out / "sealed").mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
+    sealer = _Sealer(out_dir, seed)
+    rng = sealer.rng
     cond = ESGConditions.from_scheme(design.scheme, design.latitude_deg)
     fams = list(families or (LIBRARY_FAMILIES + OUT_OF_LIBRARY + ("two_effects",)))
-    manifest, paths = {}, []
     key = jax.random.key(seed)
     for i in range(n_cases):
-        family = "null" if rng.uniform() < null_fraction else fams[i % len(fams)]
-        lam = float(rng.choice(lambdas))
+        family, lam = sealer.draw(i, fams, lambdas, null_fraction)
         p = _truth_params(rng, design)
         if family == "two_effects":
             a, b = rng.choice(len(LIBRARY_FAMILIES) - 1, 2, replace=False)
@@ -193,17 +190,40 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = No
                        noise_std=design.noise_arcsec * units.ARCSEC,
                        attrs=dict(scheme=design.scheme, latitude_deg=design.latitude_deg))
         rec = BenchRecord(rec.t, rec.y + jnp.asarray(out_term), rec.channels, rec.attrs)
-        path = out / f"case_{i:04d}.nc"
-        save_record(rec, path)
-        manifest[_sha(path)] = truth | {"file": path.name}
-        paths.append(path)
-    write_json({"design": dataclasses.asdict(design), "cases": manifest},
-               out / "sealed" / "manifest.json")
-    return paths
+        sealer.add(rec, truth)
+    return sealer.close(design)
 
 
 def _sha(path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+class _Sealer:
+    """Writes the case records ``case_<index>.nc`` and, on :meth:`close`, the sealed manifest
+    keyed by each file's SHA-256 (so the truth travels with the exact bytes diagnosed)."""
+
+    def __init__(self, out_dir, seed: int):
+        self.out = Path(out_dir)
+        (self.out / "sealed").mkdir(parents=True, exist_ok=True)
+        self.manifest, self.paths = {}, []
+        self.rng = np.random.default_rng(seed)
+
+    def draw(self, i: int, families, lambdas, null_fraction: float):
+        """Case ``i``'s family (a null with probability ``null_fraction``, else the families in
+        turn) and its noncentrality."""
+        family = "null" if self.rng.uniform() < null_fraction else families[i % len(families)]
+        return family, float(self.rng.choice(lambdas))
+
+    def add(self, rec, truth: dict):
+        path = self.out / f"case_{len(self.paths):04d}.nc"
+        save_record(rec, path)
+        self.manifest[_sha(path)] = truth | {"file": path.name}
+        self.paths.append(path)
+
+    def close(self, design) -> list[Path]:
+        write_json({"design": dataclasses.asdict(design), "cases": self.manifest},
+                   self.out / "sealed" / "manifest.json")
+        return self.paths
 
 
 def _ljung_box_p(e, lags=20):
@@ -280,6 +300,16 @@ def _se(p, n):
     return math.sqrt(max(p * (1 - p), 1e-12) / max(n, 1))
 
 
+def _rate(pairs, fn):
+    """Share of (truth, result) pairs where ``fn`` holds, its Monte Carlo standard error and n."""
+    pairs = list(pairs)
+    if not pairs:
+        return None
+    k = sum(bool(fn(t, r)) for t, r in pairs)
+    p = k / len(pairs)
+    return {"rate": p, "se": _se(p, len(pairs)), "n": len(pairs)}
+
+
 def score(case_dir, results) -> dict:
     """Unseal the manifest and compute the §5.6 metrics (rate, its Monte Carlo standard error,
     and the count behind it)."""
@@ -289,14 +319,7 @@ def score(case_dir, results) -> dict:
         truth = manifest[r["sha"]]
         rows.append((truth, r))
 
-    def rate(pairs, fn):
-        pairs = list(pairs)
-        if not pairs:
-            return None
-        k = sum(bool(fn(t, r)) for t, r in pairs)
-        p = k / len(pairs)
-        return {"rate": p, "se": _se(p, len(pairs)), "n": len(pairs)}
-
+    rate = _rate
     nulls = [(t, r) for t, r in rows if t["family"] == "null"]
     lib = [(t, r) for t, r in rows if t["family"] in LIBRARY_FAMILIES]
     ool = [(t, r) for t, r in rows if t["family"] in OUT_OF_LIBRARY]

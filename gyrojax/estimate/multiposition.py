@@ -119,6 +119,21 @@ def _true_force(theta, f_meas):
     return jnp.linalg.solve(_accel_matrix(theta), (f_meas - theta[:3]).T).T
 
 
+def _accel_resid(theta, args):
+    means, w, gravity = args
+    return (jnp.linalg.norm(_true_force(theta, means), axis=1) - gravity) * jnp.sqrt(w)
+
+
+@jax.jit
+def _accel_fit(th0, means, w, gravity):
+    """LM fit, Jacobian and residual at the solution: compiled once per number of poses (the
+    leave-one-position-out loop and repeated units reuse it)."""
+    args = (means, w, gravity)
+    sol = optx.least_squares(_accel_resid, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12), th0,
+                             args, max_steps=200, throw=False)
+    return sol.value, jax.jacfwd(_accel_resid)(sol.value, args), _accel_resid(sol.value, args)
+
+
 @dataclasses.dataclass
 class AccelCalibration:
     """Result of :func:`calibrate_accelerometer` (SI; ``params`` keyed as in the IMU rig)."""
@@ -146,17 +161,9 @@ def calibrate_accelerometer(means, gravity: float, *, weights=None) -> AccelCali
     means = np.asarray(means, float)
     n = len(means)
     w = np.ones(n) if weights is None else np.asarray(weights, float)
-
-    def resid(theta, _):
-        f = _true_force(theta, jnp.asarray(means))
-        return (jnp.linalg.norm(f, axis=1) - gravity) * jnp.sqrt(jnp.asarray(w))
-
-    th0 = jnp.zeros(9).at[:3].set(jnp.asarray(means.mean(0) * (n >= 6)))
-    sol = optx.least_squares(resid, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12), th0,
-                             max_steps=200, throw=False)
-    th = sol.value
-    jac = np.asarray(jax.jacfwd(resid)(th, None))
-    r = np.asarray(resid(th, None))
+    th0 = np.zeros(9)
+    th0[:3] = means.mean(0) * (n >= 6)
+    th, jac, r = (np.asarray(x) for x in _accel_fit(th0, means, w, float(gravity)))
     sv = np.linalg.svd(jac, compute_uv=False)
     rank = int(np.sum(sv > 1e-9 * sv[0]))
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
@@ -201,6 +208,20 @@ def _propagate(u0, w_true, dt):
     return u
 
 
+def _gyro_resid(theta, args):
+    u0, u1, wt, live, dt = args
+    wtrue = jnp.einsum("ij,tlj->tli", jnp.linalg.inv(_gyro_matrix(theta)), wt) * live
+    return (jax.vmap(_propagate, in_axes=(0, 0, None))(u0, wtrue, dt) - u1).reshape(-1)
+
+
+@jax.jit
+def _gyro_fit(u0, u1, wt, live, dt):
+    args = (u0, u1, wt, live, dt)
+    sol = optx.least_squares(_gyro_resid, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12),
+                             jnp.zeros(9), args, max_steps=100, throw=False)
+    return sol.value, jax.jacfwd(_gyro_resid)(sol.value, args), _gyro_resid(sol.value, args)
+
+
 @dataclasses.dataclass
 class GyroCalibration:
     params: dict
@@ -243,21 +264,10 @@ def calibrate_gyro(record: BenchRecord, segments, accel: AccelCalibration, *, bi
     live = np.zeros((len(turns), lmax, 1))
     for j, (_, i0, i1) in enumerate(turns):
         live[j, : i1 - i0] = 1.0
-    u0 = jnp.asarray(np.stack([ups[k] for k, _, _ in turns]))
-    u1 = jnp.asarray(np.stack([ups[k + 1] for k, _, _ in turns]))
-    wt, live = jnp.asarray(wt), jnp.asarray(live)
-
-    def resid(theta, _):
-        a_inv = jnp.linalg.inv(_gyro_matrix(theta))
-        wtrue = jnp.einsum("ij,tlj->tli", a_inv, wt) * live
-        pred = jax.vmap(_propagate, in_axes=(0, 0, None))(u0, wtrue, dt)
-        return (pred - u1).reshape(-1)
-
-    sol = optx.least_squares(resid, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12),
-                             jnp.zeros(9), max_steps=100, throw=False)
-    th = sol.value
-    jac = np.asarray(jax.jacfwd(resid)(th, None))
-    r = np.asarray(resid(th, None)).reshape(-1, 3)
+    u0 = np.stack([ups[k] for k, _, _ in turns])
+    u1 = np.stack([ups[k + 1] for k, _, _ in turns])
+    th, jac, r = (np.asarray(x) for x in _gyro_fit(u0, u1, wt, live, dt))
+    r = r.reshape(-1, 3)
     pred = u1 + r
     ang = np.degrees(np.arccos(np.clip(np.sum(np.asarray(pred) * np.asarray(u1), 1)
                                        / np.linalg.norm(pred, axis=1), -1, 1)))

@@ -1,0 +1,321 @@
+"""Blind validation harness for the gap diagnosis, strapdown IMU rig (spec gap-diagnosis §5).
+
+Like :mod:`gyrojax.diagnose.bench` (ESG): :func:`generate` writes records and a sealed manifest
+keyed by each file's SHA-256, :func:`run` diagnoses the records without reading the manifest, and
+:func:`score` unseals it. Two designs:
+
+- ``multi``: 12 poses (the six axis-up poses and six tilted ones) of 20 s joined by 2-s turns, for
+  the mean effects (earth_rate, scale_factor, misalignment, g_sensitivity, time_drift,
+  warmup_transient), the out-of-library ``pose_step`` (an accelerometer bias that jumps at one pose
+  change) and ``thermal_cycle`` (a 300-s sinusoidal gyro and accelerometer bias);
+- ``static``: one pose, 40 min at 50 Hz, for the noise-model effects (rate_random_walk,
+  bias_instability, outliers, quantization) and time_drift / warmup_transient.
+
+**Splits.** ``same-design``: the record's last quarter (time-ordered). ``design-shift`` (multi
+only): the record continues with six *other* poses (tilted 45 deg between the axes) that form the
+held-out part, so a confusable pick that only fits the training poses is caught.
+
+**Magnitudes** come from the truth side: mean effects by the noncentrality
+``lambda = b^T I_eff b`` of the hidden coefficients on the train samples (white noise, the nominal
+biases and pose angles projected out), computed here with its own Jacobian of the measurement
+model; noise effects by the Whittle noncentrality ``theta^2 sum (h_k - mean h)^2 / S_0^2`` of the
+term over the fitted band (f <= rate/10).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import units
+from ..analysis.spectral import term_spectra
+from ..io import load_record
+from ..models.imu import IMUConditions, IMURig, Pose, cube_poses, imu_measure, simulate_imu
+from ..record import BenchRecord
+from .bench import _rate, _Sealer, _sha
+
+__all__ = ["IMUDesign", "generate", "run", "score", "MEAN_FAMILIES", "NOISE_FAMILIES",
+           "OUT_OF_LIBRARY"]
+
+MEAN_FAMILIES = ("earth_rate", "scale_factor", "misalignment", "g_sensitivity", "time_drift",
+                 "warmup_transient")
+NOISE_FAMILIES = ("rate_random_walk", "bias_instability", "outliers", "quantization")
+OUT_OF_LIBRARY = ("pose_step", "thermal_cycle")
+STATIC_FAMILIES = ("time_drift", "warmup_transient") + NOISE_FAMILIES
+_SPACE = IMURig().param_space
+# the coefficients a hidden effect sets (accelerometer-visible subsets where gyro terms have no
+# signature on a static stand)
+_EFFECT_PARAMS = {
+    "earth_rate": ("k_earth",),
+    "scale_factor": ("sax", "say", "saz"),
+    "misalignment": ("maxy", "mayx", "maxz", "mazx", "mayz", "mazy"),
+    "g_sensitivity": tuple(f"gs{a}{b}" for a in "xyz" for b in "xyz"),
+    "time_drift": ("dgx", "dgy", "dgz", "dax", "day", "daz"),
+    "warmup_transient": ("wgx", "wgy", "wgz", "wax", "way", "waz"),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class IMUDesign:
+    """One blind design: ``kind`` ``"multi"`` or ``"static"``; white noise densities ``arw``
+    (deg/sqrt(h)) and ``vrw`` (m/s/sqrt(h)); ``split`` ``"same-design"`` or ``"design-shift"``."""
+
+    kind: str = "multi"
+    n_poses: int = 12
+    dwell_s: float = 20.0
+    turn_s: float = 2.0
+    static_s: float = 2400.0
+    rate_hz: float = 50.0
+    arw: float = 0.3
+    vrw: float = 0.05
+    latitude_deg: float = 45.0
+    split: str = "same-design"
+
+    @property
+    def poses(self):
+        if self.kind == "static":
+            return [Pose((0.0, 0.0, 1.0), self.static_s)]
+        return cube_poses(self.n_poses, self.dwell_s, seed=3)
+
+    @property
+    def shift_poses(self):
+        s = 1 / math.sqrt(2)
+        ups = [(s, s, 0), (s, 0, s), (0, s, s), (-s, s, 0), (s, 0, -s), (0, -s, s)]
+        return [Pose(u, self.dwell_s) for u in ups]
+
+    @property
+    def all_poses(self):
+        return self.poses + (self.shift_poses if self.split == "design-shift" else [])
+
+    @property
+    def holdout(self):
+        if self.split == "design-shift":
+            return len(self.shift_poses) / len(self.all_poses)
+        return 0.25
+
+    @property
+    def sigma(self):
+        """White per-sample std: gyro (rad/s), accelerometer (m/s^2)."""
+        return (self.arw * units.DEG / 60 * math.sqrt(self.rate_hz),
+                self.vrw / 60 * math.sqrt(self.rate_hz))
+
+
+def _truth_params(rng):
+    vals = {f"bg{a}": rng.uniform(-0.02, 0.02) for a in "xyz"}
+    vals |= {f"ba{a}": rng.uniform(-0.1, 0.1) for a in "xyz"}
+    return _SPACE.make(vals)
+
+
+def _static_samples(rec):
+    spans = np.asarray(rec.conditions["static_s"]).reshape(-1, 2)
+    t = np.asarray(rec.t)
+    idx, seg = [], []
+    for k, (t0, t1) in enumerate(spans):
+        i = np.flatnonzero((t >= t0) & (t <= t1))
+        idx.append(i)
+        seg.append(np.full(i.size, k))
+    return np.concatenate(idx), np.concatenate(seg)
+
+
+def _lambda_scale(params, design, names, b, n_train_frac):
+    """Scale ``b`` so that its efficient noncentrality on the train samples is 1 (truth side)."""
+    rec = simulate_imu(params, design.all_poses, rate_hz=design.rate_hz, turn_s=design.turn_s,
+                       latitude_deg=design.latitude_deg)
+    idx, seg = _static_samples(rec)
+    n_tr = int(round((1 - n_train_frac) * idx.size))
+    idx, seg = idx[:n_tr], seg[:n_tr]
+    t = np.asarray(rec.t)[idx]
+    ups = np.array([np.asarray(p.up) / np.linalg.norm(p.up) for p in design.all_poses])
+    cond = IMUConditions(design.latitude_deg, units.G0, design.rate_hz)
+    nominal = tuple(_SPACE.nominal_names())
+
+    def model(vec):
+        p = dict(params)
+        for i, n in enumerate(nominal + names):
+            p[n] = params[n] + vec[i]
+        da, db = vec[len(nominal) + len(names)::2], vec[len(nominal) + len(names) + 1::2]
+        e1 = np.cross(ups, np.where(np.abs(ups[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+        e2 = np.cross(ups, e1)
+        u = jnp.asarray(ups)[seg] + da[seg][:, None] * e1[seg] + db[seg][:, None] * e2[seg]
+        u = u / jnp.linalg.norm(u, axis=1, keepdims=True)
+        return imu_measure(p, u, jnp.asarray(t), cond)
+
+    n_par = len(nominal) + len(names) + 2 * len(ups)
+    j = np.asarray(jax.jacfwd(model)(jnp.zeros(n_par)))
+    j = j / np.array([design.sigma[0]] * 3 + [design.sigma[1]] * 3)[None, :, None]
+    j = j.reshape(-1, n_par)
+    cols = list(range(len(nominal))) + list(range(len(nominal) + len(names), n_par))
+    jn, jb = j[:, cols], j[:, len(nominal): len(nominal) + len(names)]
+    q, r = np.linalg.qr(jn)
+    keep = np.abs(np.diag(r)) > 1e-10 * np.abs(np.diag(r)).max()
+    q = q[:, keep]
+    jt = jb - q @ (q.T @ jb)
+    return 1.0 / math.sqrt(float(b @ (jt.T @ jt) @ b))
+
+
+def _noise_theta(family, design):
+    """Strength of a noise term with unit Whittle noncentrality on the static train record."""
+    n = int(design.static_s * design.rate_hz * 0.75)
+    f = np.arange(2, n // 2) * design.rate_hz / n
+    f = f[f <= design.rate_hz / 10]
+    h = term_spectra(f, design.rate_hz)
+    col = {"quantization": 0, "bias_instability": 2, "rate_random_walk": 3}[family]
+    s0 = design.sigma[0] ** 2
+    hk = h[:, col] / s0
+    return 1.0 / math.sqrt(float(np.sum((hk - hk.mean()) ** 2)))
+
+
+def _hidden(rng, family, p, design, lam):
+    p = dict(p)
+    truth = {"family": family, "lambda": float(lam) if family != "null" else 0.0}
+    if family in _EFFECT_PARAMS:
+        names = _EFFECT_PARAMS[family]
+        if family == "warmup_transient":
+            tau = float(rng.uniform(0.05, 0.4) * (design.static_s if design.kind == "static"
+                                                   else design.n_poses * design.dwell_s))
+            p["tau_w"] = tau
+            truth["tau_s"] = tau
+        b = rng.standard_normal(len(names))
+        b = b * math.sqrt(lam) * _lambda_scale(p, design, names, b, design.holdout)
+        for n, v in zip(names, b):
+            p[n] = p[n] + v
+        truth["coefficients"] = {n: float(v) for n, v in zip(names, b)}
+    elif family in ("quantization", "bias_instability", "rate_random_walk"):
+        theta = math.sqrt(lam) * _noise_theta(family, design)  # coefficient of the spectrum
+        key = {"quantization": "q_g", "bias_instability": "b_g", "rate_random_walk": "k_g"}
+        p[key[family]] = math.sqrt(theta)
+        truth["term"] = {key[family]: math.sqrt(theta)}
+    elif family == "outliers":
+        p["eps_out"] = float(lam) * 1e-5
+        truth["eps_out"] = p["eps_out"]
+    elif family not in ("null",) + OUT_OF_LIBRARY:
+        raise ValueError(f"unknown case family {family!r}")
+    return p, truth
+
+
+def _ool_term(rng, family, rec, design, lam):
+    """Out-of-library additive term (n, 6) and its truth entry."""
+    t = np.asarray(rec.t)
+    out = np.zeros((t.size, 6))
+    amp = math.sqrt(lam) * 0.5
+    if family == "pose_step":
+        spans = np.asarray(rec.conditions["static_s"]).reshape(-1, 2)
+        k = int(rng.integers(3, len(spans) - 2))
+        t_jump = spans[k, 0]
+        axis = int(rng.integers(3))
+        out[t >= t_jump, 3 + axis] = amp * design.sigma[1] / 5
+        return out, {"pose": k, "axis": "xyz"[axis]}
+    period = 300.0
+    out[:, :3] = amp * design.sigma[0] / 10 * np.sin(2 * np.pi * t / period)[:, None]
+    out[:, 3:] = amp * design.sigma[1] / 10 * np.sin(2 * np.pi * t / period)[:, None]
+    return out, {"period_s": period}
+
+
+def generate(out_dir, n_cases: int, *, seed: int = 0, design: IMUDesign | None = None,
+             lambdas=(8.0, 16.0, 32.0, 64.0), null_fraction: float = 0.25,
+             families=None) -> list[Path]:
+    """Write ``n_cases`` blind IMU records into ``out_dir`` and the sealed manifest beside them."""
+    design = design or IMUDesign()
+    sealer = _Sealer(out_dir, seed)
+    rng = sealer.rng
+    if families is None:
+        families = STATIC_FAMILIES if design.kind == "static" else MEAN_FAMILIES + OUT_OF_LIBRARY
+    key = jax.random.key(seed)
+    for i in range(n_cases):
+        family, lam = sealer.draw(i, families, lambdas, null_fraction)
+        p, truth = _hidden(rng, family, _truth_params(rng), design, lam)
+        key, sub = jax.random.split(key)
+        rec = simulate_imu(p, design.all_poses, rate_hz=design.rate_hz, turn_s=design.turn_s,
+                           latitude_deg=design.latitude_deg, arw=design.arw * units.DEG / 60,
+                           vrw=design.vrw / 60, key=sub)
+        if family in OUT_OF_LIBRARY:
+            term, extra = _ool_term(rng, family, rec, design, lam)
+            rec = BenchRecord(rec.t, rec.y + jnp.asarray(term), rec.channels, rec.attrs)
+            truth |= extra
+        attrs = {k: v for k, v in rec.conditions.items() if k != "static_s"}
+        rec = BenchRecord(rec.t, rec.y, rec.channels, tuple(sorted(attrs.items())))
+        sealer.add(rec, truth)
+    return sealer.close(design)
+
+
+def run(case_dir, *, design: IMUDesign | None = None, progress=None) -> list:
+    """Diagnose every record in ``case_dir`` (never reading ``sealed/``)."""
+    from ._diagnose import diagnose
+
+    design = design or IMUDesign()
+    results = []
+    paths = sorted(Path(case_dir).glob("case_*.nc"))
+    for k, path in enumerate(paths):
+        rec = load_record(path)
+        t0 = time.perf_counter()
+        rep = diagnose(rec, rig="imu", holdout=design.holdout, design_advice=False)
+        v = rep.verdict
+        results.append({
+            "sha": _sha(path), "file": path.name, "verdict": v["kind"],
+            "effects": v.get("effects") or [], "noise_effects": v.get("noise_effects") or [],
+            "ranking": [r["name"] for r in rep.ranking],
+            "posterior": {r["name"]: r["posterior"] for r in rep.ranking},
+            "ambiguity": rep.ambiguity["set"],
+            "heldout_gap_before": v.get("heldout_gap_before"),
+            "heldout_gap_after": v.get("heldout_gap_after"),
+            "null_band": rep.gap.get("heldout_null_band"),
+            "null_band_after": next((rf["heldout_null_band_after"] for rf in rep.refits
+                                     if rf["effects"] == (v.get("effects") or [])), None),
+            "time_diagnose_s": time.perf_counter() - t0,
+        })
+        if progress is not None:
+            progress(k + 1, len(paths))
+    return results
+
+
+def score(case_dir, results) -> dict:
+    """Unseal and compute: false-alarm rate on nulls, per lambda the power, top-1 (the verdict's
+    first effect, or the top posterior among mean effects), set coverage and size, held-out
+    reduction and closure, and out-of-library honesty."""
+    manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
+    rows = [(manifest[r["sha"]], r) for r in results]
+    nulls = [(t, r) for t, r in rows if t["family"] == "null"]
+    lib = [(t, r) for t, r in rows if t["family"] in MEAN_FAMILIES + NOISE_FAMILIES]
+    ool = [(t, r) for t, r in rows if t["family"] in OUT_OF_LIBRARY]
+
+    def top(t, r):
+        if t["family"] in NOISE_FAMILIES:
+            return r["noise_effects"][:1] == [t["family"]]
+        eff = r["effects"] or ([max(r["posterior"], key=r["posterior"].get)]
+                               if r["posterior"] else [])
+        return eff[:1] == [t["family"]]
+
+    def named(t, r):
+        return t["family"] in set(r["effects"]) | set(r["ambiguity"]) | set(r["noise_effects"])
+
+    out = {"far": _rate(nulls, lambda t, r: r["verdict"] != "no-gap"), "by_lambda": {}}
+    for lam in sorted({t["lambda"] for t, _ in lib}):
+        sub = [(t, r) for t, r in lib if t["lambda"] == lam]
+        sizes = [len(r["ambiguity"]) for _, r in sub if r["ambiguity"]]
+        out["by_lambda"][f"{lam:g}"] = {
+            "power": _rate(sub, lambda t, r: r["verdict"] != "no-gap"),
+            "top1": _rate(sub, top), "named": _rate(sub, named),
+            "mean_set_size": float(np.mean(sizes)) if sizes else None,
+        }
+    out["by_family"] = {f: _rate([(t, r) for t, r in lib if t["family"] == f], top)
+                        for f in sorted({t["family"] for t, _ in lib})}
+    mean_lib = [(t, r) for t, r in lib if t["family"] in MEAN_FAMILIES]
+    red = [1 - r["heldout_gap_after"] / r["heldout_gap_before"] for t, r in mean_lib
+           if r["heldout_gap_after"] is not None and r["null_band"] is not None
+           and r["heldout_gap_before"] > r["null_band"][1]]
+    out["heldout_reduction_median"] = float(np.median(red)) if red else None
+    out["heldout_closure"] = _rate([(t, r) for t, r in mean_lib if r["heldout_gap_after"]
+                                    is not None and r["null_band_after"] is not None],
+                                   lambda t, r: r["heldout_gap_after"] <= r["null_band_after"][1])
+    out["out_of_library_honest"] = _rate(ool, lambda t, r: r["verdict"] in
+                                         ("unexplained", "ambiguous", "no-gap"))
+    out["median_diagnose_s"] = float(np.median([r["time_diagnose_s"] for _, r in rows]))
+    return out
