@@ -253,8 +253,16 @@ def cmd_effects(args):
         ps = [space[n] for n in space.effect_names(e)]
         print(f"  {e}: " + ", ".join(f"{p.name} [{p.display_unit}, null {p.to_display(p.null):g}]"
                                      for p in ps))
+    from .diagnose._diagnose import RIGS as DIAGNOSED
+    from .diagnose._diagnose import library
+
+    lib = library(args.rig) if args.rig in DIAGNOSED else {}
+    if lib:
+        print(f"diagnosis catalogue (gyrojax diagnose --rig {args.rig}): "
+              + ", ".join(f"{k} ({v})" for k, v in lib.items()))
     _emit_json({"rig": args.rig, "nominal": list(space.nominal_names()),
-                "effects": {e: list(space.effect_names(e)) for e in space.effects}}, args.json)
+                "effects": {e: list(space.effect_names(e)) for e in space.effects},
+                "diagnosis_catalogue": lib}, args.json)
 
 
 def cmd_demo(args):
@@ -392,13 +400,22 @@ def cmd_diagnose(args):
     from .diagnose import diagnose
     from .models.esg import ESGRig
 
-    if args.rig not in ("esg", "imu"):
-        raise UsageError(f"--rig {args.rig!r} has no diagnosis yet; rigs with one: esg, imu")
+    if args.rig not in ("esg", "imu", "platform"):
+        raise UsageError(f"--rig {args.rig!r} has no diagnosis yet; rigs with one: esg, imu, "
+                         "platform")
     if args.rig == "imu":
         if args.noise_arcsec is not None:
             raise UsageError("--noise-arcsec is for the esg rig; the imu rig estimates its noise "
                              "model (AR prewhitening) from the record")
         record = _load_imu(args)
+    elif args.rig == "platform":
+        from ._cli_platform import CHANNELS, load_schedule
+
+        record = _load(args, CHANNELS)
+        if args.schedule:
+            s = load_schedule(args.schedule)
+            record = record.with_conditions(schedule_json=json.dumps(
+                {k: v for k, v in s.items() if k != "mounting_matrix"}))
     else:
         record = _load(args, ESGRig().channels)
         _, _, scheme, lat = _rig_and_conditions(args, record)
@@ -428,7 +445,8 @@ def cmd_diagnose(args):
 def _common(p, *, record=False, scheme=True):
     if record:
         p.add_argument("record", help="record file (.nc or .csv; t in s, channels in SI: "
-                                      "alpha1 alpha2 in rad for esg, wx..az for imu); for "
+                                      "alpha1 alpha2 in rad for esg, wx..az for imu, alpha "
+                                      "beta gamma ax ay az position amplitude for platform); for "
                                       "--rig imu also dataset:NAME (a real record, e.g. "
                                       "dataset:ln100_pair)")
     p.add_argument("--rig", default="esg", choices=["esg", "schuler", "platform", "imu"],
@@ -580,7 +598,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "esg: rotor_tilt, base_misalignment, drift_transient, drift_ramp, "
                         "drift_step, diurnal_line; imu: earth_rate, scale_factor, misalignment, "
                         "g_sensitivity, time_drift, warmup_transient, quantization, "
-                        "bias_instability, rate_random_walk, outliers)")
+                        "bias_instability, rate_random_walk, outliers; platform: "
+                        "anisoelastic_oo, base_misalignment, warmup_transient, drift_ramp, "
+                        "vibration_rectification)")
     p.add_argument("--holdout", type=float, default=0.25,
                    help="fraction of the record (its end) held out for the before/after gap "
                         "(default 0.25)")

@@ -183,6 +183,7 @@ def test_blind_harness_is_sealed_and_scores(tmp_path):
     assert {r["sha"] for r in results} == set(manifest)
 
 
+@pytest.mark.slow
 def test_imu_blind_harness_design_shift(tmp_path):
     """Two sealed IMU cases (scale factor at lambda = 400, design-shift split: six other poses
     held out): both detected and attributed; the truth-side lambda and the records agree (the
@@ -214,7 +215,9 @@ def test_bad_input_errors():
         diagnose(rec.slice(0, 50))
     with pytest.raises(ValueError, match="unknown effect"):
         diagnose(rec, effects=["wobble"])
-    with pytest.raises(ValueError, match="unknown rig 'platform'"):
+    with pytest.raises(ValueError, match="unknown rig 'schuler'"):
+        diagnose(rec, rig="schuler")
+    with pytest.raises(ValueError, match=r"platform record lacks channel\(s\) \['alpha', 'beta'"):
         diagnose(rec, rig="platform")
     with pytest.raises(ValueError, match="lacks the condition"):
         diagnose(BenchRecord(rec.t, rec.y, rec.channels, ()))

@@ -33,9 +33,10 @@ from ._stats import (
     screen,
 )
 
-__all__ = ["diagnose", "RIGS"]
+__all__ = ["diagnose", "library", "RIGS"]
 
-RIGS = ("esg", "imu")
+RIGS = ("esg", "imu", "platform")
+LABEL_CHANNELS = ("position", "amplitude")  # segment labels, not measurements
 
 
 def _check_effects(effects, library, rig):
@@ -43,6 +44,20 @@ def _check_effects(effects, library, rig):
     if bad:
         raise ValueError(f"unknown effect(s) {bad} for --rig {rig}; the catalogue is "
                          f"{', '.join(library)}")
+
+
+def library(rig: str) -> dict:
+    """The diagnosis catalogue of ``rig``: effect name -> family."""
+    if rig == "esg":
+        from ._esg import ESG_LIBRARY as lib
+    elif rig == "imu":
+        from ._imu import IMU_LIBRARY as lib
+    elif rig == "platform":
+        from ._platform import PLATFORM_LIBRARY as lib
+    else:
+        raise ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: "
+                         f"{', '.join(RIGS)}")
+    return {k: v[0] for k, v in lib.items()}
 
 
 def _problem(record, rig, holdout, noise_std, effects, order):
@@ -59,6 +74,11 @@ def _problem(record, rig, holdout, noise_std, effects, order):
             raise ValueError(f"order={order!r}; use 'exact' (model 5.1) or 'first' (model 3.1)")
         return ESGProblem(record, holdout=holdout, noise_std=noise_std, effects=effects,
                           order=order)
+    if rig == "platform":
+        from ._platform import PLATFORM_LIBRARY, PlatformProblem
+
+        _check_effects(effects, PLATFORM_LIBRARY, rig)
+        return PlatformProblem(record, holdout=holdout, noise_std=noise_std, effects=effects)
     if rig == "imu":
         from ._imu import IMU_LIBRARY, IMUProblem
 
@@ -78,7 +98,7 @@ def _check_record(record: BenchRecord, holdout: float):
         raise ValueError(f"channel {record.channels[ch]!r} has {int(bad[:, ch].sum())} NaN/inf "
                          f"samples (first at t = {t[idx]:g} s); mask or interpolate them first")
     for ch, name in enumerate(record.channels):
-        if np.ptp(y[:, ch]) == 0:
+        if name not in LABEL_CHANNELS and np.ptp(y[:, ch]) == 0:
             raise ValueError(f"channel {name!r} is constant ({y[0, ch]:g}); a stuck channel "
                              "cannot be diagnosed: check the recording")
     n_train = len(t) - int(round(holdout * len(t)))
@@ -192,7 +212,9 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
 
     t0 = time.perf_counter()
     rows = screen(e, jn, sigs, prior=prior)
-    cells = gap_map_cells(e.reshape(n, c), prob.t[:n], prob.channels, n_params=jn.shape[1],
+    nuisance = getattr(prob, "nuisance_dof", 0)  # train dof of terms outside the Jacobian
+    cells = gap_map_cells(e.reshape(n, c), prob.t[:n], prob.channels,
+                          n_params=jn.shape[1] + nuisance,
                           noise_dof=noise_dof, lines=prob.lines, jn=jn)
     noise_rows = prob.noise_screen(params0) if hasattr(prob, "noise_screen") else []
     p_all = np.array([x["p"] for x in cells] + [r.p for r in rows] + [x["p"] for x in noise_rows])
@@ -223,7 +245,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     # held-out gap and refits
     t0 = time.perf_counter()
     n_ho = len(e_all) - n * c
-    band = _null_band(jn_all, n * c, n_ho)
+    extra = getattr(prob, "heldout_extra", 0.0)
+    band = _null_band(jn_all, n * c, n_ho, extra)
     g_nom = heldout_gap(e_all.reshape(-1, c)) if n_ho else float("nan")
     g_nom_train = float(np.mean(e ** 2) - 1)
 
@@ -234,9 +257,9 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         span = np.concatenate([jn] + [r.sig.jac[r.grid_index] for r in combo], axis=1)
         span_all = np.concatenate([jn_all] + [s_full[r.sig.name].jac[r.grid_index]
                                               for r in combo], axis=1)
-        band_aug = _null_band(span_all, n * c, n_ho)
+        band_aug = _null_band(span_all, n * c, n_ho, extra)
         post_cells = gap_map_cells(ea[:n], prob.t[:n], prob.channels,
-                                   n_params=jn.shape[1] + sum(r.dof for r in combo),
+                                   n_params=jn.shape[1] + nuisance + sum(r.dof for r in combo),
                                    noise_dof=noise_dof, lines=prob.lines, jn=span)
         qq = bh_qvalues(np.array([x["p"] for x in post_cells]))
         remaining = [dict(x, q=float(q)) for x, q in zip(post_cells, qq) if q < alpha]
@@ -302,6 +325,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         second=second.sig.name if second is not None else None,
         refits=refits, design_advice=advice, verdict=verdict, alpha=alpha, timings=timings,
         noise_effects=noise_rows,
+        **({"split": prob.split_kind} if hasattr(prob, "split_kind") else {}),
         residual_all=resid_all / sigma, t=prob.t,
         residual_after=resid_after.get(tuple(verdict.get("effects") or ())))
 
@@ -340,16 +364,16 @@ def _train_slice(sig, m):
     return dataclasses.replace(sig, jac=sig.jac[:, :m, :])
 
 
-def _null_band(jn_all, m_train, m_ho):
-    """Expected held-out gap under the nominal model (parameter-extrapolation leverage) and its
-    upper 95 % limit."""
+def _null_band(jn_all, m_train, m_ho, extra: float = 0.0):
+    """Expected held-out gap under the nominal model (parameter-extrapolation leverage, plus
+    ``extra`` from nuisance terms outside the Jacobian) and its upper 95 % limit."""
     if m_ho == 0:
         return (float("nan"), float("nan"))
     jt, jh = jn_all[:m_train], jn_all[m_train:]
     u, s, vt = np.linalg.svd(jt, full_matrices=False)
     keep = s > 1e-10 * s[0]
     a = jh @ (vt[keep].T / s[keep])
-    mean = float(np.sum(a * a) / m_ho)
+    mean = float(np.sum(a * a) / m_ho) + extra
     return (mean, mean + 1.96 * np.sqrt(2.0 / m_ho) * (1 + mean))
 
 
@@ -359,9 +383,10 @@ def _onestep_display(r: Screen) -> dict:
 
 def _row_json(r: Screen, prob, excess, n, c, cells):
     names = prob.nominal_names
-    aliases = []
+    aliases = []  # coefficients in display units of the nominal per display unit of the effect
     for k, en in enumerate(r.sig.names):
-        big = [(names[i], float(r.alias[i, k] * prob.nominal_scales[i] / r.sig.prior_scale[k]),
+        big = [(names[i], float(r.alias[i, k] * prob.nominal_display_scales[i]
+                                / r.sig.prior_scale[k]),
                 float(r.alias_std[i, k])) for i in range(len(names))
                if abs(r.alias_std[i, k]) > 1]
         if big:

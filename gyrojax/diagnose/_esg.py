@@ -70,6 +70,8 @@ class ESGProblem:
         self.nominal_names = space.nominal_names()
         self.nominal_scales = space.scales(self.nominal_names)
         self.nominal_units = tuple(space[k].display_unit for k in self.nominal_names)
+        self.nominal_display_scales = self.nominal_scales / np.array(
+            [space[k].display_factor for k in self.nominal_names])
         self.step_grid_h = tuple(float(x) for x in
                                  self.t[0] / 3600 + (self.t[self.n_train - 1] - self.t[0]) / 3600
                                  * np.arange(1, 9) / 9)

@@ -100,6 +100,9 @@ class IMUProblem:
                                               np.full(len(self.pose_names), POSE_SCALE)])
         self.nominal_units = tuple(self.space[k].display_unit for k in self.nominal_names) + \
             ("rad",) * len(self.pose_names)
+        self.nominal_display_scales = self.nominal_scales / np.concatenate([
+            [self.space[k].display_factor for k in self.nominal_names],
+            np.ones(len(self.pose_names))])
         self.effect_names = {e: tuple(n for n in self.space.effect_names(e) if n != "tau_w"
                                       and _relevant(n, self.channels)) for e in self.effects}
         span = self.t[self.n_train - 1] - self.t[0]

@@ -69,6 +69,7 @@ class GapReport:
     t: np.ndarray = dataclasses.field(repr=False)
     residual_after: np.ndarray | None = dataclasses.field(default=None, repr=False)
     noise_effects: list = dataclasses.field(default_factory=list)
+    split: str = "time-ordered (held-out = the record's end)"
 
     @property
     def kind(self) -> str:
@@ -104,7 +105,7 @@ class GapReport:
         return _clean({
             "rig": self.rig, "channels": list(self.channels),
             "split": {"train_samples": self.n_train, "heldout_samples": self.n_heldout,
-                      "kind": "time-ordered (held-out = the record's end)"},
+                      "kind": self.split},
             "nominal": {"parameters": {k: {"value": v, "unit": self.nominal_units[k]}
                                        for k, v in self.nominal.items()}},
             "noise": self.noise, "gap": self.gap,
@@ -128,7 +129,7 @@ class GapReport:
             after = f"{g1:.3g}" if g1 is not None else "-"
             lines.append(f"Held-out gap G = mean(e^2) - 1: before {g0:.3g}, after {after} "
                          f"(null band <= {band[1]:.3g})")
-        sig = ", ".join(f"{s / units.ARCSEC:.3g} arcsec" if self.rig == "esg" else f"{s:.3g} SI"
+        sig = ", ".join(f"{s / units.ARCSEC:.3g} arcsec" if self.rig in ("esg", "platform") else f"{s:.3g} SI"
                         for s in self.noise["std"])
         lines += [f"Noise level: {sig} ({self.noise['source']}); train gap {self.gap['train']:.3g}",
                   "", "## Where (significant cells, BH q < alpha)", ""]

@@ -1,0 +1,344 @@
+"""The three-gimbal platform under vibration as the diagnosis sees it (``--rig platform``).
+
+The record is a test schedule (``gyrojax simulate --rig platform``: dwells at the positions of the
+schedule, one amplitude after another, the schedule in the ``schedule_json`` attribute). The
+model is the batch regression (S22) of the averaged drift law: per dwell, the gimbal angles
+minus the integrated Earth rate, centred, are linear in the drift coefficients, with ``kappa``
+per amplitude from the accelerometers (as ``gyrojax fit --rig platform`` does). Rows are block
+means of the centred angles (``blocks`` per dwell; exact for a linear model, the angle noise is
+white), so a 14 x 2 x 100 s test at 40 Hz gives 2,800 x 3 rows.
+
+Nominal model: the 30 coefficients less the ``D_oo`` (quadrature anisoelastic) terms, the model
+a single amplitude can fit (spec seed 001). Catalogue (drift terms in the platform frame, each
+with a null value, entering the angles through the kinematics of (S12)):
+
+- ``anisoelastic_oo``: ``D_oo_x,y,z`` (deg/h/g^2). On one amplitude it is absorbed exactly as
+  ``D_f + (a^2/2 + 1) D_oo``, ``D_ii - D_oo``, ``D_ss - D_oo`` (structurally confounded); a
+  second amplitude makes it visible.
+- ``base_misalignment``: a small rotation of the base (``C_r^b``) about its three axes (arcsec):
+  an Earth-rate error fixed in the base, which the positions turn against the platform-fixed
+  biases.
+- ``warmup_transient``: ``dm_j exp(-t/tau)`` from the start of the test (deg/h), tau on a grid.
+- ``drift_ramp``: ``r_j t`` (deg/h per h).
+- ``vibration_rectification``: a constant drift in vibrated dwells only (deg/h, seed 003): with
+  every dwell vibrated it is exactly ``D_f``; a 0 g amplitude makes it visible.
+
+Held-out split: the last ``holdout`` of every dwell (same design). Each dwell's angle offsets
+are fitted on its train part (centring by the train-block mean); the diagnosis is told their
+dof (``nuisance_dof``) and their share of the held-out gap (``heldout_extra``). Holding out whole
+positions instead would leave the 27-coefficient model underdetermined on Table 1.
+"""
+
+from __future__ import annotations
+
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import units
+from ..estimate.platform import _position_design, kappa_from_accelerometers
+from ..models.platform import (
+    COEFF_NAMES,
+    PlatformRig,
+    drift_regressor,
+    kinematic_matrix,
+    platform_matrix,
+    schedule,
+)
+from ..record import BenchRecord
+from ._stats import Signature
+
+__all__ = ["PlatformProblem", "PLATFORM_LIBRARY"]
+
+CHANNELS = ("alpha", "beta", "gamma")
+LABELS = ("position", "amplitude")
+# effect -> (family, prior scale per coefficient in display units)
+PLATFORM_LIBRARY = {
+    "anisoelastic_oo": ("g2", 0.03),  # deg/h/g^2
+    "base_misalignment": ("mounting", 60.0),  # arcsec
+    "warmup_transient": ("transient", 0.3),  # deg/h
+    "drift_ramp": ("trend", 0.3),  # deg/h per h
+    "vibration_rectification": ("vibration", 0.1),  # deg/h
+}
+_UNITS = {"anisoelastic_oo": "deg/h/g^2", "base_misalignment": "arcsec",
+          "warmup_transient": "deg/h", "drift_ramp": "deg/h/h",
+          "vibration_rectification": "deg/h"}
+_SI = {"anisoelastic_oo": units.DEG_PER_HOUR, "base_misalignment": units.ARCSEC,
+       "warmup_transient": units.DEG_PER_HOUR, "drift_ramp": units.DEG_PER_HOUR / 3600.0,
+       "vibration_rectification": units.DEG_PER_HOUR}
+_GRID_EFFECTS = ("warmup_transient",)
+N_GRID = 8
+NOMINAL = tuple(n for n in COEFF_NAMES if not n.startswith("D_oo"))
+_D_SCALE = {n: (1.0 if n.startswith(("D_f", "D_i_", "D_o_", "D_s_")) else 0.03)
+            * units.DEG_PER_HOUR for n in COEFF_NAMES}
+
+
+def _skew(w):
+    return jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+@eqx.filter_jit
+def _dwell(ts, t0, angles, cond, vibrated, theta, taus):
+    """One dwell: centred ``angles - h`` (n, 3), centred drift-coefficient columns (n, 3, 30) and
+    the catalogue's columns (n, 3, k) per unit SI coefficient (base misalignment: per rad, at the
+    drift coefficients ``theta``; the transient: one block of 3 per grid value)."""
+    y, big_f = _position_design(ts, angles, cond)
+    t_abs = t0 + ts
+
+    def rate(delta, a):
+        """Angle rate of the averaged model with the base rotated by ``delta``: the Earth rate
+        and the gravity direction both move (C_r^b' = (I - [delta x]) C_r^b)."""
+        m = (jnp.eye(3) - _skew(delta)) @ cond.mounting
+        n = platform_matrix(a).T @ (m @ jnp.array([0.0, 0.0, 1.0]))
+        drift = drift_regressor(n, jnp.ones_like(cond.kappa), cond.kappa) @ theta
+        w_r = cond.mounting.T @ cond.earth_rate_base()
+        return kinematic_matrix(a[1], a[2]) @ (-drift - platform_matrix(a).T @ (m @ w_r))
+
+    def per_sample(a, t):
+        mk = kinematic_matrix(a[1], a[2])
+        mis = jax.jacfwd(rate)(jnp.zeros(3), a)
+        drift = -mk  # unit drift on each platform axis
+        tr = jnp.concatenate([drift * jnp.exp(-t / tau) for tau in taus], axis=1) \
+            if len(taus) else jnp.zeros((3, 0))
+        return jnp.concatenate([mis, tr, drift * t, drift * vibrated],
+                               axis=1)
+
+    g = jax.vmap(per_sample)(angles, t_abs)
+    dt = jnp.diff(ts)
+    inc = 0.5 * (g[1:] + g[:-1]) * dt[:, None, None]
+    cols = jnp.concatenate([jnp.zeros_like(g[:1]), jnp.cumsum(inc, axis=0)])
+    return y, big_f, cols - cols.mean(0)
+
+
+def _blocks(n, k):
+    """Index groups of ``k`` nearly equal blocks of ``n`` samples (every sample in one block)."""
+    return np.array_split(np.arange(n), k)
+
+
+class PlatformProblem:
+    """A platform test record reduced to block means of the centred angles."""
+
+    rig_name = "platform"
+    split_kind = "same design: the last part of every dwell held out"
+
+    def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
+                 effects=None, order=None, blocks: int = 50):
+        from .._cli_platform import CHANNELS as REC_CHANNELS
+        from .._cli_platform import _schedules, _split, _ts, load_schedule
+
+        missing = [c for c in REC_CHANNELS if c not in record.channels]
+        if missing:
+            raise ValueError(f"platform record lacks channel(s) {missing}; a platform test record "
+                             f"has {', '.join(REC_CHANNELS)} (see gyrojax simulate --rig platform)")
+        if "schedule_json" not in record.conditions:
+            raise ValueError("the record carries no schedule (attribute schedule_json); record "
+                             "it with gyrojax simulate --rig platform or add the schedule")
+        self.schedule = load_schedule(json.loads(record.conditions["schedule_json"]))
+        y = np.stack([np.asarray(record.channel(c)) for c in REC_CHANNELS], axis=1)
+        data = _split(BenchRecord(record.t, jnp.asarray(y), REC_CHANNELS, record.attrs),
+                      self.schedule)  # (A, P, n, 8)
+        self.ts = np.asarray(_ts(self.schedule))
+        s = self.schedule
+        self.amps = [float(a) / s["attenuation"] for a in s["table_amplitudes_g"]]
+        self.kappas = [float(np.mean(np.asarray(kappa_from_accelerometers(
+            jnp.asarray(data[k, :, :, 3:6]), jnp.asarray(self.ts), s["frequency_hz"]))))
+            for k in range(len(self.amps))]
+        self.conds = [eqx.tree_at(lambda c: c.kappa, c, jnp.full(len(s["positions_deg"]), kap))
+                      for c, kap in zip(_schedules(s), self.kappas)]
+        self.angles = jnp.asarray(data[..., :3])
+        self.n_blocks = int(blocks)
+        self.noise_std = noise_std
+        self.effects = tuple(effects) if effects is not None else tuple(PLATFORM_LIBRARY)
+        self.channels = CHANNELS
+        self.lines = {}
+        self.rig = PlatformRig()
+        space = self.rig.param_space
+        self.nominal_names = NOMINAL
+        self.nominal_scales = np.array([_D_SCALE[n] for n in NOMINAL])
+        self.nominal_units = tuple(space[n].display_unit for n in NOMINAL)
+        self.nominal_display_scales = self.nominal_scales / units.DEG_PER_HOUR
+        self.record = record
+        n_dw = len(self.amps) * len(s["positions_deg"])
+        self.dwell_s = float(self.ts[-1] + s["sample_s"])
+        span = n_dw * self.dwell_s
+        self.taus = tuple(float(x) for x in np.geomspace(span / 40, span / 2, N_GRID))
+        self.k_ho = int(round(holdout * self.n_blocks)) if holdout > 0 else 0
+        if self.n_blocks - self.k_ho < 4:
+            raise ValueError(f"holdout={holdout} leaves {self.n_blocks - self.k_ho} of "
+                             f"{self.n_blocks} blocks per dwell to fit; lower --holdout")
+        self.y, self.t, self._cols = self._design(self.angles, self.conds, self.amps,
+                                                  jnp.zeros(30))
+        self.n_train = n_dw * (self.n_blocks - self.k_ho)
+        k_tr = self.n_blocks - self.k_ho
+        self.nuisance_dof = 3 * n_dw  # one offset per angle and dwell, fitted on its train part
+        self.heldout_extra = 1.0 / k_tr  # the offsets' variance on the held-out rows, in G
+
+    # -- the linear design --------------------------------------------------------------------
+    def _design(self, angles, conds, amps, theta):
+        """Block means over every dwell (amplitude-major, as recorded), each centred by the mean
+        of its train blocks (= its angle offsets fitted on the train rows): the train blocks of
+        every dwell in time order, then the held-out tails. Returns angles (N, 3), block times
+        (N,) and the columns (N, 3, 30 + k)."""
+        ts = jnp.asarray(self.ts)
+        groups = _blocks(len(self.ts), self.n_blocks)
+        k_tr = self.n_blocks - self.k_ho
+        parts = {"train": ([], [], []), "heldout": ([], [], [])}
+        k = 0
+        for a, (ang, cond) in enumerate(zip(angles, conds)):
+            for p in range(ang.shape[0]):
+                c = jax.tree.map(lambda x, p=p: x[p], cond)
+                t0 = k * self.dwell_s
+                y, f, e = _dwell(ts, jnp.asarray(t0), ang[p], c,
+                                 jnp.asarray(float(amps[a] > 0)), theta, self.taus)
+                full = np.concatenate([np.asarray(f), np.asarray(e)], axis=2)
+                y = np.asarray(y)
+                yb = np.stack([y[g].mean(0) for g in groups])
+                cb = np.stack([full[g].mean(0) for g in groups])
+                yb, cb = yb - yb[:k_tr].mean(0), cb - cb[:k_tr].mean(0)
+                tb = np.array([t0 + self.ts[g].mean() for g in groups])
+                for part, sl in (("train", slice(0, k_tr)), ("heldout", slice(k_tr, None))):
+                    for lst, v in zip(parts[part], (yb, tb, cb)):
+                        lst.append(v[sl])
+                k += 1
+        ys, tt, cols = (np.concatenate(parts["train"][i] + parts["heldout"][i])
+                        for i in range(3))
+        return ys, tt, cols
+
+    def _effect_cols(self, cols, name, g=0):
+        """(N, 3, k) SI columns of one effect (grid index ``g``)."""
+        base = 30
+        if name == "anisoelastic_oo":
+            return cols[:, :, [COEFF_NAMES.index(f"D_oo_{ax}") for ax in "xyz"]]
+        if name == "base_misalignment":
+            return cols[:, :, base:base + 3]
+        if name == "warmup_transient":
+            i = base + 3 + 3 * g
+            return cols[:, :, i:i + 3]
+        i = base + 3 + 3 * N_GRID
+        if name == "drift_ramp":
+            return cols[:, :, i:i + 3]  # per rad/s per s
+        if name == "vibration_rectification":
+            return cols[:, :, i + 3:i + 6]
+        raise KeyError(name)
+
+    def _effect_names(self, name):
+        return {"anisoelastic_oo": tuple(f"D_oo_{ax}" for ax in "xyz"),
+                "base_misalignment": ("dchi_x", "dchi_y", "dchi_z"),
+                "warmup_transient": ("dm_x", "dm_y", "dm_z"),
+                "drift_ramp": ("ramp_x", "ramp_y", "ramp_z"),
+                "vibration_rectification": ("rect_x", "rect_y", "rect_z")}[name]
+
+    def _nominal_cols(self, cols):
+        return cols[:, :, [COEFF_NAMES.index(n) for n in NOMINAL]]
+
+    # -- the diagnosis interface --------------------------------------------------------------
+    def _theta(self, params):
+        return jnp.asarray([params.get(n, 0.0) for n in COEFF_NAMES])
+
+    def fit_nominal(self) -> dict:
+        """Least squares of the nominal coefficients on the train rows; the catalogue's columns
+        are then rebuilt at the fit (the base misalignment's gravity part depends on it)."""
+        m = self.n_train
+        a = self._nominal_cols(self._cols)[:m].reshape(-1, len(NOMINAL)) * self.nominal_scales
+        x, *_ = np.linalg.lstsq(a, self.y[:m].reshape(-1), rcond=None)
+        params = dict(zip(NOMINAL, x * self.nominal_scales))
+        _, _, self._cols = self._design(self.angles, self.conds, self.amps, self._theta(params))
+        return params
+
+    def noise_level(self, resid):
+        """Per-channel angle noise (block-mean level) from second differences *within* dwells:
+        a nominal misfit jumps between dwells (centred separately) and is a ramp inside one
+        (a drift error), which second differences remove; white noise gives var = 6 sigma^2."""
+        if self.noise_std is not None:
+            s = np.broadcast_to(np.asarray(self.noise_std, float), (3,)).copy()
+            return s, np.inf, "given"
+        k_tr = self.n_blocks - self.k_ho
+        d = np.diff(resid.reshape(-1, k_tr, 3), n=2, axis=1).reshape(-1, 3)
+        s = np.sqrt(np.mean(d * d, axis=0) / 6)
+        # dof of the second-difference estimate: n (sum a_k^2)^2 / sum over lags of acf^2 ~ n/1.94
+        return s, len(d) / 1.94, ("estimated from second differences of the residual within "
+                                  "dwells")
+
+    def predict(self, params: dict, extra=None) -> np.ndarray:
+        v = np.array([params[n] for n in NOMINAL])
+        pred = np.einsum("nck,k->nc", self._nominal_cols(self._cols), v)
+        return pred if extra is None else pred + extra
+
+    def jacobians(self, params, sigma, *, conditions=None, t=None):
+        """Whitened Jacobians over the record's rows (or a design's, ``conditions`` = a
+        ``(angles, conds, amps)`` tuple from :meth:`designs`)."""
+        if conditions is None:
+            cols = self._cols
+        else:
+            _, _, cols = self._design(*conditions, self._theta(params))
+        w = (1.0 / np.asarray(sigma))[None, :, None]
+        n = cols.shape[0]
+        jn = (self._nominal_cols(cols) * w).reshape(n * 3, -1) * self.nominal_scales
+        sigs = []
+        for e in self.effects:
+            fam, prior = PLATFORM_LIBRARY[e]
+            f = prior * _SI[e]
+            gs = range(N_GRID) if e in _GRID_EFFECTS else range(1)
+            jac = np.stack([(self._effect_cols(cols, e, g) * w).reshape(n * 3, -1) * f
+                            for g in gs])
+            grid, gname, gunit = ((tuple(x / 3600 for x in self.taus), "decay time", "h")
+                                  if e in _GRID_EFFECTS else ((), "", ""))
+            names = self._effect_names(e)
+            sigs.append(Signature(e, fam, names, (_UNITS[e],) * 3, np.full(3, prior), jac,
+                                  grid, gname, gunit))
+        return jn, sigs
+
+    def refit(self, params0: dict, sig_choices, sigma):
+        """Linear least squares on the train rows with the chosen effects' columns added."""
+        m = self.n_train
+        blocks = [self._nominal_cols(self._cols)]
+        for sig, g in sig_choices:
+            blocks.append(self._effect_cols(self._cols, sig.name, g))
+        cols = np.concatenate(blocks, axis=2)
+        w = (1.0 / np.asarray(sigma))[None, :, None]
+        k = cols.shape[2]
+        scale = np.concatenate([self.nominal_scales] + [
+            np.full(3, PLATFORM_LIBRARY[s.name][1] * _SI[s.name]) for s, _ in sig_choices])
+        a = (cols[:m] * w).reshape(-1, k) * scale
+        b = (self.y[:m] * w[:, :, 0]).reshape(-1)
+        x, *_ = np.linalg.lstsq(a, b, rcond=None)
+        x = x * scale
+        pred = np.einsum("nck,k->nc", cols, x)
+        p = dict(zip(NOMINAL, x[:len(NOMINAL)]))
+        coeffs, i = {}, len(NOMINAL)
+        for sig, _ in sig_choices:
+            for nm in sig.names:
+                coeffs[nm] = float(x[i] / _SI[sig.name])
+                i += 1
+        return pred, coeffs, p
+
+    def designs(self):
+        """Alternative tests for the advisor (the record's positions, nominal angles): a
+        second amplitude (one-amplitude records) and an added 0 g run (when every run is
+        vibrated)."""
+        s = self.schedule
+        pos = np.asarray(s["positions_deg"], float)
+        out = []
+
+        def design(label, amps):
+            conds = [schedule(pos, a0=a, latitude_deg=s["latitude_deg"],
+                              frequency_hz=s["frequency_hz"], mounting=s["mounting_matrix"])
+                     for a in amps]
+            ang = jnp.broadcast_to(jnp.asarray(np.radians(pos))[None, :, None, :],
+                                   (len(amps), len(pos), len(self.ts), 3))
+            return (label, (ang, conds, list(amps)), None)
+
+        if len(self.amps) == 1:
+            a2 = self.amps[0] * 7 / 9 if self.amps[0] > 0 else 7 / s["attenuation"]
+            out.append(design(f"second amplitude {a2 * s['attenuation']:.3g} g (table)",
+                              self.amps + [a2]))
+        if all(a > 0 for a in self.amps):
+            out.append(design("an added 0 g (static) run", self.amps + [0.0]))
+        return out
+
+    def display_nominal(self, params) -> dict:
+        space = self.rig.param_space
+        return {k: float(space[k].to_display(params[k])) for k in NOMINAL}
