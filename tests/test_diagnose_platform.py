@@ -103,3 +103,5 @@ def test_hidden_base_misalignment_from_the_cli(tmp_path, capsys):
     assert "unknown effect(s) ['tilt']" in capsys.readouterr().err
     assert main(["diagnose", str(rec), "--rig", "platform", "--holdout", "0.95"]) == 2
     assert "holdout" in capsys.readouterr().err
+    assert main(["effects", "--rig", "platform"]) == 0
+    assert "anisoelastic_oo (g2), base_misalignment (mounting)" in capsys.readouterr().out

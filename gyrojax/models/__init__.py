@@ -6,8 +6,10 @@ from .esg import ESGRig as ESGRig
 from .gyrotheodolite import GyrotheodoliteConditions as GyrotheodoliteConditions
 from .gyrotheodolite import GyrotheodoliteRig as GyrotheodoliteRig
 from .imu import IMURig as IMURig
+from .platform import PlatformConditions as PlatformConditions
+from .platform import PlatformRig as PlatformRig
 from .schuler import SchulerConditions as SchulerConditions
 from .schuler import SchulerRig as SchulerRig
 
 RIGS = {"esg": ESGRig, "gyrotheodolite": GyrotheodoliteRig, "schuler": SchulerRig,
-        "imu": IMURig}
+        "platform": PlatformRig, "imu": IMURig}
