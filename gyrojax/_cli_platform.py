@@ -1,86 +1,21 @@
 """``gyrojax simulate|fit|observability --rig platform``: the platform under linear vibration.
 
-A test is a *schedule* (JSON): positions and table amplitudes, run as 100 s dwells. A record
-holds every dwell one after another (time runs on), with channels ``alpha beta gamma`` (rad),
-``ax ay az`` (g) and the labels ``position`` (row of the schedule) and ``amplitude`` (index into
-the table amplitudes); the schedule travels as the NetCDF attribute ``schedule_json``.
+The schedule and the record layout are in :mod:`gyrojax.models.platform_schedule`.
 """
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 
-CHANNELS = ("alpha", "beta", "gamma", "ax", "ay", "az", "position", "amplitude")
-SCHEDULE_FIELDS = {
-    "positions_deg": "rows (alpha, beta, gamma) in deg (default: Table 1)",
-    "table_amplitudes_g": "table vibration amplitudes in g (default [9, 7])",
-    "attenuation": "table / platform amplitude ratio of the shock mount (default 1.5)",
-    "frequency_hz": "vibration frequency (default 15)",
-    "dwell_s": "dwell per position in s (default 100)",
-    "sample_s": "sampling interval in s (default 0.025)",
-    "latitude_deg": "latitude (default 45.75)",
-    "mounting": "'default' (y_b Up), 'enu' (z_b Up) or a 3x3 C_r^b",
-}
-
-
-def load_schedule(source) -> dict:
-    """Read and validate a schedule (path, JSON text or dict); fills the defaults."""
-    from .estimate.platform import check_sampling
-    from .models.platform import DEFAULT_MOUNTING, ENU_MOUNTING, TABLE1_DEG
-
-    if isinstance(source, dict):
-        raw = dict(source)
-    else:
-        text = str(source)
-        if not text.lstrip().startswith("{"):  # a file name
-            try:
-                text = Path(text).read_text()
-            except OSError as exc:
-                raise ValueError(f"schedule file {source}: {exc.strerror}; give a JSON file "
-                                 "or JSON text") from None
-        try:
-            raw = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"schedule {source}: not valid JSON ({exc}); see "
-                             "`gyrojax simulate --help` for the fields") from None
-    unknown = sorted(set(raw) - set(SCHEDULE_FIELDS))
-    if unknown:
-        raise ValueError(f"schedule: unknown field(s) {unknown}; allowed: "
-                         + "; ".join(f"{k}: {v}" for k, v in SCHEDULE_FIELDS.items()))
-    s = {"positions_deg": TABLE1_DEG.tolist(), "table_amplitudes_g": [9.0, 7.0],
-         "attenuation": 1.5, "frequency_hz": 15.0, "dwell_s": 100.0, "sample_s": 0.025,
-         "latitude_deg": 45.75, "mounting": "default"} | raw
-    amps = [float(a) for a in s["table_amplitudes_g"]]
-    if not amps or any(a < 0 for a in amps):
-        raise ValueError(f"schedule: table_amplitudes_g {amps} must be one or more values >= 0")
-    if len(set(amps)) < len(amps):
-        raise ValueError(f"schedule: table_amplitudes_g {amps} repeats an amplitude; the "
-                         "two-amplitude method needs different amplitudes")
-    if s["attenuation"] <= 0 or s["dwell_s"] <= 0:
-        raise ValueError("schedule: attenuation and dwell_s must be > 0")
-    check_sampling(float(s["sample_s"]), float(s["frequency_hz"]))
-    m = s["mounting"]
-    s["mounting_matrix"] = (DEFAULT_MOUNTING if m == "default" else ENU_MOUNTING if m == "enu"
-                            else np.asarray(m, float)).tolist()
-    return s
-
-
-def _schedules(s):
-    from .models.platform import schedule
-
-    rng = np.random.default_rng(0)
-    pos = np.asarray(s["positions_deg"], float)
-    return [schedule(pos, a0=a / s["attenuation"], latitude_deg=s["latitude_deg"],
-                     frequency_hz=s["frequency_hz"], phases=rng.uniform(0, 2 * np.pi, len(pos)),
-                     mounting=s["mounting_matrix"]) for a in s["table_amplitudes_g"]]
-
-
-def _ts(s):
-    n = int(round(s["dwell_s"] / s["sample_s"]))
-    return np.arange(n + 1) * s["sample_s"]
+from .models.platform_schedule import (
+    CHANNELS,
+    dwell_times,
+    load_schedule,
+    schedule_conditions,
+    split_record,
+)
 
 
 def simulate(args, parse_sets, emit_json):
@@ -97,10 +32,10 @@ def simulate(args, parse_sets, emit_json):
     rig = PlatformRig()
     space = rig.param_space
     params = space.make(TRUE_TABLE2, display=True) | parse_sets(args.set, space)
-    ts = jnp.asarray(_ts(s))
+    ts = jnp.asarray(dwell_times(s))
     key = jax.random.key(args.seed)
     blocks, t_all, t0 = [], [], 0.0
-    for k, conds in enumerate(_schedules(s)):
+    for k, conds in enumerate(schedule_conditions(s)):
         y = np.array(jax.vmap(lambda c: integrate(rig, params, c, ts))(conds))
         key, k1, k2 = jax.random.split(key, 3)
         y[..., :3] += args.noise_arcsec * units.ARCSEC * np.asarray(
@@ -119,17 +54,6 @@ def simulate(args, parse_sets, emit_json):
     print(f"wrote {args.out}: {len(s['positions_deg'])} positions x "
           f"{len(s['table_amplitudes_g'])} amplitudes ({s['table_amplitudes_g']} g), "
           f"{len(ts)} samples per dwell")
-
-
-def _split(record, s):
-    y = np.asarray(record.y)
-    n_pos, n_amp = len(s["positions_deg"]), len(s["table_amplitudes_g"])
-    n = len(_ts(s))
-    if y.shape[0] != n_pos * n_amp * n:
-        raise ValueError(f"record has {y.shape[0]} samples; the schedule needs {n_pos} positions "
-                         f"x {n_amp} amplitudes x {n} samples = {n_pos * n_amp * n}: give the "
-                         "schedule the record was taken with (--schedule)")
-    return y.reshape(n_amp, n_pos, n, len(CHANNELS))
 
 
 def fit(args, load, emit_json):
@@ -154,10 +78,10 @@ def fit(args, load, emit_json):
         s = load_schedule(attrs["schedule_json"])
     else:
         raise ValueError("the record carries no schedule; give --schedule FILE")
-    data = _split(record, s)
-    ts = jnp.asarray(_ts(s))
+    data = split_record(record, s)
+    ts = jnp.asarray(dwell_times(s))
     recs, conds, kappas = [], [], []
-    for k, c in enumerate(_schedules(s)):
+    for k, c in enumerate(schedule_conditions(s)):
         acc = data[k, :, :, 3:6]
         kap = float(np.mean(np.asarray(kappa_from_accelerometers(acc, ts, s["frequency_hz"]))))
         kappas.append(kap)

@@ -409,7 +409,7 @@ def cmd_diagnose(args):
                              "model (AR prewhitening) from the record")
         record = _load_imu(args)
     elif args.rig == "platform":
-        from ._cli_platform import CHANNELS, load_schedule
+        from .models.platform_schedule import CHANNELS, load_schedule
 
         record = _load(args, CHANNELS)
         if args.schedule:

@@ -48,6 +48,13 @@ from ..models.platform import (
     platform_matrix,
     schedule,
 )
+from ..models.platform_schedule import CHANNELS as REC_CHANNELS
+from ..models.platform_schedule import (
+    dwell_times,
+    load_schedule,
+    schedule_conditions,
+    split_record,
+)
 from ..record import BenchRecord
 from ._stats import Signature
 
@@ -126,9 +133,6 @@ class PlatformProblem:
 
     def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
                  effects=None, order=None, blocks: int = 50):
-        from .._cli_platform import CHANNELS as REC_CHANNELS
-        from .._cli_platform import _schedules, _split, _ts, load_schedule
-
         missing = [c for c in REC_CHANNELS if c not in record.channels]
         if missing:
             raise ValueError(f"platform record lacks channel(s) {missing}; a platform test record "
@@ -138,16 +142,16 @@ class PlatformProblem:
                              "it with gyrojax simulate --rig platform or add the schedule")
         self.schedule = load_schedule(json.loads(record.conditions["schedule_json"]))
         y = np.stack([np.asarray(record.channel(c)) for c in REC_CHANNELS], axis=1)
-        data = _split(BenchRecord(record.t, jnp.asarray(y), REC_CHANNELS, record.attrs),
+        data = split_record(BenchRecord(record.t, jnp.asarray(y), REC_CHANNELS, record.attrs),
                       self.schedule)  # (A, P, n, 8)
-        self.ts = np.asarray(_ts(self.schedule))
+        self.ts = np.asarray(dwell_times(self.schedule))
         s = self.schedule
         self.amps = [float(a) / s["attenuation"] for a in s["table_amplitudes_g"]]
         self.kappas = [float(np.mean(np.asarray(kappa_from_accelerometers(
             jnp.asarray(data[k, :, :, 3:6]), jnp.asarray(self.ts), s["frequency_hz"]))))
             for k in range(len(self.amps))]
         self.conds = [eqx.tree_at(lambda c: c.kappa, c, jnp.full(len(s["positions_deg"]), kap))
-                      for c, kap in zip(_schedules(s), self.kappas)]
+                      for c, kap in zip(schedule_conditions(s), self.kappas)]
         self.angles = jnp.asarray(data[..., :3])
         self.n_blocks = int(blocks)
         self.noise_std = noise_std
