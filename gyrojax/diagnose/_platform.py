@@ -79,8 +79,6 @@ _SI = {"anisoelastic_oo": units.DEG_PER_HOUR, "base_misalignment": units.ARCSEC,
 _GRID_EFFECTS = ("warmup_transient",)
 N_GRID = 8
 NOMINAL = tuple(n for n in COEFF_NAMES if not n.startswith("D_oo"))
-_D_SCALE = {n: (1.0 if n.startswith(("D_f", "D_i_", "D_o_", "D_s_")) else 0.03)
-            * units.DEG_PER_HOUR for n in COEFF_NAMES}
 
 
 def _skew(w):
@@ -161,9 +159,10 @@ class PlatformProblem:
         self.rig = PlatformRig()
         space = self.rig.param_space
         self.nominal_names = NOMINAL
-        self.nominal_scales = np.array([_D_SCALE[n] for n in NOMINAL])
+        self.nominal_scales = space.scales(NOMINAL)  # the rig's Param scales (SI)
         self.nominal_units = tuple(space[n].display_unit for n in NOMINAL)
-        self.nominal_display_scales = self.nominal_scales / units.DEG_PER_HOUR
+        self.nominal_display_scales = self.nominal_scales / np.array(
+            [space[n].display_factor for n in NOMINAL])
         self.record = record
         n_dw = len(self.amps) * len(s["positions_deg"])
         self.dwell_s = float(self.ts[-1] + s["sample_s"])
