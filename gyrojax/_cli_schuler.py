@@ -46,7 +46,7 @@ def simulate(args, parse_sets, emit_json):
     import jax
 
     from .io import save_record
-    from .models.schuler import SchulerRig, add_measurement_noise
+    from .models.schuler import EFFECT_NAMES, PARAM_NAMES, SchulerRig, add_measurement_noise
     from .record import BenchRecord, freeze
     from .simulate import integrate
 
@@ -57,11 +57,13 @@ def simulate(args, parse_sets, emit_json):
     space = rig.param_space
     key_theta, key_noise = jax.random.split(jax.random.key(args.seed))
     if args.random_errors:  # draw theta ~ N(0, prior) (spec §9.1), then apply --set overrides
-        draw = jax.random.normal(key_theta, (len(space.names),))
-        given = {n: float(space[n].scale * d) for n, d in zip(space.names, draw, strict=True)}
+        draw = jax.random.normal(key_theta, (len(PARAM_NAMES),))
+        given = {n: float(space[n].scale * d) for n, d in zip(PARAM_NAMES, draw, strict=True)}
     else:
         given = {}
-    params = space.make(given | parse_sets(args.set, space))
+    sets = parse_sets(args.set, space)  # the 12 errors, or an unmodelled effect's parameters
+    params = space.make(given | sets)
+    shown = PARAM_NAMES + tuple(n for n in EFFECT_NAMES if n in sets)
     ts = np.arange(0.0, span + 0.5 * args.sample, args.sample)
     out = Path(args.out)
     if out.suffix.lower() not in (".nc", ".csv"):
@@ -74,10 +76,10 @@ def simulate(args, parse_sets, emit_json):
     save_record(BenchRecord(ts, y, CHANNELS, freeze(attrs)), out)
     print(f"wrote {out}: {ts.size} samples over {span / 60:.1f} min ({args.periods} Schuler "
           f"periods of {float(cond.schuler_period) / 60:.3f} min), latitude {lat} deg")
-    print(space.table(params))
+    print(space.table(params, names=shown))
     emit_json({"record": str(out), "samples": int(ts.size), "parameters": {
-        k: {"value": float(space[k].to_display(v)), "unit": space[k].display_unit}
-        for k, v in params.items()}}, args.json)
+        k: {"value": float(space[k].to_display(params[k])), "unit": space[k].display_unit}
+        for k in shown}}, args.json)
 
 
 def fit(args, load, emit_json):

@@ -398,12 +398,22 @@ def _load_imu(args):
 
 def cmd_diagnose(args):
     from .diagnose import diagnose
+    from .diagnose._diagnose import RIGS
     from .models.esg import ESGRig
 
-    if args.rig not in ("esg", "imu", "platform"):
-        raise UsageError(f"--rig {args.rig!r} has no diagnosis yet; rigs with one: esg, imu, "
-                         "platform")
-    if args.rig == "imu":
+    if args.rig not in RIGS:
+        raise UsageError(f"--rig {args.rig!r} has no diagnosis yet; rigs with one: "
+                         f"{', '.join(RIGS)}")
+    if args.rig == "schuler":
+        from ._cli_schuler import CHANNELS as SCHULER_CHANNELS
+
+        if args.noise_arcsec is not None:
+            raise UsageError("--noise-arcsec is for the esg rig; the schuler rig estimates the "
+                             "velocity and attitude noise from the record")
+        record = _load(args, SCHULER_CHANNELS)
+        if args.latitude is not None:
+            record = record.with_conditions(latitude_deg=args.latitude)
+    elif args.rig == "imu":
         if args.noise_arcsec is not None:
             raise UsageError("--noise-arcsec is for the esg rig; the imu rig estimates its noise "
                              "model (AR prewhitening) from the record")
@@ -600,7 +610,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "g_sensitivity, time_drift, warmup_transient, quantization, "
                         "bias_instability, rate_random_walk, outliers; platform: "
                         "anisoelastic_oo, base_misalignment, warmup_transient, drift_ramp, "
-                        "vibration_rectification)")
+                        "vibration_rectification; schuler: drift_ramp, drift_transient, "
+                        "drift_step, accelerometer_ramp, g_sensitivity, "
+                        "accelerometer_cross_axis, accelerometer_tilt)")
     p.add_argument("--holdout", type=float, default=0.25,
                    help="fraction of the record (its end) held out for the before/after gap "
                         "(default 0.25)")

@@ -239,7 +239,9 @@ def test_bad_input_errors():
         diagnose(rec.slice(0, 50))
     with pytest.raises(ValueError, match="unknown effect"):
         diagnose(rec, effects=["wobble"])
-    with pytest.raises(ValueError, match="unknown rig 'schuler'"):
+    with pytest.raises(ValueError, match="unknown rig 'gyrotheodolite'"):
+        diagnose(rec, rig="gyrotheodolite")
+    with pytest.raises(ValueError, match="the Schuler diagnosis needs"):
         diagnose(rec, rig="schuler")
     with pytest.raises(ValueError, match=r"platform record lacks channel\(s\) \['alpha', 'beta'"):
         diagnose(rec, rig="platform")

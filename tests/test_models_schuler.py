@@ -13,6 +13,7 @@ from gyrojax.models.schuler import (
     EARTH_RADIUS,
     EARTH_RATE_SOURCE,
     ERROR_STATES,
+    PARAM_NAMES,
     SchulerConditions,
     SchulerRig,
     error_matrix,
@@ -189,7 +190,7 @@ def test_error_matrix_matches_the_explicit_table():
         "dA": {"dalpha1": un * np.cos(am), "dalpha2": -w1, "dV2": a2 / EARTH_RADIUS, "nu3": 1.0,
                "dA": un * np.sin(am) * a1, "nu1": -a2, "D11": -w1 * a2},
     }
-    scale = np.array([1e-3, 1e-3, 1.0, 1.0, 1e-2] + [p.scale for p in RIG.param_space.params])
+    scale = np.array([1e-3, 1e-3, 1.0, 1.0, 1e-2] + [RIG.param_space[n].scale for n in PARAM_NAMES])
     for row, entries in table.items():
         expected = np.zeros(17)
         for col, val in entries.items():

@@ -35,7 +35,7 @@ from ._stats import (
 
 __all__ = ["diagnose", "library", "RIGS"]
 
-RIGS = ("esg", "imu", "platform")
+RIGS = ("esg", "imu", "platform", "schuler")
 LABEL_CHANNELS = ("position", "amplitude")  # segment labels, not measurements
 
 
@@ -54,6 +54,8 @@ def library(rig: str) -> dict:
         from ._imu import IMU_LIBRARY as lib
     elif rig == "platform":
         from ._platform import PLATFORM_LIBRARY as lib
+    elif rig == "schuler":
+        from ._schuler import SCHULER_LIBRARY as lib
     else:
         raise ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: "
                          f"{', '.join(RIGS)}")
@@ -79,6 +81,11 @@ def _problem(record, rig, holdout, noise_std, effects, order):
 
         _check_effects(effects, PLATFORM_LIBRARY, rig)
         return PlatformProblem(record, holdout=holdout, noise_std=noise_std, effects=effects)
+    if rig == "schuler":
+        from ._schuler import SCHULER_LIBRARY, SchulerProblem
+
+        _check_effects(effects, SCHULER_LIBRARY, rig)
+        return SchulerProblem(record, holdout=holdout, noise_std=noise_std, effects=effects)
     if rig == "imu":
         from ._imu import IMU_LIBRARY, IMUProblem
 
@@ -246,7 +253,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     t0 = time.perf_counter()
     n_ho = len(e_all) - n * c
     extra = getattr(prob, "heldout_extra", 0.0)
-    band = _null_band(jn_all, n * c, n_ho, extra)
+    band = _null_band(jn_all, n * c, n_ho, extra, noise_dof * c)
     g_nom = heldout_gap(e_all.reshape(-1, c)) if n_ho else float("nan")
     g_nom_train = float(np.mean(e ** 2) - 1)
 
@@ -257,7 +264,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         span = np.concatenate([jn] + [r.sig.jac[r.grid_index] for r in combo], axis=1)
         span_all = np.concatenate([jn_all] + [s_full[r.sig.name].jac[r.grid_index]
                                               for r in combo], axis=1)
-        band_aug = _null_band(span_all, n * c, n_ho, extra)
+        band_aug = _null_band(span_all, n * c, n_ho, extra, noise_dof * c)
         post_cells = gap_map_cells(ea[:n], prob.t[:n], prob.channels,
                                    n_params=jn.shape[1] + nuisance + sum(r.dof for r in combo),
                                    noise_dof=noise_dof, lines=prob.lines, jn=span)
@@ -364,9 +371,13 @@ def _train_slice(sig, m):
     return dataclasses.replace(sig, jac=sig.jac[:, :m, :])
 
 
-def _null_band(jn_all, m_train, m_ho, extra: float = 0.0):
+def _null_band(jn_all, m_train, m_ho, extra: float = 0.0, noise_dof: float = np.inf):
     """Expected held-out gap under the nominal model (parameter-extrapolation leverage, plus
-    ``extra`` from nuisance terms outside the Jacobian) and its upper 95 % limit."""
+    ``extra`` from nuisance terms outside the Jacobian) and its upper 95 % limit.
+
+    The limit counts the held-out samples' scatter (``2 / m_ho``) and, when the noise level was
+    estimated, the scatter of that estimate (``2 / noise_dof``, ``noise_dof`` pooled over the
+    channels): the held-out gap is a ratio of the two."""
     if m_ho == 0:
         return (float("nan"), float("nan"))
     jt, jh = jn_all[:m_train], jn_all[m_train:]
@@ -374,7 +385,7 @@ def _null_band(jn_all, m_train, m_ho, extra: float = 0.0):
     keep = s > 1e-10 * s[0]
     a = jh @ (vt[keep].T / s[keep])
     mean = float(np.sum(a * a) / m_ho) + extra
-    return (mean, mean + 1.96 * np.sqrt(2.0 / m_ho) * (1 + mean))
+    return (mean, mean + 1.96 * np.sqrt(2.0 / m_ho + 2.0 / noise_dof) * (1 + mean))
 
 
 def _onestep_display(r: Screen) -> dict:

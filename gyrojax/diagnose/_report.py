@@ -129,8 +129,8 @@ class GapReport:
             after = f"{g1:.3g}" if g1 is not None else "-"
             lines.append(f"Held-out gap G = mean(e^2) - 1: before {g0:.3g}, after {after} "
                          f"(null band <= {band[1]:.3g})")
-        sig = ", ".join(f"{s / units.ARCSEC:.3g} arcsec" if self.rig in ("esg", "platform") else f"{s:.3g} SI"
-                        for s in self.noise["std"])
+        sig = ", ".join(f"{ch} {_noise_text(self.rig, ch, s)}"
+                        for ch, s in zip(self.channels, self.noise["std"]))
         lines += [f"Noise level: {sig} ({self.noise['source']}); train gap {self.gap['train']:.3g}",
                   "", "## Where (significant cells, BH q < alpha)", ""]
         hits = [x for x in self.where if x.get("significant")]
@@ -183,3 +183,14 @@ class GapReport:
                 lines.append(f"| {a['effect']} | {a['design']} | {a['mde_over_prior']:.3g} | "
                              f"{a['max_correlation_with_other_effects']:.3f} |")
         return "\n".join(lines)
+
+
+def _noise_text(rig: str, channel: str, s: float) -> str:
+    """A channel's noise level in its engineering unit."""
+    if rig in ("esg", "platform"):
+        return f"{s / units.ARCSEC:.3g} arcsec"
+    if rig == "schuler":
+        return f"{s:.3g} m/s" if channel.startswith("V") else f"{s / units.ARCMIN:.3g} arcmin"
+    if channel.startswith("w"):
+        return f"{s:.3g} rad/s"
+    return f"{s:.3g} m/s^2" if channel.startswith("a") else f"{s:.3g}"

@@ -137,9 +137,14 @@ def check_schuler_record(ts, y, conditions: SchulerConditions, *, uniform: bool 
 
 # -- Gauss-Newton (§9.3) ---------------------------------------------------------------------
 @eqx.filter_jit
-def _gauss_newton(rig, conditions, ts, y, weights, sig, u0, max_iter, tol):
+def _gauss_newton(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names=THETA_NAMES,
+                  fixed=None):
+    """Prior-regularised Gauss-Newton over ``names`` (prior sd ``sig``, start ``u0`` in prior
+    units); ``fixed``: other parameters held at given values (an effect's decay time...)."""
+    fixed = {} if fixed is None else fixed
+
     def resid(u):
-        params = dict(zip(THETA_NAMES, u * sig, strict=True))
+        params = fixed | dict(zip(names, u * sig, strict=True))
         r = schuler_residuals(rig, conditions, ts, y, params, adjoint=diffrax.ForwardMode())
         return (r * weights).ravel()
 
@@ -163,7 +168,7 @@ def _gauss_newton(rig, conditions, ts, y, weights, sig, u0, max_iter, tol):
         return (it < max_iter) & (change > tol)
 
     u, it, _, cov = jax.lax.while_loop(cond, body, (u0, 0, jnp.inf, jnp.eye(k)))
-    params = dict(zip(THETA_NAMES, u * sig, strict=True))
+    params = fixed | dict(zip(names, u * sig, strict=True))
     r = schuler_residuals(rig, conditions, ts, y, params)
     return u * sig, cov * jnp.outer(sig, sig), it, jnp.sqrt(jnp.mean(r**2, axis=0))
 

@@ -37,7 +37,7 @@ from ._base import AbstractRig
 
 __all__ = ["SchulerRig", "SchulerConditions", "EARTH_RADIUS", "EARTH_RATE_SOURCE", "ERROR_STATES",
            "error_matrix", "initial_error_state", "propagate_error_model", "add_measurement_noise",
-           "platform_matrix", "schuler_solution", "schuler_period"]
+           "platform_matrix", "schuler_solution", "schuler_period", "PARAM_NAMES", "EFFECT_NAMES"]
 
 EARTH_RADIUS = 6_371_116.0
 """Mean Earth radius a_R of the source (m)."""
@@ -60,11 +60,42 @@ _SPEC = (  # name, unit, display unit, display factor, prior sd (scale), effect,
     ("dA0", "rad", "arcmin", _ARCMIN, 1e-2, "initial_misalignment",
      "initial azimuth error A'(t0) - A_z(t0)"),
 )
+PARAM_NAMES = tuple(p[0] for p in _SPEC)
+"""The 12 errors the test identifies (the nominal model of the diagnosis)."""
+
+STEP_WIDTH = 60.0
+"""Rise time scale of the smooth drift step (s): ``0.5 (1 + tanh((t - t_step) / STEP_WIDTH))``."""
+_DEG_H_H, _DEG_H_G, _MG_H = _DEG_H / 3600.0, _DEG_H / units.G0, 1e-3 * units.G0 / 3600.0
+_EFFECTS = (  # unmodelled effects of the diagnosis catalogue: null value, then as _SPEC
+    *((f"nudot{i}", 0.0, "rad/s^2", "deg/h/h", _DEG_H_H, 0.05 * _DEG_H_H, "drift_ramp",
+       f"gyro drift rate of change about axis {i} (from t = 0)") for i in (1, 2, 3)),
+    *((f"nutr{i}", 0.0, "rad/s", "deg/h", _DEG_H, 0.1 * _DEG_H, "drift_transient",
+       f"warm-up drift about axis {i} at t = 0, decaying as exp(-t / tau_tr)") for i in (1, 2, 3)),
+    ("tau_tr", 1800.0, "s", "min", 60.0, 1800.0, "drift_transient", "warm-up decay time"),
+    *((f"nustep{i}", 0.0, "rad/s", "deg/h", _DEG_H, 0.05 * _DEG_H, "drift_step",
+       f"gyro drift step about axis {i} at t_step") for i in (1, 2, 3)),
+    ("t_step", 3600.0, "s", "min", 60.0, 3600.0, "drift_step", "onset of the drift step"),
+    *((f"dfdot{i}", 0.0, "m/s^3", "mg/h", _MG_H, 0.5 * _MG_H, "accelerometer_ramp",
+       f"accelerometer {i} bias rate of change (from t = 0)") for i in (1, 2)),
+    *((f"G{i}{j}", 0.0, "rad/m", "deg/h/g", _DEG_H_G, 0.3 * _DEG_H_G, "g_sensitivity",
+       f"drift of gyro {i} per specific force along axis {j} (mass unbalance)")
+      for i in (1, 2) for j in (1, 2)),
+    ("mu12", 0.0, "rad", "arcmin", _ARCMIN, 10 * _ARCMIN, "accelerometer_cross_axis",
+     "accelerometer 1 input axis tilted towards axis 2"),
+    ("mu21", 0.0, "rad", "arcmin", _ARCMIN, 10 * _ARCMIN, "accelerometer_cross_axis",
+     "accelerometer 2 input axis tilted towards axis 1"),
+    ("mu13", 0.0, "rad", "arcmin", _ARCMIN, 10 * _ARCMIN, "accelerometer_tilt",
+     "accelerometer 1 input axis tilted towards the vertical (senses g: a bias to first order)"),
+    ("mu23", 0.0, "rad", "arcmin", _ARCMIN, 10 * _ARCMIN, "accelerometer_tilt",
+     "accelerometer 2 input axis tilted towards the vertical"),
+)
 _SPACE = ParameterSpace(tuple(
     Param(name=n, unit=u, display_unit=du, display_factor=f, scale=s, null=0.0, effect=e,
-          description=d) for n, u, du, f, s, e, d in _SPEC))
-
-PARAM_NAMES = tuple(p[0] for p in _SPEC)
+          description=d) for n, u, du, f, s, e, d in _SPEC) + tuple(
+    Param(name=n, unit=u, display_unit=du, display_factor=f, scale=s, null=nv, effect=e,
+          description=d) for n, nv, u, du, f, s, e, d in _EFFECTS))
+EFFECT_NAMES = tuple(e[0] for e in _EFFECTS)
+"""Parameters of the unmodelled effects (null by default; absent keys read as null)."""
 
 
 class SchulerConditions(eqx.Module):
@@ -148,20 +179,44 @@ class SchulerRig(AbstractRig):
         un = EARTH_RATE_SOURCE * jnp.cos(conditions.latitude)
         uv = EARTH_RATE_SOURCE * jnp.sin(conditions.latitude)
         w1, w2 = self.commanded_rate(state, conditions)
-        r1 = w1 + p["nu1"] + p["D11"] * w1  # omega_1' + nu_1
-        r2 = w2 + p["nu2"] + p["D22"] * w2
-        nu3 = p["nu3"]
         g = conditions.g
         c1, s1, c2, s2 = jnp.cos(a1), jnp.sin(a1), jnp.cos(a2), jnp.sin(a2)
-        f1, f2 = -g * c1 * s2, g * s1
+        f1, f2, f3 = -g * c1 * s2, g * s1, g * c1 * c2
+        d1, d2, d3 = self.extra_drift(t, p, f1, f2)
+        r1 = w1 + p["nu1"] + p["D11"] * w1 + d1  # omega_1' + nu_1
+        r2 = w2 + p["nu2"] + p["D22"] * w2 + d2
+        nu3 = p["nu3"] + d3
+        e1, e2 = self.extra_specific_force(t, p, f1, f2, f3)
         return jnp.stack([
             r1 * c2 + nu3 * s2 + un * jnp.sin(az),
             r2 + jnp.tan(a1) * (r1 * s2 - nu3 * c2) - un * jnp.cos(az) / c1,
             -nu3 * c2 / c1 + uv - un * jnp.cos(az) * jnp.tan(a1) + r1 * s2 / c1,
-            f1 + p["df1"] + p["K11"] * f1,
-            f2 + p["df2"] + p["K22"] * f2,
+            f1 + p["df1"] + p["K11"] * f1 + e1,
+            f2 + p["df2"] + p["K22"] * f2 + e2,
             uv,
         ])
+
+    @staticmethod
+    def extra_drift(t, p, f1, f2):
+        """Gyro drift of the unmodelled effects (rad/s, platform axes 1-3): ramp, warm-up
+        transient, smooth step and g-sensitivity. Zero when their parameters are null or absent
+        (the 12-parameter dicts of the nominal model)."""
+        q = lambda k: p.get(k, 0.0)  # noqa: E731
+        decay = jnp.exp(-t / p.get("tau_tr", 1800.0))
+        step = 0.5 * (1 + jnp.tanh((t - p.get("t_step", 3600.0)) / STEP_WIDTH))
+        out = [q(f"nudot{i}") * t + q(f"nutr{i}") * decay + q(f"nustep{i}") * step
+               for i in (1, 2, 3)]
+        out[0] = out[0] + q("G11") * f1 + q("G12") * f2
+        out[1] = out[1] + q("G21") * f1 + q("G22") * f2
+        return out
+
+    @staticmethod
+    def extra_specific_force(t, p, f1, f2, f3):
+        """Accelerometer error of the unmodelled effects (m/s^2): bias ramp, cross-axis and
+        vertical-axis tilts of the input axes."""
+        q = lambda k: p.get(k, 0.0)  # noqa: E731
+        return (q("dfdot1") * t + q("mu12") * f2 + q("mu13") * f3,
+                q("dfdot2") * t + q("mu21") * f1 + q("mu23") * f3)
 
     def observe(self, t, state, params, conditions):
         """``(V1', V2', rotation vector of C(t) C(t0)^T)``."""

@@ -1,0 +1,214 @@
+"""The platform INS Schuler test as the diagnosis sees it (``--rig schuler``, spec D5).
+
+Nominal model: the 12 errors the test identifies (gyro drifts, torquer scales, accelerometer
+biases and scales, initial tilts and azimuth error), fitted on the train split by the iterated
+Gauss-Newton of :func:`gyrojax.estimate.schuler.fit_schuler` (its weak prior of spec §10 only
+regularises; the data outweigh it by orders of magnitude). Catalogue: the rig's unmodelled-effect
+groups (:data:`gyrojax.models.schuler.EFFECT_NAMES`) — gyro drift ramp, warm-up transient (decay
+time on a grid), drift step (onset on a grid), accelerometer bias ramp, g-sensitive drift,
+accelerometer cross-axis and vertical-axis tilts — each entering the nonlinear model (S7).
+
+Residuals are the test's own (spec §8): velocity differences and the attitude residual (S12) of
+the measured against the modelled rotation since t0, whitened per channel; so ``predict`` returns
+``y - residual`` (the record's frame), and every Jacobian is the derivative of the modelled
+channels in those residual coordinates, by forward-mode autodiff through diffrax.
+Held-out split: time-ordered, the last ``holdout`` of the record.
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import units
+from ..estimate.schuler import THETA_NAMES, _gauss_newton, fit_schuler, schuler_residuals
+from ..models.schuler import SchulerConditions, SchulerRig
+from ..record import BenchRecord
+from ..simulate import integrate
+from ._stats import Signature
+
+__all__ = ["SchulerProblem", "SCHULER_LIBRARY"]
+
+# effect -> (family, grid parameter or None); prior scales are the rig's Param.scale
+SCHULER_LIBRARY = {
+    "drift_ramp": ("trend", None),
+    "drift_transient": ("transient", "tau_tr"),
+    "drift_step": ("step", "t_step"),
+    "accelerometer_ramp": ("trend", None),
+    "g_sensitivity": ("g", None),
+    "accelerometer_cross_axis": ("mounting", None),
+    "accelerometer_tilt": ("mounting", None),
+}
+CHANNELS = ("V1", "V2", "rot1", "rot2", "rot3")
+TRANSIENT_TIMES_H = tuple(float(x) for x in np.geomspace(0.25, 3.0, 8))
+DEFAULT_NOISE = (0.05, 0.05, units.ARCMIN, units.ARCMIN, units.ARCMIN)  # spec §10
+
+
+@eqx.filter_jit
+def _model_jacobian(rig, cond, ts, y, base, names, scales, weights):
+    """d(modelled channels)/d(params[names] / scales), whitened, rows (time, channel)."""
+    def resid(u):
+        p = base | {k: base[k] + u[i] * scales[i] for i, k in enumerate(names)}
+        r = schuler_residuals(rig, cond, ts, y, p, adjoint=diffrax.ForwardMode())
+        return (r * weights).reshape(-1)
+
+    return -jax.jacfwd(resid)(jnp.zeros(len(names)))
+
+
+@eqx.filter_jit
+def _residual(rig, cond, ts, y, params):
+    return schuler_residuals(rig, cond, ts, y, params)
+
+
+class SchulerProblem:
+    """One Schuler-test record split by time into train / held-out."""
+
+    rig_name = "schuler"
+
+    def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
+                 effects=None, order=None):
+        if tuple(record.channels) != CHANNELS:
+            raise ValueError(f"channels {tuple(record.channels)}: the Schuler diagnosis needs "
+                             f"{CHANNELS} (model velocities in m/s, platform rotation since t0 "
+                             "in rad)")
+        self.record = record
+        self.rig = SchulerRig()
+        self.space = self.rig.param_space
+        c = record.conditions
+        self.conditions = SchulerConditions.create(
+            float(c.get("latitude_deg", 55.57)), g=c.get("g"), v10=float(c.get("v10", 200.0)),
+            v20=float(c.get("v20", -200.0)), azimuth0_deg=float(c.get("azimuth0_deg", 0.0)))
+        self.t = np.asarray(record.t, float)
+        self.y = np.asarray(record.y, float)
+        self.channels = CHANNELS
+        n = len(self.t)
+        self.n_train = n - int(round(holdout * n)) if holdout > 0 else n
+        period = float(self.conditions.schuler_period)
+        if self.t[self.n_train - 1] - self.t[0] < 0.5 * period:
+            raise ValueError(f"the train part spans {self.t[self.n_train - 1] - self.t[0]:.0f} s, "
+                             f"less than half a Schuler period ({0.5 * period:.0f} s): record "
+                             "1-4 periods or lower --holdout")
+        self.noise_std = noise_std
+        self.fit_noise = np.asarray(noise_std if noise_std is not None else DEFAULT_NOISE, float)
+        self.effects = tuple(effects) if effects is not None else tuple(SCHULER_LIBRARY)
+        sp = self.space
+        self.nominal_names = THETA_NAMES
+        self.nominal_scales = sp.scales(self.nominal_names)
+        self.nominal_units = tuple(sp[k].display_unit for k in self.nominal_names)
+        self.nominal_display_scales = self.nominal_scales / np.array(
+            [sp[k].display_factor for k in self.nominal_names])
+        self.effect_names = {e: tuple(k for k in sp.effect_names(e)
+                                      if k != SCHULER_LIBRARY[e][1]) for e in self.effects}
+        span = self.t[self.n_train - 1] - self.t[0]
+        self.step_grid_s = tuple(float(self.t[0] + span * k / 9) for k in range(1, 9))
+        self.lines = {"Schuler period": period, "half Schuler period": period / 2}
+
+    # -- nominal fit -----------------------------------------------------------------------
+    def fit_nominal(self) -> dict:
+        n = self.n_train
+        s = self.fit_noise
+        est = fit_schuler(self.rig, self.t[:n], self.y[:n], self.conditions, sigma_v=float(s[0]),
+                          sigma_theta=float(np.mean(s[2:])))
+        return dict(zip(THETA_NAMES, est.values, strict=True))
+
+    def predict(self, params: dict, extra=None) -> np.ndarray:
+        """``y - residual`` over the whole record (the residual is the test's, spec §8)."""
+        r = np.asarray(_residual(self.rig, self.conditions, jnp.asarray(self.t),
+                                 jnp.asarray(self.y), params))
+        return self.y - r
+
+    # -- Jacobians -------------------------------------------------------------------------
+    def _grid(self, e):
+        if e == "drift_transient":
+            return TRANSIENT_TIMES_H, "decay time", "h", [h * 3600 for h in TRANSIENT_TIMES_H]
+        if e == "drift_step":
+            return (tuple(x / 3600 for x in self.step_grid_s), "onset", "h", self.step_grid_s)
+        return (), "", "", [None]
+
+    def jacobians(self, params, sigma, *, conditions=None, t=None):
+        """Whitened Jacobians over ``t`` (default the record's times): nominal (per Param.scale)
+        and one :class:`Signature` per catalogued effect (per prior scale, grid slices). Under
+        another design the model's own prediction stands in for the record."""
+        sp = self.space
+        cond = self.conditions if conditions is None else conditions
+        base = sp.make() | {k: jnp.asarray(params[k]) for k in THETA_NAMES}
+        if t is None and conditions is None:
+            ts, y = self.t, self.y
+        else:
+            ts = self.t if t is None else np.asarray(t, float)
+            y = np.asarray(integrate(self.rig, base, cond, jnp.asarray(ts)))
+        ts, y = jnp.asarray(ts), jnp.asarray(y)
+        w = jnp.asarray(1.0 / np.asarray(sigma, float))
+        plain = [e for e in self.effects if SCHULER_LIBRARY[e][1] is None]
+        names = THETA_NAMES + tuple(k for e in plain for k in self.effect_names[e])
+        jac = np.asarray(_model_jacobian(self.rig, cond, ts, y, base, names,
+                                         jnp.asarray(sp.scales(names)), w))
+        col = {k: i for i, k in enumerate(names)}
+        jn = jac[:, : len(THETA_NAMES)]
+        sigs = []
+        for e in self.effects:
+            en = self.effect_names[e]
+            gpar = SCHULER_LIBRARY[e][1]
+            grid, gname, gunit, gvals = self._grid(e)
+            if gpar is None:
+                slices = [jac[:, [col[k] for k in en]]]
+            else:
+                slices = [np.asarray(_model_jacobian(
+                    self.rig, cond, ts, y, base | {gpar: jnp.asarray(v)}, en,
+                    jnp.asarray(sp.scales(en)), w)) for v in gvals]
+            sigs.append(Signature(e, SCHULER_LIBRARY[e][0], en,
+                                  tuple(sp[k].display_unit for k in en),
+                                  sp.scales(en) / np.array([sp[k].display_factor for k in en]),
+                                  np.stack(slices), grid, gname, gunit))
+        return jn, sigs
+
+    # -- refits ----------------------------------------------------------------------------
+    def refit(self, params0: dict, sig_choices: list[tuple[Signature, int]], sigma):
+        """Gauss-Newton on the nonlinear model over the 12 errors plus the chosen effects' terms
+        (grid values fixed at the screened best), on the train split; returns (``y - residual``
+        over the whole record, effect coefficients in display units, params)."""
+        sp = self.space
+        names = list(THETA_NAMES)
+        fixed = {}
+        for sig, g in sig_choices:
+            names += list(sig.names)
+            gpar = SCHULER_LIBRARY[sig.name][1]
+            if gpar is not None:
+                fixed[gpar] = jnp.asarray(self._grid(sig.name)[3][g])
+        names = tuple(names)
+        scale = jnp.asarray(sp.scales(names))
+        u0 = jnp.asarray([float(params0.get(k, 0.0)) for k in names]) / scale
+        n = self.n_train
+        theta, _, _, _ = _gauss_newton(self.rig, self.conditions, jnp.asarray(self.t[:n]),
+                                       jnp.asarray(self.y[:n]),
+                                       jnp.asarray(1.0 / np.asarray(sigma, float)), scale, u0,
+                                       20, 1e-4, names, fixed)
+        p = fixed | dict(zip(names, theta, strict=True))
+        coeffs = {k: float(sp[k].to_display(p[k])) for sig, _ in sig_choices for k in sig.names}
+        return self.predict(p), coeffs, p
+
+    # -- designs for the advisor -----------------------------------------------------------
+    def designs(self):
+        """Candidate tests: the record twice as long, the other sign of V2', the start azimuth
+        turned by 90 deg, and twice the initial velocities."""
+        c = self.conditions
+        lat = float(c.latitude) / units.DEG
+        a0 = float(c.a0) / units.DEG
+        v1, v2 = float(c.v10), float(c.v20)
+        dt = (self.t[-1] - self.t[0]) / (len(self.t) - 1)
+        mk = lambda **kw: SchulerConditions.create(  # noqa: E731
+            lat, g=float(c.g), **({"v10": v1, "v20": v2, "azimuth0_deg": a0} | kw))
+        return [
+            (f"{2 * (self.t[-1] - self.t[0]) / 60:.0f} min record", c,
+             self.t[0] + dt * np.arange(2 * len(self.t) - 1)),
+            (f"initial velocities ({v1:g}, {-v2:g}) m/s", mk(v20=-v2), self.t),
+            (f"start azimuth {a0 + 90:g} deg", mk(azimuth0_deg=a0 + 90), self.t),
+            (f"initial velocities ({2 * v1:g}, {2 * v2:g}) m/s", mk(v10=2 * v1, v20=2 * v2),
+             self.t),
+        ]
+
+    def display_nominal(self, params) -> dict:
+        return {k: float(self.space[k].to_display(params[k])) for k in THETA_NAMES}
