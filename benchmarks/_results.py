@@ -75,3 +75,22 @@ def fmt_rate(r) -> str:
     if r is None:
         return "-"
     return f"{r['rate']:.2f} ± {r['se']:.2f} (n={r['n']})"
+
+
+def suite_lines(s: dict, ool_label: str) -> list[str]:
+    """The per-lambda table and the summary lines of one suite scored by
+    :func:`gyrojax.diagnose._harness.score_cases`."""
+    lines = ["| lambda | power | top-1 | named | mean set size |", "|---|---|---|---|---|"]
+    for lam, b in s["by_lambda"].items():
+        size = "-" if b["mean_set_size"] is None else f"{b['mean_set_size']:.2f}"
+        lines.append(f"| {lam} | {fmt_rate(b['power'])} | {fmt_rate(b['top1'])} | "
+                     f"{fmt_rate(b['named'])} | {size} |")
+    fam = ", ".join(f"{f} {fmt_rate(r)}" for f, r in s["by_family"].items())
+    med = s["heldout_reduction_median"]
+    return lines + [
+        "", f"- top-1 by family (all lambdas): {fam}.",
+        f"- Held-out gap: median reduction {'-' if med is None else f'{med:.2f}'} "
+        f"(mean-effect cases detected above the null band); closure "
+        f"{fmt_rate(s['heldout_closure'])}.",
+        f"- Out-of-library ({ool_label}) not attributed: {fmt_rate(s['out_of_library_honest'])}.",
+        ""]

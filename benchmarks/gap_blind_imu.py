@@ -22,7 +22,7 @@ import time
 sys.path.insert(0, os.path.dirname(__file__))
 
 from _results import fmt_rate as _fmt  # noqa: E402
-from _results import machine_line, publish  # noqa: E402
+from _results import machine_line, publish, suite_lines  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from gyrojax.diagnose import bench_imu  # noqa: E402
@@ -68,19 +68,7 @@ def main(argv=None):
         lines += [f"### {label}", "",
                   f"- Nulls: false-alarm rate {_fmt(s['far'])}. Generated in {t_gen:.0f} s, "
                   f"diagnosed in {t_run:.0f} s (median {s['median_diagnose_s']:.1f} s per case).",
-                  "", "| lambda | power | top-1 | named | mean set size |", "|---|---|---|---|---|"]
-        for lam, b in s["by_lambda"].items():
-            size = "-" if b["mean_set_size"] is None else f"{b['mean_set_size']:.2f}"
-            lines.append(f"| {lam} | {_fmt(b['power'])} | {_fmt(b['top1'])} | "
-                         f"{_fmt(b['named'])} | {size} |")
-        fam = ", ".join(f"{f} {_fmt(r)}" for f, r in s["by_family"].items())
-        med = s["heldout_reduction_median"]
-        lines += ["", f"- top-1 by family (all lambdas): {fam}.",
-                  f"- Held-out gap: median reduction {'-' if med is None else f'{med:.2f}'} "
-                  f"(mean-effect cases detected above the null band); closure "
-                  f"{_fmt(s['heldout_closure'])}.",
-                  f"- Out-of-library (pose_step, thermal_cycle) not attributed: "
-                  f"{_fmt(s['out_of_library_honest'])}.", ""]
+                  ""] + suite_lines(s, "pose_step, thermal_cycle")
     publish(args.out, "gap_blind_imu", lines)
 
 

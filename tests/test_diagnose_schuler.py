@@ -70,3 +70,29 @@ def test_bad_schuler_record(tmp_path):
                  "--out", str(rec)]) == 0
     assert main(["diagnose", str(rec), "--rig", "schuler"]) == 2  # train part < half a period
     assert main(["diagnose", str(rec), "--rig", "schuler", "--effects", "rotor_tilt"]) == 2
+
+
+@pytest.mark.slow
+def test_schuler_blind_harness(tmp_path):
+    """Three sealed D5 cases diagnosed with the manifest out of reach: a null, a strong drift
+    ramp, an out-of-library velocity line."""
+    import shutil
+
+    from gyrojax.diagnose import bench_schuler as bs
+
+    bs.generate(tmp_path, 1, seed=3, null_fraction=1.0)
+    bs.generate(tmp_path / "b", 2, seed=4, null_fraction=0.0, lambdas=(400.0,),
+                families=("drift_ramp", "velocity_line"))
+    hidden = tmp_path.parent / f"{tmp_path.name}_sealed"
+    shutil.move(tmp_path / "sealed", hidden)
+    shutil.move(tmp_path / "b" / "sealed", tmp_path / "b_sealed")
+    null, = bs.run(tmp_path)
+    ramp, line = bs.run(tmp_path / "b")
+    shutil.move(hidden, tmp_path / "sealed")
+    shutil.move(tmp_path / "b_sealed", tmp_path / "b" / "sealed")
+    assert null["verdict"] == "no-gap"
+    assert "drift_ramp" in ramp["effects"] + ramp["ambiguity"]
+    assert line["verdict"] in ("unexplained", "ambiguous", "no-gap")
+    s = bs.score(tmp_path / "b", [ramp, line])
+    assert s["by_lambda"]["400"]["power"]["rate"] == 1.0
+    assert s["out_of_library_honest"]["rate"] == 1.0

@@ -25,9 +25,7 @@ term over the fitted band (f <= rate/10).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import time
 from pathlib import Path
 
 import jax
@@ -36,10 +34,10 @@ import numpy as np
 
 from .. import units
 from ..analysis.spectral import term_spectra
-from ..io import load_record
 from ..models.imu import IMUConditions, IMURig, Pose, cube_poses, imu_measure, simulate_imu
 from ..record import BenchRecord
-from .bench import _rate, _Sealer, _sha
+from ._harness import run_cases, score_cases
+from .bench import _Sealer
 
 __all__ = ["IMUDesign", "generate", "run", "score", "MEAN_FAMILIES", "NOISE_FAMILIES",
            "OUT_OF_LIBRARY"]
@@ -248,74 +246,10 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: IMUDesign | None =
 
 def run(case_dir, *, design: IMUDesign | None = None, progress=None) -> list:
     """Diagnose every record in ``case_dir`` (never reading ``sealed/``)."""
-    from ._diagnose import diagnose
-
     design = design or IMUDesign()
-    results = []
-    paths = sorted(Path(case_dir).glob("case_*.nc"))
-    for k, path in enumerate(paths):
-        rec = load_record(path)
-        t0 = time.perf_counter()
-        rep = diagnose(rec, rig="imu", holdout=design.holdout, design_advice=False)
-        v = rep.verdict
-        results.append({
-            "sha": _sha(path), "file": path.name, "verdict": v["kind"],
-            "effects": v.get("effects") or [], "noise_effects": v.get("noise_effects") or [],
-            "ranking": [r["name"] for r in rep.ranking],
-            "posterior": {r["name"]: r["posterior"] for r in rep.ranking},
-            "ambiguity": rep.ambiguity["set"],
-            "heldout_gap_before": v.get("heldout_gap_before"),
-            "heldout_gap_after": v.get("heldout_gap_after"),
-            "null_band": rep.gap.get("heldout_null_band"),
-            "null_band_after": next((rf["heldout_null_band_after"] for rf in rep.refits
-                                     if rf["effects"] == (v.get("effects") or [])), None),
-            "time_diagnose_s": time.perf_counter() - t0,
-        })
-        if progress is not None:
-            progress(k + 1, len(paths))
-    return results
+    return run_cases(case_dir, "imu", design.holdout, progress=progress)
 
 
 def score(case_dir, results) -> dict:
-    """Unseal and compute: false-alarm rate on nulls, per lambda the power, top-1 (the verdict's
-    first effect, or the top posterior among mean effects), set coverage and size, held-out
-    reduction and closure, and out-of-library honesty."""
-    manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
-    rows = [(manifest[r["sha"]], r) for r in results]
-    nulls = [(t, r) for t, r in rows if t["family"] == "null"]
-    lib = [(t, r) for t, r in rows if t["family"] in MEAN_FAMILIES + NOISE_FAMILIES]
-    ool = [(t, r) for t, r in rows if t["family"] in OUT_OF_LIBRARY]
-
-    def top(t, r):
-        if t["family"] in NOISE_FAMILIES:
-            return r["noise_effects"][:1] == [t["family"]]
-        eff = r["effects"] or ([max(r["posterior"], key=r["posterior"].get)]
-                               if r["posterior"] else [])
-        return eff[:1] == [t["family"]]
-
-    def named(t, r):
-        return t["family"] in set(r["effects"]) | set(r["ambiguity"]) | set(r["noise_effects"])
-
-    out = {"far": _rate(nulls, lambda t, r: r["verdict"] != "no-gap"), "by_lambda": {}}
-    for lam in sorted({t["lambda"] for t, _ in lib}):
-        sub = [(t, r) for t, r in lib if t["lambda"] == lam]
-        sizes = [len(r["ambiguity"]) for _, r in sub if r["ambiguity"]]
-        out["by_lambda"][f"{lam:g}"] = {
-            "power": _rate(sub, lambda t, r: r["verdict"] != "no-gap"),
-            "top1": _rate(sub, top), "named": _rate(sub, named),
-            "mean_set_size": float(np.mean(sizes)) if sizes else None,
-        }
-    out["by_family"] = {f: _rate([(t, r) for t, r in lib if t["family"] == f], top)
-                        for f in sorted({t["family"] for t, _ in lib})}
-    mean_lib = [(t, r) for t, r in lib if t["family"] in MEAN_FAMILIES]
-    red = [1 - r["heldout_gap_after"] / r["heldout_gap_before"] for t, r in mean_lib
-           if r["heldout_gap_after"] is not None and r["null_band"] is not None
-           and r["heldout_gap_before"] > r["null_band"][1]]
-    out["heldout_reduction_median"] = float(np.median(red)) if red else None
-    out["heldout_closure"] = _rate([(t, r) for t, r in mean_lib if r["heldout_gap_after"]
-                                    is not None and r["null_band_after"] is not None],
-                                   lambda t, r: r["heldout_gap_after"] <= r["null_band_after"][1])
-    out["out_of_library_honest"] = _rate(ool, lambda t, r: r["verdict"] in
-                                         ("unexplained", "ambiguous", "no-gap"))
-    out["median_diagnose_s"] = float(np.median([r["time_diagnose_s"] for _, r in rows]))
-    return out
+    """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`)."""
+    return score_cases(case_dir, results, MEAN_FAMILIES, NOISE_FAMILIES, OUT_OF_LIBRARY)

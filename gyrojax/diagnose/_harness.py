@@ -1,0 +1,94 @@
+"""Running and scoring a blind suite, shared by the rigs' harnesses (spec gap-diagnosis §5.6).
+
+:func:`run_cases` diagnoses every ``case_*.nc`` of a suite (never reading ``sealed/``) and keeps
+what the scorer needs; :func:`score_cases` unseals the manifest and computes the false-alarm rate,
+per noncentrality the power, top-1 and "named" rates and ambiguity-set size, per family top-1,
+the held-out gap reduction and closure, and out-of-library honesty, each with its Monte Carlo
+standard error.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..io import load_record
+from .bench import _rate, _sha
+
+__all__ = ["run_cases", "score_cases"]
+
+
+def run_cases(case_dir, rig: str, holdout: float, *, progress=None) -> list:
+    from ._diagnose import diagnose
+
+    results = []
+    paths = sorted(Path(case_dir).glob("case_*.nc"))
+    for k, path in enumerate(paths):
+        rec = load_record(path)
+        t0 = time.perf_counter()
+        rep = diagnose(rec, rig=rig, holdout=holdout, design_advice=False)
+        v = rep.verdict
+        results.append({
+            "sha": _sha(path), "file": path.name, "verdict": v["kind"],
+            "effects": v.get("effects") or [], "noise_effects": v.get("noise_effects") or [],
+            "ranking": [r["name"] for r in rep.ranking],
+            "posterior": {r["name"]: r["posterior"] for r in rep.ranking},
+            "ambiguity": rep.ambiguity["set"],
+            "heldout_gap_before": v.get("heldout_gap_before"),
+            "heldout_gap_after": v.get("heldout_gap_after"),
+            "null_band": rep.gap.get("heldout_null_band"),
+            "null_band_after": next((rf["heldout_null_band_after"] for rf in rep.refits
+                                     if rf["effects"] == (v.get("effects") or [])), None),
+            "time_diagnose_s": time.perf_counter() - t0,
+        })
+        if progress is not None:
+            progress(k + 1, len(paths))
+    return results
+
+
+def score_cases(case_dir, results, mean_families, noise_families=(), out_of_library=()) -> dict:
+    """Unseal and score. top-1: the verdict's first effect (or the top posterior) is the hidden
+    one (noise effects: the first significant noise-model effect); named: the hidden effect is
+    in the verdict, the ambiguity set or the noise-model list."""
+    manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
+    rows = [(manifest[r["sha"]], r) for r in results]
+    nulls = [(t, r) for t, r in rows if t["family"] == "null"]
+    lib = [(t, r) for t, r in rows if t["family"] in tuple(mean_families) + tuple(noise_families)]
+    ool = [(t, r) for t, r in rows if t["family"] in out_of_library]
+
+    def top(t, r):
+        if t["family"] in noise_families:
+            return r["noise_effects"][:1] == [t["family"]]
+        eff = r["effects"] or ([max(r["posterior"], key=r["posterior"].get)]
+                               if r["posterior"] else [])
+        return eff[:1] == [t["family"]]
+
+    def named(t, r):
+        return t["family"] in set(r["effects"]) | set(r["ambiguity"]) | set(r["noise_effects"])
+
+    out = {"far": _rate(nulls, lambda t, r: r["verdict"] != "no-gap"), "by_lambda": {}}
+    for lam in sorted({t["lambda"] for t, _ in lib}):
+        sub = [(t, r) for t, r in lib if t["lambda"] == lam]
+        sizes = [len(r["ambiguity"]) for _, r in sub if r["ambiguity"]]
+        out["by_lambda"][f"{lam:g}"] = {
+            "power": _rate(sub, lambda t, r: r["verdict"] != "no-gap"),
+            "top1": _rate(sub, top), "named": _rate(sub, named),
+            "mean_set_size": float(np.mean(sizes)) if sizes else None,
+        }
+    out["by_family"] = {f: _rate([(t, r) for t, r in lib if t["family"] == f], top)
+                        for f in sorted({t["family"] for t, _ in lib})}
+    mean_lib = [(t, r) for t, r in lib if t["family"] in mean_families]
+    red = [1 - r["heldout_gap_after"] / r["heldout_gap_before"] for t, r in mean_lib
+           if r["heldout_gap_after"] is not None and r["null_band"] is not None
+           and r["heldout_gap_before"] > r["null_band"][1]]
+    out["heldout_reduction_median"] = float(np.median(red)) if red else None
+    out["heldout_closure"] = _rate([(t, r) for t, r in mean_lib if r["heldout_gap_after"]
+                                    is not None and r["null_band_after"] is not None],
+                                   lambda t, r: r["heldout_gap_after"] <= r["null_band_after"][1])
+    out["out_of_library_honest"] = _rate(ool, lambda t, r: r["verdict"] in
+                                         ("unexplained", "ambiguous", "no-gap"))
+    out["median_diagnose_s"] = float(np.median([r["time_diagnose_s"] for _, r in rows]))
+    return out
