@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -248,7 +249,8 @@ def cmd_effects(args):
     if args.rig not in RIGS:
         raise UsageError(f"--rig {args.rig!r} is not available yet; rigs: {', '.join(RIGS)}")
     space = RIGS[args.rig]().param_space
-    print(f"rig {args.rig}: nominal parameters {', '.join(space.nominal_names())}")
+    nominal = ", ".join(space.nominal_names()) or "none outside the groups below"
+    print(f"rig {args.rig}: ungrouped nominal parameters: {nominal}")
     for e in space.effects:
         ps = [space[n] for n in space.effect_names(e)]
         print(f"  {e}: " + ", ".join(f"{p.name} [{p.display_unit}, null {p.to_display(p.null):g}]"
@@ -641,6 +643,9 @@ def main(argv=None) -> int:
     except ValueError as exc:  # validation errors from the library name the field and the fix
         print(f"gyrojax {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except BrokenPipeError:  # output piped into `head` & co.: stop quietly, as Unix tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     return 0
 
 
