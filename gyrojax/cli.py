@@ -117,6 +117,11 @@ def cmd_simulate(args):
         from . import _cli_platform
 
         return _cli_platform.simulate(args, _parse_sets, _emit_json)
+    if args.rig == "gyrotheodolite":
+        from . import _cli_gyrotheodolite
+
+        return _cli_gyrotheodolite.simulate(args, _parse_sets, _emit_json, UsageError)
+    args.hours = 24.0 if args.hours is None else args.hours
     args.sample = 60.0 if args.sample is None else args.sample
     rig, cond, scheme, lat = _rig_and_conditions(args)
     _positive("--hours", args.hours)
@@ -415,6 +420,10 @@ def cmd_diagnose(args):
         record = _load(args, SCHULER_CHANNELS)
         if args.latitude is not None:
             record = record.with_conditions(latitude_deg=args.latitude)
+    elif args.rig == "gyrotheodolite":
+        record = _load(args, ("alpha",))
+        if args.latitude is not None:
+            record = record.with_conditions(latitude_deg=args.latitude)
     elif args.rig == "imu":
         if args.noise_arcsec is not None:
             raise UsageError("--noise-arcsec is for the esg rig; the imu rig estimates its noise "
@@ -458,13 +467,16 @@ def _common(p, *, record=False, scheme=True):
     if record:
         p.add_argument("record", help="record file (.nc or .csv; t in s, channels in SI: "
                                       "alpha1 alpha2 in rad for esg, wx..az for imu, alpha "
-                                      "beta gamma ax ay az position amplitude for platform); for "
+                                      "beta gamma ax ay az position amplitude for platform, "
+                                      "alpha in rad for gyrotheodolite); for "
                                       "--rig imu also dataset:NAME (a real record, e.g. "
                                       "dataset:ln100_pair)")
-    p.add_argument("--rig", default="esg", choices=["esg", "schuler", "platform", "imu"],
+    p.add_argument("--rig", default="esg",
+                   choices=["esg", "schuler", "platform", "imu", "gyrotheodolite"],
                    help="rig: esg (default), schuler (platform INS Schuler test), platform "
-                        "(three-gimbal platform under vibration) or imu (strapdown IMU on a "
-                        "stand; diagnose only)")
+                        "(three-gimbal platform under vibration), imu (strapdown IMU on a "
+                        "stand; diagnose only) or gyrotheodolite (north-seeking run; simulate "
+                        "and diagnose)")
     p.add_argument("--schedule", metavar="JSON",
                    help="platform: test schedule file (positions_deg, table_amplitudes_g, "
                         "attenuation, frequency_hz, dwell_s, sample_s, latitude_deg, mounting); "
@@ -515,9 +527,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="simulate a bench test to a record file")
     _common(p)
     p.add_argument("--out", required=True, help="output record (.nc or .csv)")
-    p.add_argument("--hours", type=float, default=24.0, help="test length in h (default 24; esg)")
+    p.add_argument("--hours", type=float,
+                   help="test length in h (default 24 for esg, 0.667 for gyrotheodolite)")
     p.add_argument("--sample", type=float,
-                   help="sampling interval in s (default 60 for esg, 1 for schuler)")
+                   help="sampling interval in s (default 60 for esg, 1 for schuler and "
+                        "gyrotheodolite)")
     _schuler_options(p)
     p.add_argument("--random-errors", action="store_true",
                    help="schuler: draw the 12 errors from their priors (spec §10), then apply --set")

@@ -52,8 +52,9 @@ def integrate(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: fl
 
 
 @eqx.filter_jit
-def _simulate(rig, params, conditions, ts, key, noise_std, rtol, atol, max_steps):
-    y = integrate(rig, params, conditions, ts, rtol=rtol, atol=atol, max_steps=max_steps)
+def _simulate(rig, params, conditions, ts, key, noise_std, rtol, atol, max_steps, solver):
+    y = integrate(rig, params, conditions, ts, solver=solver, rtol=rtol, atol=atol,
+                  max_steps=max_steps)
     if key is not None:
         y = y + noise_std * jax.random.normal(key, y.shape, dtype=y.dtype)
     return y
@@ -61,7 +62,7 @@ def _simulate(rig, params, conditions, ts, key, noise_std, rtol, atol, max_steps
 
 def simulate(rig: AbstractRig, params, conditions, ts, *, key=None, noise_std=0.0,
              attrs=None, rtol: float = 1e-10, atol: float = 1e-12,
-             max_steps: int = 100_000) -> BenchRecord:
+             max_steps: int = 100_000, solver=None) -> BenchRecord:
     """Simulate a bench test: integrate the rig and add white measurement noise.
 
     **Arguments:**
@@ -71,6 +72,8 @@ def simulate(rig: AbstractRig, params, conditions, ts, *, key=None, noise_std=0.
     - `noise_std`: standard deviation of the white noise on every channel (internal units, e.g.
       rad; may be an array per channel).
     - `attrs`: test conditions written into the record (latitude_deg, scheme...).
+    - `solver`, `rtol`, `atol`, `max_steps`: as in :func:`integrate` (an implicit solver such as
+      ``diffrax.Kvaerno5`` for stiff rigs, e.g. the gyrotheodolite's 8.7 Hz nutation).
 
     **Returns:** a :class:`BenchRecord`. jit-compiled; batch it with ``jax.vmap`` over ``params``,
     ``conditions``, ``key`` (a record is a pytree).
@@ -78,7 +81,7 @@ def simulate(rig: AbstractRig, params, conditions, ts, *, key=None, noise_std=0.
     if key is None and not _is_zero(noise_std):
         raise ValueError("simulate: noise_std > 0 needs a PRNG key; pass key=jax.random.key(seed)")
     y = _simulate(rig, params, conditions, ts, key, jnp.asarray(noise_std, dtype=float), rtol, atol,
-                  max_steps)
+                  max_steps, solver)
     return BenchRecord(jnp.asarray(ts, dtype=float), y, rig.channels, freeze(attrs or {}))
 
 

@@ -58,6 +58,10 @@ _DISPLAY = {
     "m/s^2/sqrt(s)": 1.0,
     "mg/sqrt(h)": 1e-3 * G0 / 60.0,
     "m/s": 1.0,
+    "min": 60.0,
+    "arcsec/s": ARCSEC,
+    "nN m": 1e-9,
+    "nN m/h": 1e-9 / HOUR,
 }
 
 

@@ -183,8 +183,8 @@ def test_blind_harness_is_sealed_and_scores(tmp_path):
     from gyrojax.diagnose import bench
 
     pkg = Path(__file__).parents[1] / "gyrojax" / "diagnose"
-    for f in ("_diagnose.py", "_esg.py", "_imu.py", "_platform.py", "_schuler.py", "_stats.py",
-              "_report.py", "__init__.py"):
+    for f in ("_diagnose.py", "_esg.py", "_imu.py", "_platform.py", "_schuler.py",
+              "_gyrotheodolite.py", "_stats.py", "_report.py", "__init__.py"):
         tree = ast.parse((pkg / f).read_text())
         imported = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
         imported |= {f"{n.module}.{a.name}" for n in ast.walk(tree)
@@ -241,7 +241,9 @@ def test_bad_input_errors():
         diagnose(rec.slice(0, 50))
     with pytest.raises(ValueError, match="unknown effect"):
         diagnose(rec, effects=["wobble"])
-    with pytest.raises(ValueError, match="unknown rig 'gyrotheodolite'"):
+    with pytest.raises(ValueError, match="unknown rig 'gyrocompass'.*gyrotheodolite"):
+        diagnose(rec, rig="gyrocompass")
+    with pytest.raises(ValueError, match="the gyrotheodolite diagnosis needs one channel"):
         diagnose(rec, rig="gyrotheodolite")
     with pytest.raises(ValueError, match="the Schuler diagnosis needs"):
         diagnose(rec, rig="schuler")

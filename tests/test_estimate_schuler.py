@@ -74,6 +74,7 @@ def _monte_carlo(periods, n_runs=20):
     return thetas, gn, kf
 
 
+@pytest.mark.slow
 def test_monte_carlo_one_period():
     """Spec §11, 20 runs over one period (1 s sampling, 0.05 m/s, 1 arcmin):
     - Gauss-Newton: normalised errors in [0.5, 1.5] for every parameter; its standard errors equal

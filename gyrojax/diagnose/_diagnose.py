@@ -35,7 +35,7 @@ from ._stats import (
 
 __all__ = ["diagnose", "library", "RIGS"]
 
-RIGS = ("esg", "imu", "platform", "schuler")
+RIGS = ("esg", "imu", "platform", "schuler", "gyrotheodolite")
 LABEL_CHANNELS = ("position", "amplitude")  # segment labels, not measurements
 
 
@@ -56,6 +56,8 @@ def library(rig: str) -> dict:
         from ._platform import PLATFORM_LIBRARY as lib
     elif rig == "schuler":
         from ._schuler import SCHULER_LIBRARY as lib
+    elif rig == "gyrotheodolite":
+        from ._gyrotheodolite import GYROTHEODOLITE_LIBRARY as lib
     else:
         raise ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: "
                          f"{', '.join(RIGS)}")
@@ -86,6 +88,12 @@ def _problem(record, rig, holdout, noise_std, effects, order):
 
         _check_effects(effects, SCHULER_LIBRARY, rig)
         return SchulerProblem(record, holdout=holdout, noise_std=noise_std, effects=effects)
+    if rig == "gyrotheodolite":
+        from ._gyrotheodolite import GYROTHEODOLITE_LIBRARY, GyrotheodoliteProblem
+
+        _check_effects(effects, GYROTHEODOLITE_LIBRARY, rig)
+        return GyrotheodoliteProblem(record, holdout=holdout, noise_std=noise_std,
+                                     effects=effects)
     if rig == "imu":
         from ._imu import IMU_LIBRARY, IMUProblem
 

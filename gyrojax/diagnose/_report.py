@@ -187,7 +187,7 @@ class GapReport:
 
 def _noise_text(rig: str, channel: str, s: float) -> str:
     """A channel's noise level in its engineering unit."""
-    if rig in ("esg", "platform"):
+    if rig in ("esg", "platform", "gyrotheodolite"):
         return f"{s / units.ARCSEC:.3g} arcsec"
     if rig == "schuler":
         return f"{s:.3g} m/s" if channel.startswith("V") else f"{s / units.ARCMIN:.3g} arcmin"

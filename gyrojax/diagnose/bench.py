@@ -285,6 +285,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
             rss0 = float(np.sum(((prob.y[:n] - prob.predict(params0)[:n]) / sigma) ** 2))
             m = n * len(prob.channels)
             _, sigs = prob.jacobians(params0, sigma)  # only for the effects' names and grids
+            screened_dof = {r["name"]: int(r["dof"]) for r in ranking}
             t0 = time.perf_counter()  # both answers start from the same nominal fit
             n_refits = 0
             bic = {"none": m * math.log(rss0 / m)}
@@ -301,7 +302,9 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
                 bic[sig.name] = m * math.log(min(rss) / m) + k * math.log(m)
                 # the screening's Bayes factor with the refit's likelihood-ratio drop in place
                 # of the score statistic: the answer screening approximates (G10 agreement)
-                dof = int(np.linalg.matrix_rank(sig.jac[0]))  # as screened: no null direction
+                # the dof the screening tested (directions with visible fraction >= 1e-6), so
+                # both answers pay the same Occam penalty
+                dof = screened_dof[sig.name]
                 lbf = [_log_bf_g(max(rss0 - r, 0.0), dof, 32.0) for r in rss]
                 lr_bf[sig.name] = float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
             res["b2_choice"] = min(bic, key=bic.get)

@@ -46,33 +46,36 @@ class FitResult(AbstractNamedEstimate):
     result: optx.RESULTS
 
 
-def _residual_fn(rig, space, free, base, conditions, ts, y, rtol, atol, max_steps):
+def _residual_fn(rig, space, free, base, conditions, ts, y, rtol, atol, max_steps, solver=None):
     def fn(x, args):
         p = space.unflatten(x, base, free)
-        pred = integrate(rig, p, conditions, ts, rtol=rtol, atol=atol, max_steps=max_steps,
-                         adjoint=diffrax.ForwardMode(), throw=False)
+        pred = integrate(rig, p, conditions, ts, solver=solver, rtol=rtol, atol=atol,
+                         max_steps=max_steps, adjoint=diffrax.ForwardMode(), throw=False)
         return (pred - y).reshape(-1)
 
     return fn
 
 
 def trajectory_jacobian(rig, params: Mapping, conditions, ts, free: Sequence[str], *,
-                        rtol: float = 1e-10, atol: float = 1e-12, max_steps: int = 100_000):
+                        rtol: float = 1e-10, atol: float = 1e-12, max_steps: int = 100_000,
+                        solver=None):
     """Jacobian of the noise-free channels (flattened, ``n*c``) w.r.t. the free parameters in
-    internal units (not scaled), by forward sensitivities through diffrax."""
+    internal units (not scaled), by forward sensitivities through diffrax (``solver``: a diffrax
+    solver, default ``Dopri8``; an implicit one such as ``Kvaerno5`` for stiff rigs)."""
     space = rig.param_space
     free = space.check_names(free)
     fn = _residual_fn(rig, space, free, dict(params), conditions, ts,
-                      jnp.zeros((len(ts), len(rig.channels))), rtol, atol, max_steps)
+                      jnp.zeros((len(ts), len(rig.channels))), rtol, atol, max_steps, solver)
     x0 = space.flatten(params, free)
     return jax.jacfwd(lambda x: fn(x, None))(x0) / space.scales(free)
 
 
 @eqx.filter_jit
 def _fit(rig, free, solver_name, base, conditions, ts, y, rtol, atol, max_steps, ode_rtol, ode_atol,
-         ode_max_steps):
+         ode_max_steps, ode_solver):
     space = rig.param_space
-    fn = _residual_fn(rig, space, free, base, conditions, ts, y, ode_rtol, ode_atol, ode_max_steps)
+    fn = _residual_fn(rig, space, free, base, conditions, ts, y, ode_rtol, ode_atol, ode_max_steps,
+                      ode_solver)
     x0 = space.flatten(base, free)
     if solver_name == "gauss-newton":
         solver = optx.GaussNewton(rtol=rtol, atol=atol)
@@ -97,7 +100,7 @@ def _fit(rig, free, solver_name, base, conditions, ts, y, rtol, atol, max_steps,
 def fit_trajectory(rig, record: BenchRecord, conditions, params0: Mapping, *,
                    free: Sequence[str], method: str = "gauss-newton", rtol: float = 1e-6,
                    atol: float = 1e-8, max_steps: int = 100, ode_rtol: float = 1e-10,
-                   ode_atol: float = 1e-12, ode_max_steps: int = 100_000,
+                   ode_atol: float = 1e-12, ode_max_steps: int = 100_000, ode_solver=None,
                    throw: bool = True) -> FitResult:
     """Fit the free parameters of ``rig`` to ``record`` by output-error least squares.
 
@@ -108,6 +111,8 @@ def fit_trajectory(rig, record: BenchRecord, conditions, params0: Mapping, *,
     - `free`: names of the parameters to estimate.
     - `method`: ``"gauss-newton"`` (``optimistix.GaussNewton``) or ``"levenberg-marquardt"``.
     - `rtol`, `atol`, `max_steps`: optimiser tolerances (on the scaled parameters) and budget.
+    - `ode_solver`: the diffrax solver (default ``Dopri8``); ``ode_rtol``/``ode_atol``/
+      ``ode_max_steps`` its controller's tolerances and budget.
     - `throw`: raise if the optimiser did not converge; pass ``False`` under ``vmap`` and read
       ``result.converged``.
 
@@ -120,7 +125,7 @@ def fit_trajectory(rig, record: BenchRecord, conditions, params0: Mapping, *,
         raise ValueError("fit_trajectory: no free parameters; name at least one in free=")
     base = {k: jnp.asarray(v, dtype=float) for k, v in params0.items()}
     out = _fit(rig, free, method, base, conditions, record.t, record.y, rtol, atol, max_steps,
-               ode_rtol, ode_atol, ode_max_steps)
+               ode_rtol, ode_atol, ode_max_steps, ode_solver)
     params, values, se, cov, rms, sig, result, nsteps = out
     converged = result == optx.RESULTS.successful
     if throw:

@@ -23,7 +23,21 @@ vibration both additions vanish and the rig is exactly (1).
 Parameters (nominal; the spec's §8 assumed values are the defaults of :meth:`default_params`):
 ``H`` (N m s), ``J_y``, ``J_z``, ``J_x`` (kg m^2), ``mgl`` (N m), ``f_alpha``, ``f_beta``,
 ``f_gamma``, ``F_KC`` (N m s), ``kappa`` (1). ``J_x`` and ``f_gamma`` (roll mode) are assumed equal
-to ``J_z``, ``f_beta``. This rig has no effect groups yet.
+to ``J_z``, ``f_beta``.
+
+Bench-test parameters (null 0, so the defaults are exactly (1) released from rest in the
+meridian): ``index_offset`` A, the azimuth of the meridian from the instrument's index line (the
+quantity a gyrotheodolite measures; the pick-off reads ``alpha + A``, and the compensation link,
+driven by the pick-off, applies ``-K_KC (alpha + A)``); the release state ``alpha0``,
+``alpha_dot0``.
+
+Unmodelled-effect groups (torques about the vertical, and the pick-off scale), all null 0:
+``tape_torque`` (constant torque of the suspension tape's zero offset, ``M_tape``),
+``torque_ramp`` (``M_ramp t``), ``drift_transient`` (warm-up ``M_tr exp(-t/tau_tr)``),
+``torque_step`` (``M_step`` from ``t_step``, a 10 s tanh rise) and ``pickoff_scale`` (the
+pick-off reads ``(1 + k_pick)(alpha + A)``). A constant torque shifts the equilibrium by
+``M/(H omega3 cos phi)``, exactly as an index offset does, so ``tape_torque`` has no signature
+in a single run: only a second run at another rotor momentum ``H`` separates them.
 """
 
 from __future__ import annotations
@@ -33,7 +47,7 @@ import jax
 import jax.numpy as jnp
 
 from .. import units
-from ..params import Param, ParameterSpace
+from ..params import Param, ParameterSpace, param
 from ._base import AbstractRig
 
 __all__ = ["GyrotheodoliteRig", "GyrotheodoliteConditions", "DEFAULTS"]
@@ -54,9 +68,35 @@ _DESC = {"H": "rotor angular momentum", "J_y": "SE inertia about the vertical (a
          "F_KC": "damping of the compensation link", "kappa": "relative compensation gain",
          "J_x": "SE inertia about the main axis (roll mode, assumed)",
          "f_gamma": "viscous friction in roll (assumed)"}
+_SCALES = {"kappa": 0.1, "F_KC": 3e-5, "f_alpha": 1e-6}
+STEP_WIDTH = 10.0
+"""Rise time (s) of the tanh step of ``torque_step``."""
+_NULL_TORQUE = 0.2e-9  # ~10 arcsec of equilibrium shift at the default H and Kyiv latitude
 _SPACE = ParameterSpace(tuple(
     Param(name=n, unit=_UNITS[n], display_unit=_UNITS[n], display_factor=1.0,
-          scale=max(abs(v), 1e-6), null=v, description=_DESC[n]) for n, v in DEFAULTS.items()))
+          scale=_SCALES.get(n, max(abs(v), 1e-6)), null=v, description=_DESC[n])
+    for n, v in DEFAULTS.items()) + (
+    param("index_offset", "rad", "arcsec", units.ARCMIN,
+          description="azimuth of the meridian from the index line (pick-off zero)"),
+    param("alpha0", "rad", "arcmin", 10 * units.ARCMIN,
+          description="azimuth deflection from the meridian at release"),
+    param("alpha_dot0", "rad/s", "arcsec/s", 10 * units.ARCSEC,
+          description="azimuth rate at release"),
+    param("M_tape", "N m", "nN m", _NULL_TORQUE, effect="tape_torque",
+          description="constant torque about the vertical (suspension-tape zero)"),
+    param("M_ramp", "N m/s", "nN m/h", _NULL_TORQUE / units.HOUR, effect="torque_ramp",
+          description="torque about the vertical growing linearly in time"),
+    param("M_tr", "N m", "nN m", _NULL_TORQUE, effect="drift_transient",
+          description="warm-up torque at t = 0, decaying as exp(-t/tau_tr)"),
+    param("tau_tr", "s", "min", 600.0, null=600.0, effect="drift_transient",
+          description="decay time of the warm-up torque"),
+    param("M_step", "N m", "nN m", _NULL_TORQUE, effect="torque_step",
+          description="torque step about the vertical"),
+    param("t_step", "s", "min", 1200.0, null=1200.0, effect="torque_step",
+          description="onset of the torque step"),
+    param("k_pick", "1", "ppm", 1e-3, effect="pickoff_scale",
+          description="scale error of the azimuth pick-off"),
+))
 
 
 class GyrotheodoliteConditions(eqx.Module):
@@ -141,7 +181,17 @@ class GyrotheodoliteRig(AbstractRig):
                                                omega=float(c.get("omega", 0.0)))
 
     def initial_state(self, params, conditions):
-        return jnp.zeros(4)
+        """Released at ``(alpha0, alpha_dot0)`` with the tilt at zero (the clamped position)."""
+        z = jnp.zeros_like(params["alpha0"])
+        return jnp.stack([params["alpha0"], params["alpha_dot0"], z, z])
+
+    @staticmethod
+    def azimuth_torque(t, params):
+        """Unmodelled torque about the vertical (N m) at time ``t`` (s): the sum of the
+        ``tape_torque``, ``torque_ramp``, ``drift_transient`` and ``torque_step`` effects."""
+        rise = 0.5 * (1 + jnp.tanh((t - params["t_step"]) / STEP_WIDTH))
+        return (params["M_tape"] + params["M_ramp"] * t
+                + params["M_tr"] * jnp.exp(-t / params["tau_tr"]) + params["M_step"] * rise)
 
     @staticmethod
     def k_alpha(params, conditions):
@@ -149,21 +199,25 @@ class GyrotheodoliteRig(AbstractRig):
         return params["H"] * units.EARTH_RATE * jnp.cos(conditions.latitude) * (1 + params["kappa"])
 
     def vector_field(self, t, state, params, conditions):
-        """Equations (1) with the vibration inputs and the constant ``H omega3 sin(phi)`` input."""
+        """Equations (1) with the vibration inputs, the constant ``H omega3 sin(phi)`` input, the
+        compensation link's torque on the index offset and the unmodelled azimuth torques."""
         a, ad, b, bd = state
         h, jy, jz, mgl = params["H"], params["J_y"], params["J_z"], params["mgl"]
         d = params["F_KC"] + params["f_alpha"]
         nx, nz = conditions.overloads(t)
         gamma = self.roll_angle(t, params, conditions)
         coupling = h * ad * gamma if self.roll_rate_coupling else 0.0
+        k_kc = params["kappa"] * h * units.EARTH_RATE * jnp.cos(conditions.latitude)
         add = (-h * bd - d * ad - self.k_alpha(params, conditions) * a
+               - k_kc * params["index_offset"] + self.azimuth_torque(t, params)
                + (mgl * (gamma * nx + b * nz) if self.vibration_torque else 0.0) + coupling) / jy
         bdd = (h * ad - params["f_beta"] * bd - mgl * b + mgl * nx
                + h * units.EARTH_RATE * jnp.sin(conditions.latitude)) / jz
         return jnp.stack([ad, add, bd, bdd])
 
     def observe(self, t, state, params, conditions):
-        return state[:1]
+        """The pick-off: ``(1 + k_pick)(alpha + index_offset)`` (rad)."""
+        return (1 + params["k_pick"]) * (state[:1] + params["index_offset"])
 
     @staticmethod
     def roll_response(params, omega):

@@ -1,0 +1,85 @@
+"""Blind validation of the gap diagnosis on gyrotheodolite north-seeking runs (spec gap-diagnosis
+§5-6).
+
+One sealed suite: 40-min runs at 1 s with 1 arcsec pick-off noise, the test parameters drawn per
+case, nulls, the three visible catalogue effects at noncentrality 8/16/32/64, the structurally
+confounded tape torque at a physical 0.5-2 nN m, and two out-of-library pick-off effects. Also
+reports how separable the catalogue is on this design (largest projected canonical correlation of
+each effect with another one). Writes the section ``gap_blind_gyrotheodolite`` of RESULTS.md.
+
+    python benchmarks/gap_blind_gyrotheodolite.py              # 96 cases (~8 min on 2 cores)
+    python benchmarks/gap_blind_gyrotheodolite.py --cases 12   # quick look
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import tempfile
+import time
+
+sys.path.insert(0, os.path.dirname(__file__))
+
+from _results import fmt_rate as _fmt  # noqa: E402
+from _results import machine_line, publish, suite_lines  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from gyrojax.diagnose import bench_gyrotheodolite as bg  # noqa: E402
+from gyrojax.diagnose import diagnose  # noqa: E402
+from gyrojax.io import load_record  # noqa: E402
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", type=int, default=96)
+    ap.add_argument("--seed", type=int, default=2026)
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
+    ap.add_argument("--keep", help="directory to keep the cases and results in")
+    args = ap.parse_args(argv)
+    work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-gyrotheodolite-")
+    design = bg.GyrotheodoliteDesign()
+    t0 = time.perf_counter()
+    paths = bg.generate(work, args.cases, seed=args.seed, design=design, null_fraction=0.3)
+    t_gen = time.perf_counter() - t0
+    bar = tqdm(total=args.cases, desc="gyrotheodolite", unit="case")
+    t0 = time.perf_counter()
+    results = bg.run(work, design=design, progress=lambda i, n: bar.update(1))
+    bar.close()
+    t_run = time.perf_counter() - t0
+    with open(os.path.join(work, "results.json"), "w") as fh:
+        json.dump(results, fh)
+    s = bg.score(work, results)
+    rep = diagnose(load_record(paths[0]), rig="gyrotheodolite", design_advice=False)
+    sep = {}
+    for pair, v in rep.ambiguity["pairs"].items():
+        for e in pair.split(" ~ "):
+            sep[e] = max(sep.get(e, 0.0), v)
+    visible = {r["name"] for r in rep.ranking if r["flag"] != "structurally confounded"}
+    sep = {e: v for e, v in sep.items() if e in visible}
+    separable = sorted(e for e, v in sep.items() if v <= 0.9)
+    lines = ["## Gap diagnosis, blind gyrotheodolite suite (`benchmarks/gap_blind_gyrotheodolite.py`)",
+             "", machine_line(), "",
+             f"Design: {json.dumps(dataclasses.asdict(design))}. {args.cases} sealed cases "
+             f"(seed {args.seed}, 30 % nulls), generated in {t_gen:.0f} s, diagnosed in "
+             f"{t_run:.0f} s (median {s['median_diagnose_s']:.1f} s per case). Rates ± Monte "
+             "Carlo standard error (n cases). top-1 = the verdict's first effect (or the top "
+             "posterior) is the hidden one; named = the hidden effect is in the verdict or the "
+             "90 % ambiguity set.", "",
+             f"- Nulls: false-alarm rate {_fmt(s['far'])}.",
+             f"- Structural: a hidden suspension-tape torque (0.5-2 nN m, i.e. 22-89 arcsec of "
+             f"equilibrium shift) left unattributed (no-gap or confounded): "
+             f"{_fmt(s['structural_silent'])}; it is flagged structurally confounded in every "
+             "report (a design property), with the alias index_offset +1/(H omega3 cos phi) "
+             "checked to 1e-6 by the tests.",
+             "- Separability on this design (largest projected canonical correlation with another "
+             "visible catalogue effect): " + ", ".join(f"{e} {v:.4f}" for e, v in sorted(sep.items()))
+             + f". Separable (<= 0.9): {', '.join(separable) or 'none'}.", ""]
+    lines += suite_lines(s, "pickoff_line, pickoff_step")
+    publish(args.out, "gap_blind_gyrotheodolite", lines)
+
+
+if __name__ == "__main__":
+    main()
