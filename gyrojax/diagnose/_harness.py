@@ -18,7 +18,14 @@ import numpy as np
 from ..io import load_record
 from .bench import _rate, _sha
 
-__all__ = ["run_cases", "score_cases"]
+__all__ = ["run_cases", "score_cases", "projector"]
+
+
+def projector(jn):
+    """``a -> (I - P) a`` with ``P`` the orthogonal projector on the columns of ``jn``: the
+    generators' truth-side noncentrality has the nominal parameters projected out."""
+    q, _ = np.linalg.qr(jn)
+    return lambda a: a - q @ (q.T @ a)
 
 
 def run_cases(case_dir, rig: str, holdout: float, *, progress=None) -> list:

@@ -31,7 +31,7 @@ from ..estimate.least_squares import trajectory_jacobian
 from ..models.gyrotheodolite import GyrotheodoliteConditions, GyrotheodoliteRig
 from ..record import BenchRecord
 from ..simulate import integrate
-from ._harness import run_cases, score_cases
+from ._harness import projector, run_cases, score_cases
 from .bench import _rate, _Sealer
 
 __all__ = ["GyrotheodoliteDesign", "generate", "run", "score", "MEAN_FAMILIES",
@@ -65,11 +65,6 @@ class GyrotheodoliteDesign:
         return np.arange(0.0, self.minutes * 60 + 0.5 * self.sample_s, self.sample_s)
 
 
-def _projector(jn):
-    q, _ = np.linalg.qr(jn)
-    return lambda a: a - q @ (q.T @ a)
-
-
 def generate(out_dir, n_cases: int, *, seed: int = 0,
              design: GyrotheodoliteDesign | None = None, lambdas=(8.0, 16.0, 32.0, 64.0),
              null_fraction: float = 0.3, families=None) -> list[Path]:
@@ -97,7 +92,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0,
         out_term = np.zeros((len(ts), 1))
         if family in MEAN_FAMILIES + OUT_OF_LIBRARY:
             jn = np.asarray(trajectory_jacobian(_RIG, p, cond, jnp.asarray(ts), NOMINAL, **_ODE))
-            proj = _projector(jn[:n_train] * space.scales(NOMINAL) / sigma)
+            proj = projector(jn[:n_train] * space.scales(NOMINAL) / sigma)
         if family in MEAN_FAMILIES:
             gpar = _GRID.get(family)
             if gpar == "tau_tr":

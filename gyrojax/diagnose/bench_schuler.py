@@ -31,7 +31,7 @@ from ..estimate.schuler import THETA_NAMES, schuler_residuals
 from ..models.schuler import SchulerConditions, SchulerRig, add_measurement_noise
 from ..record import BenchRecord
 from ..simulate import integrate
-from ._harness import run_cases, score_cases
+from ._harness import projector, run_cases, score_cases
 from .bench import _Sealer
 
 __all__ = ["SchulerDesign", "generate", "run", "score", "MEAN_FAMILIES", "OUT_OF_LIBRARY"]
@@ -81,11 +81,6 @@ def _truth_jacobian(cond, ts, y, base, names, scales, weights):
     return -jax.jacfwd(resid)(jnp.zeros(len(names)))
 
 
-def _projector(jn):
-    q, _ = np.linalg.qr(jn)
-    return lambda a: a - q @ (q.T @ a)
-
-
 def generate(out_dir, n_cases: int, *, seed: int = 0, design: SchulerDesign | None = None,
              lambdas=(8.0, 16.0, 32.0, 64.0), null_fraction: float = 0.3,
              families=None) -> list[Path]:
@@ -113,7 +108,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: SchulerDesign | No
         if family != "null":
             jn = np.asarray(_truth_jacobian(cond, jnp.asarray(ts), y0, p, THETA_NAMES,
                                             jnp.asarray(space.scales(THETA_NAMES)), w))
-            proj = _projector(jn[:rows])
+            proj = projector(jn[:rows])
             if family in MEAN_FAMILIES:
                 gpar = _GRID.get(family)
                 if gpar == "tau_tr":
