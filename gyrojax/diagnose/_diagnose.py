@@ -266,7 +266,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     g_nom_train = float(np.mean(e ** 2) - 1)
 
     def run_refit(combo):
-        pred, coeffs, _ = prob.refit(params0, [(r.sig, r.grid_index) for r in combo], sigma)
+        pred, coeffs, p_refit = prob.refit(params0, [(r.sig, r.grid_index) for r in combo],
+                                           sigma)
         ea = standardize(prob.y - pred)
         g_aug = heldout_gap(ea) if n_ho else float("nan")
         span = np.concatenate([jn] + [r.sig.jac[r.grid_index] for r in combo], axis=1)
@@ -280,6 +281,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         remaining = [dict(x, q=float(q)) for x, q in zip(post_cells, qq) if q < alpha]
         resid_after[tuple(r.sig.name for r in combo)] = ea
         return dict(effects=[r.sig.name for r in combo], coefficients=coeffs,
+                    nominal_after=prob.display_nominal(p_refit),
                     onestep={r.sig.name: _onestep_display(r) for r in combo},
                     gap_train_after=float(np.mean(ea[:n] ** 2) - 1),
                     heldout_gap_before=g_nom, heldout_gap_after=g_aug,

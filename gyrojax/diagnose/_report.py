@@ -41,8 +41,9 @@ class GapReport:
     - `ranking`: one row per catalogued effect (score, p, q, posterior, one-step estimate,
       visible fraction and flag, no-signature directions, aliases by name, MDE / prior scale).
     - `ambiguity`: the 90 %-posterior set and the canonical correlations of effect pairs.
-    - `refits`: per refitted candidate: coefficients, held-out gap before/after, reduction,
-      closure, gap-map cells still significant.
+    - `refits`: per refitted candidate: coefficients, the nominal parameters refitted with them
+      (``nominal_after``, display units), held-out gap before/after, reduction, closure,
+      gap-map cells still significant.
     - `design_advice`: per flagged effect and candidate design, MDE / prior scale and the largest
       correlation with another effect.
     - `verdict`: kind (no-gap | attributed | ambiguous | confounded | unexplained) and effects.
