@@ -136,6 +136,7 @@ def test_bad_records():
         fit_schuler(RIG, ts[::-1], y, COND)
 
 
+@pytest.mark.slow
 def test_shared_gains_equal_per_run_filters():
     """Monte Carlo runs of one linear model share covariances and gains: kalman_gains once +
     apply_gains over the runs reproduces each run's own square-root filter (and history=False

@@ -459,8 +459,10 @@ def _design_advice(prob, params0, sigma, flagged):
     rows = []
     grid = {r.sig.name: r.grid_index for r in flagged}  # screened grid value of flagged effects
     names = set(grid)
+    # problems that can evaluate one grid value per effect are told which (the screened one)
+    only = {"grid": grid} if getattr(prob, "design_grid_choice", False) else {}
     for label, cond, t in prob.designs():
-        jn, sigs = prob.jacobians(params0, sigma, conditions=cond, t=t)
+        jn, sigs = prob.jacobians(params0, sigma, conditions=cond, t=t, **only)
         u = nominal_basis(jn)
         proj = {s.name: _project(u, s.jac[min(grid.get(s.name, 0), s.jac.shape[0] - 1)])
                 for s in sigs}

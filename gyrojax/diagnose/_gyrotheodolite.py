@@ -178,10 +178,14 @@ class GyrotheodoliteProblem:
             return tuple(x / 60 for x in self.step_grid_s), "onset", "min", self.step_grid_s
         return (), "", "", [None]
 
-    def jacobians(self, params, sigma, *, conditions=None, t=None):
+    design_grid_choice = True  # jacobians(grid=...) evaluates one grid value per effect
+
+    def jacobians(self, params, sigma, *, conditions=None, t=None, grid=None):
         """Whitened Jacobians, rows (time, channel): nominal (per Param.scale) and one
         :class:`Signature` per catalogued effect (per prior scale, grid slices). ``conditions``:
-        a design from :meth:`designs` (a tuple of runs), default the record's single run."""
+        a design from :meth:`designs` (a tuple of runs), default the record's single run.
+        ``grid``: effect -> grid index to evaluate alone (the design advisor's screened values;
+        the other grid effects at index 0), instead of every grid value."""
         sp = self.space
         runs = conditions if conditions is not None else (("record", 1.0, 0.0),)
         w = 1.0 / float(np.asarray(sigma).reshape(-1)[0])
@@ -200,9 +204,12 @@ class GyrotheodoliteProblem:
                 if gpar is None:
                     sig_rows[e].append(jac[:, idx][None])
                 else:
+                    values = self._grid(e)[3]
+                    if grid is not None:
+                        values = [values[min(grid.get(e, 0), len(values) - 1)]]
                     sig_rows[e].append(np.stack([
                         self._eval(p | {gpar: jnp.asarray(v)}, t)[1][:, idx] * w
-                        for v in self._grid(e)[3]]))
+                        for v in values]))
         m = blocks[0].shape[0]
         per_run = np.zeros((m * len(runs), len(RUN_STATE) * len(runs)))
         for i, rc in enumerate(run_cols):
@@ -215,11 +222,13 @@ class GyrotheodoliteProblem:
         sigs = []
         for e in self.effects:
             en = self.effect_names[e]
-            grid, gname, gunit, _ = self._grid(e)
+            gvals, gname, gunit, _ = self._grid(e)
+            if gvals and grid is not None:  # the one evaluated value
+                gvals = (gvals[min(grid.get(e, 0), len(gvals) - 1)],)
             sigs.append(Signature(e, GYROTHEODOLITE_LIBRARY[e][0], en,
                                   tuple(sp[k].display_unit for k in en),
                                   sp.scales(en) / np.array([sp[k].display_factor for k in en]),
-                                  np.concatenate(sig_rows[e], axis=1), grid, gname, gunit))
+                                  np.concatenate(sig_rows[e], axis=1), gvals, gname, gunit))
         return jn, sigs
 
     # -- refits ----------------------------------------------------------------------------
