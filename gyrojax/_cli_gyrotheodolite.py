@@ -22,7 +22,7 @@ def simulate(args, parse_sets, emit_json, usage_error):
 
     from . import units
     from .io import save_record
-    from .models.gyrotheodolite import GyrotheodoliteConditions, GyrotheodoliteRig
+    from .models.gyrotheodolite import ODE_OPTIONS, GyrotheodoliteConditions, GyrotheodoliteRig
     from .simulate import simulate as run
 
     hours = DEFAULT_HOURS if args.hours is None else args.hours
@@ -46,12 +46,10 @@ def simulate(args, parse_sets, emit_json, usage_error):
     out = Path(args.out)
     if out.suffix.lower() not in (".nc", ".csv"):
         raise usage_error(f"--out {args.out!r}: use a .nc or .csv file name")
-    from .diagnose._gyrotheodolite import ODE
-
     rec = run(rig, params, cond, ts, key=jax.random.key(args.seed),
-              noise_std=args.noise_arcsec * units.ARCSEC, max_steps=200_000,
+              noise_std=args.noise_arcsec * units.ARCSEC,
               attrs={"rig": "gyrotheodolite", "latitude_deg": lat,
-                     "noise_arcsec": args.noise_arcsec, "seed": args.seed}, **ODE)
+                     "noise_arcsec": args.noise_arcsec, "seed": args.seed}, **ODE_OPTIONS)
     save_record(rec, out)
     shown = [k for k in space.names if float(params[k]) != space[k].null or k in sets]
     print(f"wrote {out}: {ts.size} samples over {hours * 60:.1f} min, latitude {lat} deg, "

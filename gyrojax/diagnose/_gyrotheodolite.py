@@ -31,7 +31,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..models.gyrotheodolite import GyrotheodoliteConditions, GyrotheodoliteRig
+from ..models.gyrotheodolite import (
+    ODE_OPTIONS,
+    TEST_PARAMS,
+    GyrotheodoliteConditions,
+    GyrotheodoliteRig,
+)
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._stats import Signature
@@ -46,10 +51,9 @@ GYROTHEODOLITE_LIBRARY = {
     "torque_step": ("step", "t_step"),
     "pickoff_scale": ("scale", None),
 }
-NOMINAL = ("index_offset", "alpha0", "alpha_dot0", "kappa", "F_KC")
+NOMINAL = TEST_PARAMS
 RUN_STATE = ("alpha0", "alpha_dot0")  # per run in a multi-run design
 TRANSIENT_TIMES_MIN = tuple(float(x) for x in np.geomspace(3.0, 30.0, 8))
-ODE = {"solver": diffrax.Kvaerno5(), "rtol": 1e-8, "atol": 1e-12}
 
 
 def north_seeking_period(rig, params, conditions) -> float:
@@ -68,7 +72,7 @@ def _model(rig, params, conditions, ts, names, scales):
     def f(u):
         p = params | {k: params[k] + u[i] * scales[i] for i, k in enumerate(names)}
         y = integrate(rig, p, conditions, ts, adjoint=diffrax.ForwardMode(), throw=False,
-                      max_steps=200_000, **ODE)[:, 0]
+                      **ODE_OPTIONS)[:, 0]
         return y, y
 
     jac, y = jax.jacfwd(f, has_aux=True)(jnp.zeros(len(names)))

@@ -56,10 +56,12 @@ def run_cases(case_dir, rig: str, holdout: float, *, progress=None) -> list:
     return results
 
 
-def score_cases(case_dir, results, mean_families, noise_families=(), out_of_library=()) -> dict:
+def score_cases(case_dir, results, mean_families, noise_families=(), out_of_library=(),
+                structural=()) -> dict:
     """Unseal and score. top-1: the verdict's first effect (or the top posterior) is the hidden
     one (noise effects: the first significant noise-model effect); named: the hidden effect is
-    in the verdict, the ambiguity set or the noise-model list."""
+    in the verdict, the ambiguity set or the noise-model list. ``structural``: families with no
+    signature on the design, scored by ``structural_silent`` (verdict no-gap or confounded)."""
     manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
     rows = [(manifest[r["sha"]], r) for r in results]
     nulls = [(t, r) for t, r in rows if t["family"] == "null"]
@@ -97,5 +99,8 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
                                    lambda t, r: r["heldout_gap_after"] <= r["null_band_after"][1])
     out["out_of_library_honest"] = _rate(ool, lambda t, r: r["verdict"] in
                                          ("unexplained", "ambiguous", "no-gap"))
+    if structural:
+        out["structural_silent"] = _rate([(t, r) for t, r in rows if t["family"] in structural],
+                                         lambda t, r: r["verdict"] in ("no-gap", "confounded"))
     out["median_diagnose_s"] = float(np.median([r["time_diagnose_s"] for _, r in rows]))
     return out

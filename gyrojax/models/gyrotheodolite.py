@@ -42,6 +42,7 @@ in a single run: only a second run at another rotor momentum ``H`` separates the
 
 from __future__ import annotations
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -50,12 +51,21 @@ from .. import units
 from ..params import Param, ParameterSpace, param
 from ._base import AbstractRig
 
-__all__ = ["GyrotheodoliteRig", "GyrotheodoliteConditions", "DEFAULTS"]
+__all__ = ["GyrotheodoliteRig", "GyrotheodoliteConditions", "DEFAULTS", "ODE_OPTIONS",
+           "TEST_PARAMS"]
 
 DEFAULTS = {"H": 0.1, "J_y": 1.0e-3, "J_z": 3.5e-3, "mgl": 0.48, "f_alpha": 1e-5,
             "f_beta": 1e-2, "F_KC": 3e-4, "kappa": 0.0, "J_x": 3.5e-3, "f_gamma": 1e-2}
 """Assumed parameter set of spec §8 (north-seeking period ~8 min); ``J_x``, ``f_gamma`` of the
 roll mode are gyrojax's assumption (not in the spec)."""
+
+ODE_OPTIONS = {"solver": diffrax.Kvaerno5(), "rtol": 1e-8, "atol": 1e-12, "max_steps": 200_000}
+"""Integration settings for bench-length runs (``integrate``/``simulate``/``trajectory_jacobian``
+keywords): the 8.7 Hz nutation mode makes the rig stiff, so explicit solvers step at ~0.1 s;
+the implicit ``Kvaerno5`` steps with the slow mode."""
+TEST_PARAMS = ("index_offset", "alpha0", "alpha_dot0", "kappa", "F_KC")
+"""What a north-seeking run determines besides the unmodelled effects: the index offset, the
+release state, and the slow mode's stiffness and damping (the diagnosis' nominal model)."""
 
 POSITIVE = ("H", "J_y", "J_z", "J_x", "mgl")
 NON_NEGATIVE = ("f_alpha", "f_beta", "f_gamma", "F_KC")
