@@ -23,33 +23,14 @@ import time
 
 sys.path.insert(0, os.path.dirname(__file__))
 
-import numpy as np  # noqa: E402
 from _results import fmt_rate as _fmt  # noqa: E402
 from _results import machine_line, publish, suite_lines  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from gyrojax import units  # noqa: E402
 from gyrojax.diagnose import bench_gyrotheodolite as bg  # noqa: E402
-from gyrojax.diagnose._diagnose import _problem  # noqa: E402
-from gyrojax.diagnose._stats import _project, canonical_correlation, nominal_basis  # noqa: E402
+from gyrojax.diagnose._harness import separability  # noqa: E402
 from gyrojax.io import load_record  # noqa: E402
-
-
-def separability(record) -> dict:
-    """Largest canonical correlation of each visible effect with another, after the nominal
-    parameters are projected out, maximised over the decay-time and onset grids (a transient
-    with a decay time near the record length looks like a ramp)."""
-    prob = _problem(record, "gyrotheodolite", 0.25, None, None, None)
-    params0 = prob.fit_nominal()
-    jn, sigs = prob.jacobians(params0, [units.ARCSEC])
-    u = nominal_basis(jn)
-    vis = [s for s in sigs  # visible fraction >= 1e-6, the diagnosis' threshold
-           if np.sum(_project(u, s.jac[0]) ** 2) >= 1e-6 * np.sum(s.jac[0] ** 2)]
-    out = {}
-    for a in vis:
-        out[a.name] = max(canonical_correlation(_project(u, ja), _project(u, jb))
-                          for b in vis if b is not a for ja in a.jac for jb in b.jac)
-    return out
 
 
 def main(argv=None):
@@ -72,7 +53,7 @@ def main(argv=None):
     with open(os.path.join(work, "results.json"), "w") as fh:
         json.dump(results, fh)
     s = bg.score(work, results)
-    sep = separability(load_record(paths[0]))
+    sep = separability(load_record(paths[0]), "gyrotheodolite", [units.ARCSEC])
     separable = sorted(e for e, v in sep.items() if v <= 0.9)
     lines = ["## Gap diagnosis, blind gyrotheodolite suite (`benchmarks/gap_blind_gyrotheodolite.py`)",
              "", machine_line(), "",

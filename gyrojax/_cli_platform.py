@@ -5,8 +5,6 @@ The schedule and the record layout are in :mod:`gyrojax.models.platform_schedule
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 
 from .models.platform_schedule import (
@@ -14,42 +12,22 @@ from .models.platform_schedule import (
     dwell_times,
     load_schedule,
     schedule_conditions,
+    simulate_schedule,
     split_record,
 )
 
 
 def simulate(args, parse_sets, emit_json):
     import jax
-    import jax.numpy as jnp
 
-    from . import units
     from .io import save_record
     from .models.platform import TRUE_TABLE2, PlatformRig
-    from .record import BenchRecord, freeze
-    from .simulate import integrate
 
     s = load_schedule(args.schedule) if args.schedule else load_schedule({})
-    rig = PlatformRig()
-    space = rig.param_space
+    space = PlatformRig().param_space
     params = space.make(TRUE_TABLE2, display=True) | parse_sets(args.set, space)
-    ts = jnp.asarray(dwell_times(s))
-    key = jax.random.key(args.seed)
-    blocks, t_all, t0 = [], [], 0.0
-    for k, conds in enumerate(schedule_conditions(s)):
-        y = np.array(jax.vmap(lambda c: integrate(rig, params, c, ts))(conds))
-        key, k1, k2 = jax.random.split(key, 3)
-        y[..., :3] += args.noise_arcsec * units.ARCSEC * np.asarray(
-            jax.random.normal(k1, y[..., :3].shape))
-        y[..., 3:] += 1e-4 * np.asarray(jax.random.normal(k2, y[..., 3:].shape))
-        for p in range(y.shape[0]):
-            lab = np.stack([np.full(len(ts), p), np.full(len(ts), k)], axis=1)
-            blocks.append(np.concatenate([y[p], lab], axis=1))
-            t_all.append(t0 + np.asarray(ts))
-            t0 += float(ts[-1]) + s["sample_s"]
-    rec = BenchRecord(jnp.asarray(np.concatenate(t_all)), jnp.asarray(np.concatenate(blocks)),
-                      CHANNELS, freeze({"schedule_json": json.dumps(
-                          {k: v for k, v in s.items() if k != "mounting_matrix"}),
-                          "latitude_deg": s["latitude_deg"]}))
+    rec = simulate_schedule(params, s, jax.random.key(args.seed), noise_arcsec=args.noise_arcsec)
+    ts = dwell_times(s)
     save_record(rec, args.out)
     print(f"wrote {args.out}: {len(s['positions_deg'])} positions x "
           f"{len(s['table_amplitudes_g'])} amplitudes ({s['table_amplitudes_g']} g), "

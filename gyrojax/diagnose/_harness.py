@@ -18,7 +18,7 @@ import numpy as np
 from ..io import load_record
 from .bench import _rate, _sha
 
-__all__ = ["run_cases", "score_cases", "projector"]
+__all__ = ["run_cases", "score_cases", "projector", "separability"]
 
 
 def projector(jn):
@@ -26,6 +26,25 @@ def projector(jn):
     generators' truth-side noncentrality has the nominal parameters projected out."""
     q, _ = np.linalg.qr(jn)
     return lambda a: a - q @ (q.T @ a)
+
+
+def separability(record, rig: str, sigma) -> dict:
+    """Largest canonical correlation of each visible catalogue effect with another, after the
+    nominal parameters are projected out, maximised over the effects' grids (a transient with a
+    decay time near the record length looks like a ramp); spec §5.6 calls an effect separable at
+    <= 0.9. ``sigma``: the channels' noise (SI; only the ratios between channels matter)."""
+    from ._diagnose import _problem
+    from ._stats import _project, canonical_correlation, nominal_basis
+
+    prob = _problem(record, rig, 0.25, None, None, None)
+    params0 = prob.fit_nominal()
+    jn, sigs = prob.jacobians(params0, sigma)
+    u = nominal_basis(jn)
+    vis = [s for s in sigs  # visible fraction >= 1e-6, the diagnosis' threshold
+           if np.sum(_project(u, s.jac[0]) ** 2) >= 1e-6 * np.sum(s.jac[0] ** 2)]
+    return {a.name: max(canonical_correlation(_project(u, ja), _project(u, jb))
+                        for b in vis if b is not a for ja in a.jac for jb in b.jac)
+            for a in vis}
 
 
 def run_cases(case_dir, rig: str, holdout: float, *, progress=None) -> list:

@@ -50,6 +50,7 @@ from ..models.platform import (
 )
 from ..models.platform_schedule import CHANNELS as REC_CHANNELS
 from ..models.platform_schedule import (
+    dwell_span,
     dwell_times,
     load_schedule,
     schedule_conditions,
@@ -165,7 +166,7 @@ class PlatformProblem:
             [space[n].display_factor for n in NOMINAL])
         self.record = record
         n_dw = len(self.amps) * len(s["positions_deg"])
-        self.dwell_s = float(self.ts[-1] + s["sample_s"])
+        self.dwell_s = dwell_span(s)
         span = n_dw * self.dwell_s
         self.taus = tuple(float(x) for x in np.geomspace(span / 40, span / 2, N_GRID))
         self.k_ho = int(round(holdout * self.n_blocks)) if holdout > 0 else 0

@@ -133,7 +133,7 @@ class GapReport:
         sig = ", ".join(f"{ch} {_noise_text(self.rig, ch, s)}"
                         for ch, s in zip(self.channels, self.noise["std"]))
         lines += [f"Noise level: {sig} ({self.noise['source']}); train gap {self.gap['train']:.3g}",
-                  "", "## Where (significant cells, BH q < alpha)", ""]
+                  "", "## Where (significant cells, weighted BH q < alpha)", ""]
         hits = [x for x in self.where if x.get("significant")]
         if hits:
             lines += ["| axis | cell | channel | statistic | expected | q |", "|---|---|---|---|---|---|"]

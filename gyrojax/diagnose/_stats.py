@@ -314,12 +314,19 @@ def ambiguity_set(rows: list[Screen], mass: float = 0.9) -> list[Screen]:
     return chosen
 
 
-def bh_qvalues(p: np.ndarray) -> np.ndarray:
-    """Benjamini-Hochberg q-values."""
+def bh_qvalues(p: np.ndarray, weights=None) -> np.ndarray:
+    """Benjamini-Hochberg q-values; with ``weights`` (positive, rescaled to mean 1) the weighted
+    procedure of Genovese, Roeder & Wasserman (2006), BH on ``p / w``, which keeps the FDR at
+    the level for weights fixed before the data are seen."""
     p = np.asarray(p, float)
     n = p.size
     if n == 0:
         return p
+    if weights is not None:
+        w = np.asarray(weights, float)
+        if w.shape != p.shape or np.any(w <= 0):
+            raise ValueError(f"BH weights must be positive, one per p-value; got {w}")
+        p = p / (w / w.mean())
     order = np.argsort(p)
     q = p[order] * n / np.arange(1, n + 1)
     q = np.minimum.accumulate(q[::-1])[::-1]

@@ -16,7 +16,16 @@ quadratic and cross terms times ``kappa = 1 + a0^2/2`` (``conditions.kappa``).
 Parameters (internal rad/s; reports in deg/h, deg/h/g, deg/h/g^2): ``D_f_x ... D_os_z`` (30, the
 canonical gyro-major order of §6). Effects with null values: ``accel_bias`` (``b_x b_y b_z``, g),
 ``accel_scale`` (``dk_x dk_y dk_z``), ``accel_misalignment`` (``M_xy M_xz M_yx M_yz M_zx M_zy``,
-rad): the accelerometer errors of (S20a), which act on the accelerometer channels only.
+rad): the accelerometer errors of (S20a), which act on the accelerometer channels only; and the
+bench effects the gap diagnosis catalogues (spec gap-diagnosis §4.1), with the test time
+``T = t0 + t`` (``conditions.t0``: the dwell's start in the test):
+
+- ``base_misalignment``: ``dchi_x dchi_y dchi_z`` (rad, base axes): the base is turned by
+  ``C_r^b' = R(-dchi) C_r^b`` (exact rotation), which moves the Earth rate and the gravity
+  direction the platform sees;
+- ``warmup_transient``: drift ``dm_j exp(-T / tau_w)`` (rad/s, platform axes), ``tau_w`` (s);
+- ``drift_ramp``: drift ``ramp_j T`` (rad/s per s);
+- ``vibration_rectification``: drift ``rect_j`` in vibrated dwells (``a0 > 0``) only (rad/s).
 
 Channels: ``alpha beta gamma`` (rad) and ``ax ay az`` (specific force on the platform axes, g).
 """
@@ -32,7 +41,7 @@ import numpy as np
 
 from .. import units
 from ..params import Param, ParameterSpace
-from ..rotations import rot1, rot2, rot3
+from ..rotations import rot1, rot2, rot3, rotvec_to_matrix
 from ._base import AbstractRig
 
 __all__ = ["PlatformRig", "PlatformConditions", "COEFF_NAMES", "TABLE1_DEG", "TRUE_TABLE2",
@@ -88,6 +97,26 @@ def _param_space() -> ParameterSpace:
                                 display_factor=units.ARCSEC, scale=100 * units.ARCSEC,
                                 effect="accel_misalignment",
                                 description=f"accelerometer misalignment {a}{b}"))
+    for ax in AXES:
+        ps.append(Param(name=f"dchi_{ax}", unit="rad", display_unit="arcsec",
+                        display_factor=units.ARCSEC, scale=60 * units.ARCSEC,
+                        effect="base_misalignment",
+                        description=f"base rotation about base axis {ax}"))
+    for ax in AXES:
+        ps.append(Param(name=f"dm_{ax}", unit="rad/s", display_unit="deg/h", display_factor=dh,
+                        scale=0.3 * dh, effect="warmup_transient",
+                        description=f"gyro {ax}: warm-up drift excess at the test start"))
+    ps.append(Param(name="tau_w", unit="s", display_unit="min", display_factor=60.0,
+                    scale=600.0, null=600.0, effect="warmup_transient",
+                    description="decay time of the warm-up transient"))
+    for ax in AXES:
+        ps.append(Param(name=f"ramp_{ax}", unit="rad/s^2", display_unit="deg/h/h",
+                        display_factor=dh / units.HOUR, scale=0.3 * dh / units.HOUR,
+                        effect="drift_ramp", description=f"gyro {ax}: linear drift growth"))
+    for ax in AXES:
+        ps.append(Param(name=f"rect_{ax}", unit="rad/s", display_unit="deg/h", display_factor=dh,
+                        scale=0.1 * dh, effect="vibration_rectification",
+                        description=f"gyro {ax}: constant drift under vibration"))
     return ParameterSpace(tuple(ps))
 
 
@@ -131,8 +160,10 @@ def drift_regressor(n, f1, f2):
 class PlatformConditions(eqx.Module):
     """One dwell of the test: latitude (rad), base mounting ``C_r^b``, the angles at ``t = 0``
     (rad), platform vibration amplitude ``a0`` (g), angular frequency ``omega`` (rad/s) and phase
-    (rad), and the ``kappa`` the averaged model uses (default ``1 + a0^2/2``; in identification the
-    accelerometers' estimate). Stack them (leading axis) for a schedule of positions."""
+    (rad), the ``kappa`` the averaged model uses (default ``1 + a0^2/2``; in identification the
+    accelerometers' estimate) and the dwell's start ``t0`` in the test (s; the time-dependent
+    effects run on test time ``t0 + t``). Stack them (leading axis) for a schedule of
+    positions."""
 
     latitude: jax.Array
     mounting: jax.Array
@@ -141,11 +172,12 @@ class PlatformConditions(eqx.Module):
     omega: jax.Array
     phase: jax.Array
     kappa: jax.Array
+    t0: jax.Array
 
     @staticmethod
     def create(angles0_deg, *, latitude_deg: float = 45.75, a0: float = 0.0,
                frequency_hz: float = 15.0, phase: float = 0.0, kappa=None,
-               mounting=DEFAULT_MOUNTING) -> PlatformConditions:
+               mounting=DEFAULT_MOUNTING, t0: float = 0.0) -> PlatformConditions:
         m = np.asarray(mounting, float)
         if m.shape != (3, 3) or not np.allclose(m @ m.T, np.eye(3), atol=1e-9) \
                 or np.linalg.det(m) < 0:
@@ -157,13 +189,13 @@ class PlatformConditions(eqx.Module):
         f = jnp.asarray
         return PlatformConditions(f(np.radians(latitude_deg)), f(m), f(np.radians(angles0_deg)),
                                   f(float(a0)), f(2 * np.pi * frequency_hz), f(float(phase)),
-                                  f(float(k)))
+                                  f(float(k)), f(float(t0)))
 
-    def earth_rate_base(self):
-        """``omega_ie^b`` (rad/s), (S1)."""
+    def earth_rate_base(self, mounting=None):
+        """``omega_ie^b`` (rad/s), (S1); ``mounting`` overrides ``C_r^b``."""
         lat = self.latitude
         w_r = EARTH_RATE_SOURCE * jnp.stack([jnp.zeros_like(lat), jnp.cos(lat), jnp.sin(lat)])
-        return self.mounting @ w_r
+        return (self.mounting if mounting is None else mounting) @ w_r
 
     def vibration(self, t):
         """``A_1(t)`` in g (steady state)."""
@@ -202,31 +234,43 @@ class PlatformRig(AbstractRig):
         return PlatformConditions.create(
             [c["alpha0_deg"], c["beta0_deg"], c["gamma0_deg"]],
             latitude_deg=float(c.get("latitude_deg", 45.75)), a0=float(c.get("a0_g", 0.0)),
-            frequency_hz=float(c.get("frequency_hz", 15.0)))
+            frequency_hz=float(c.get("frequency_hz", 15.0)), t0=float(c.get("t0_s", 0.0)))
 
     def coefficients(self, params):
         return jnp.stack([params[n] for n in COEFF_NAMES])
 
+    @staticmethod
+    def mounting(params, conditions):
+        """The base as it stands: ``R(-dchi) C_r^b`` (``C_r^b`` itself at ``dchi = 0``)."""
+        dchi = jnp.stack([params[f"dchi_{ax}"] for ax in AXES])
+        return rotvec_to_matrix(-dchi) @ conditions.mounting
+
     def drift(self, t, angles, params, conditions):
-        """Gyro drifts (rad/s, platform axes) at time ``t`` and attitude ``angles``."""
-        n = specific_force_direction(angles, conditions.mounting)
+        """Gyro drifts (rad/s, platform axes) at time ``t`` and attitude ``angles``: the g-law
+        plus the bench effects (warm-up, ramp on test time ``t0 + t``; rectification)."""
+        n = specific_force_direction(angles, self.mounting(params, conditions))
         if self.drift_model == "averaged":
             f1, f2 = jnp.ones_like(conditions.kappa), conditions.kappa
         else:
             f1 = 1.0 + conditions.vibration(t)
             f2 = f1 * f1
-        return drift_regressor(n, f1, f2) @ self.coefficients(params)
+        big_t = conditions.t0 + t
+        vec = lambda pre: jnp.stack([params[f"{pre}_{ax}"] for ax in AXES])  # noqa: E731
+        bench = (vec("dm") * jnp.exp(-big_t / params["tau_w"]) + vec("ramp") * big_t
+                 + vec("rect") * jnp.where(conditions.a0 > 0, 1.0, 0.0))
+        return drift_regressor(n, f1, f2) @ self.coefficients(params) + bench
 
     def initial_state(self, params, conditions):
         return conditions.angles0
 
     def vector_field(self, t, state, params, conditions):
         c_bp = platform_matrix(state).T
-        w_bp = -self.drift(t, state, params, conditions) - c_bp @ conditions.earth_rate_base()
+        w_ie = conditions.earth_rate_base(self.mounting(params, conditions))
+        w_bp = -self.drift(t, state, params, conditions) - c_bp @ w_ie
         return kinematic_matrix(state[1], state[2]) @ w_bp
 
     def observe(self, t, state, params, conditions):
-        n = specific_force_direction(state, conditions.mounting)
+        n = specific_force_direction(state, self.mounting(params, conditions))
         f = (1.0 + conditions.vibration(t)) * n
         m = jnp.stack([jnp.stack([params["dk_x"], params["M_xy"], params["M_xz"]]),
                        jnp.stack([params["M_yx"], params["dk_y"], params["M_yz"]]),
@@ -237,10 +281,11 @@ class PlatformRig(AbstractRig):
 
 def schedule(positions_deg=TABLE1_DEG, *, a0: float = 0.0, latitude_deg: float = 45.75,
              frequency_hz: float = 15.0, phases=None, kappa=None,
-             mounting=DEFAULT_MOUNTING) -> PlatformConditions:
+             mounting=DEFAULT_MOUNTING, t0s=None) -> PlatformConditions:
     """Stacked :class:`PlatformConditions` for a schedule of positions (rows alpha, beta, gamma in
     deg; default Table 1) at one platform vibration amplitude ``a0`` (g). ``phases``: vibration
-    phase per position (rad; default 0)."""
+    phase per position (rad; default 0); ``t0s``: each dwell's start in the test (s; default
+    0)."""
     pos = np.asarray(positions_deg, float)
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ValueError(f"positions: expected rows (alpha, beta, gamma) in deg, got shape "
@@ -248,9 +293,11 @@ def schedule(positions_deg=TABLE1_DEG, *, a0: float = 0.0, latitude_deg: float =
     if np.any(np.abs(np.abs(pos[:, 1]) - 90.0) < 1.0):
         raise ValueError("a position with |beta| near 90 deg is in gimbal lock (S12 singular)")
     phases = np.zeros(len(pos)) if phases is None else np.asarray(phases, float)
+    t0s = np.zeros(len(pos)) if t0s is None else np.asarray(t0s, float)
     conds = [PlatformConditions.create(p, latitude_deg=latitude_deg, a0=a0,
                                        frequency_hz=frequency_hz, phase=float(ph), kappa=kappa,
-                                       mounting=mounting) for p, ph in zip(pos, phases)]
+                                       mounting=mounting, t0=float(t))
+             for p, ph, t in zip(pos, phases, t0s, strict=True)]
     return jax.tree.map(lambda *xs: jnp.stack(xs), *conds)
 
 

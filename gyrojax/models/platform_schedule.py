@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .platform import DEFAULT_MOUNTING, ENU_MOUNTING, TABLE1_DEG, schedule
+from .platform import DEFAULT_MOUNTING, ENU_MOUNTING, TABLE1_DEG, PlatformRig, schedule
 
 __all__ = ["CHANNELS", "SCHEDULE_FIELDS", "load_schedule", "schedule_conditions", "dwell_times",
-           "split_record"]
+           "dwell_span", "split_record", "simulate_schedule"]
 
 CHANNELS = ("alpha", "beta", "gamma", "ax", "ay", "az", "position", "amplitude")
 SCHEDULE_FIELDS = {
@@ -73,18 +73,26 @@ def load_schedule(source) -> dict:
 
 def schedule_conditions(s):
     """One stacked PlatformConditions per table amplitude (platform amplitude = table /
-    attenuation; vibration phases drawn with a fixed seed, as recorded)."""
+    attenuation; vibration phases drawn with a fixed seed, as recorded; each dwell's start
+    ``t0`` in the test, the dwells one after another amplitude-major)."""
     rng = np.random.default_rng(0)
     pos = np.asarray(s["positions_deg"], float)
+    step = dwell_span(s)
     return [schedule(pos, a0=a / s["attenuation"], latitude_deg=s["latitude_deg"],
                      frequency_hz=s["frequency_hz"], phases=rng.uniform(0, 2 * np.pi, len(pos)),
-                     mounting=s["mounting_matrix"]) for a in s["table_amplitudes_g"]]
+                     mounting=s["mounting_matrix"], t0s=(k * len(pos) + np.arange(len(pos))) * step)
+            for k, a in enumerate(s["table_amplitudes_g"])]
 
 
 def dwell_times(s):
     """Sample times of one dwell (s)."""
     n = int(round(s["dwell_s"] / s["sample_s"]))
     return np.arange(n + 1) * s["sample_s"]
+
+
+def dwell_span(s):
+    """Test time from one dwell's start to the next's (s): its samples and one interval."""
+    return float(dwell_times(s)[-1]) + float(s["sample_s"])
 
 
 def split_record(record, s):
@@ -98,3 +106,36 @@ def split_record(record, s):
                          f"x {n_amp} amplitudes x {n} samples = {n_pos * n_amp * n}: give the "
                          "schedule the record was taken with (--schedule)")
     return y.reshape(n_amp, n_pos, n, len(CHANNELS))
+
+
+def simulate_schedule(params, s, key, *, noise_arcsec: float = 1.0, accel_noise_g: float = 1e-4,
+                      rig=None):
+    """The record of a whole test: every dwell of schedule ``s`` (from :func:`load_schedule`)
+    integrated with ``params`` (SI, the rig's full set), white noise on the angles
+    (``noise_arcsec``) and accelerometers (``accel_noise_g``) from ``key``, the dwells laid end to
+    end with the labels and the schedule attribute."""
+    import jax
+    import jax.numpy as jnp
+
+    from .. import units
+    from ..record import BenchRecord, freeze
+    from ..simulate import integrate
+
+    rig = rig or PlatformRig()
+    ts = jnp.asarray(dwell_times(s))
+    blocks, t_all, t0 = [], [], 0.0
+    for k, conds in enumerate(schedule_conditions(s)):
+        y = np.array(jax.vmap(lambda c: integrate(rig, params, c, ts))(conds))
+        key, k1, k2 = jax.random.split(key, 3)
+        y[..., :3] += noise_arcsec * units.ARCSEC * np.asarray(
+            jax.random.normal(k1, y[..., :3].shape))
+        y[..., 3:] += accel_noise_g * np.asarray(jax.random.normal(k2, y[..., 3:].shape))
+        for p in range(y.shape[0]):
+            lab = np.stack([np.full(len(ts), p), np.full(len(ts), k)], axis=1)
+            blocks.append(np.concatenate([y[p], lab], axis=1))
+            t_all.append(t0 + np.asarray(ts))
+            t0 += dwell_span(s)
+    return BenchRecord(jnp.asarray(np.concatenate(t_all)), jnp.asarray(np.concatenate(blocks)),
+                       CHANNELS, freeze({"schedule_json": json.dumps(
+                           {k: v for k, v in s.items() if k != "mounting_matrix"}),
+                           "latitude_deg": s["latitude_deg"]}))
