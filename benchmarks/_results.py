@@ -94,3 +94,27 @@ def suite_lines(s: dict, ool_label: str) -> list[str]:
         f"{fmt_rate(s['heldout_closure'])}.",
         f"- Out-of-library ({ool_label}) not attributed: {fmt_rate(s['out_of_library_honest'])}.",
         ""]
+
+
+def blind_suite(harness, work, n_cases: int, *, seed: int, design, desc: str,
+                null_fraction: float = 0.3):
+    """Generate ``n_cases`` sealed cases of a rig's harness module (``generate``/``run``/
+    ``score``) into ``work``, diagnose them with a progress bar, keep ``results.json`` and score.
+    Returns ``(paths, score, t_generate_s, t_diagnose_s)``."""
+    import json
+    import time
+
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    paths = harness.generate(work, n_cases, seed=seed, design=design,
+                             null_fraction=null_fraction)
+    t_gen = time.perf_counter() - t0
+    bar = tqdm(total=n_cases, desc=desc, unit="case")
+    t0 = time.perf_counter()
+    results = harness.run(work, design=design, progress=lambda i, n: bar.update(1))
+    bar.close()
+    t_run = time.perf_counter() - t0
+    with open(os.path.join(work, "results.json"), "w") as fh:
+        json.dump(results, fh)
+    return paths, harness.score(work, results), t_gen, t_run

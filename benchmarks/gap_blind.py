@@ -85,7 +85,7 @@ def main(argv=None):
              "Library: rotor_tilt, base_misalignment, drift_transient (decay-time grid), "
              "drift_ramp, drift_step (onset grid), diurnal_line. Rates ± Monte Carlo standard "
              "error (n cases).", "",
-             f"- Nulls: false-alarm rate (verdict not no-gap, alpha 0.05 BH over map + library) "
+             f"- Nulls: false-alarm rate (verdict not no-gap, alpha 0.05, weighted BH over map + library) "
              f"{_fmt(s['far'])}; B1 Ljung-Box {_fmt(s['b1_far'])}; B2 refit-all + BIC false "
              f"selection {_fmt(s['b2_false_selection'])}." + (
                  f" Separate null run ({meta['nulls']['n']} sealed nulls, seed {meta['seed'] + 1}, "

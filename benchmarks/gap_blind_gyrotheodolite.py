@@ -19,13 +19,11 @@ import json
 import os
 import sys
 import tempfile
-import time
 
 sys.path.insert(0, os.path.dirname(__file__))
 
+from _results import blind_suite, machine_line, publish, suite_lines  # noqa: E402
 from _results import fmt_rate as _fmt  # noqa: E402
-from _results import machine_line, publish, suite_lines  # noqa: E402
-from tqdm import tqdm  # noqa: E402
 
 from gyrojax import units  # noqa: E402
 from gyrojax.diagnose import bench_gyrotheodolite as bg  # noqa: E402
@@ -42,17 +40,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-gyrotheodolite-")
     design = bg.GyrotheodoliteDesign()
-    t0 = time.perf_counter()
-    paths = bg.generate(work, args.cases, seed=args.seed, design=design, null_fraction=0.3)
-    t_gen = time.perf_counter() - t0
-    bar = tqdm(total=args.cases, desc="gyrotheodolite", unit="case")
-    t0 = time.perf_counter()
-    results = bg.run(work, design=design, progress=lambda i, n: bar.update(1))
-    bar.close()
-    t_run = time.perf_counter() - t0
-    with open(os.path.join(work, "results.json"), "w") as fh:
-        json.dump(results, fh)
-    s = bg.score(work, results)
+    paths, s, t_gen, t_run = blind_suite(bg, work, args.cases, seed=args.seed, design=design,
+                                         desc="gyrotheodolite")
     sep = separability(load_record(paths[0]), "gyrotheodolite", [units.ARCSEC])
     separable = sorted(e for e, v in sep.items() if v <= 0.9)
     lines = ["## Gap diagnosis, blind gyrotheodolite suite (`benchmarks/gap_blind_gyrotheodolite.py`)",

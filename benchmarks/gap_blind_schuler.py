@@ -18,13 +18,11 @@ import json
 import os
 import sys
 import tempfile
-import time
 
 sys.path.insert(0, os.path.dirname(__file__))
 
+from _results import blind_suite, machine_line, publish, suite_lines  # noqa: E402
 from _results import fmt_rate as _fmt  # noqa: E402
-from _results import machine_line, publish, suite_lines  # noqa: E402
-from tqdm import tqdm  # noqa: E402
 
 from gyrojax.diagnose import bench_schuler, diagnose  # noqa: E402
 from gyrojax.io import load_record  # noqa: E402
@@ -39,18 +37,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-schuler-")
     design = bench_schuler.SchulerDesign()
-    t0 = time.perf_counter()
-    paths = bench_schuler.generate(work, args.cases, seed=args.seed, design=design,
-                                   null_fraction=0.3)
-    t_gen = time.perf_counter() - t0
-    bar = tqdm(total=args.cases, desc="schuler", unit="case")
-    t0 = time.perf_counter()
-    results = bench_schuler.run(work, design=design, progress=lambda i, n: bar.update(1))
-    bar.close()
-    t_run = time.perf_counter() - t0
-    with open(os.path.join(work, "results.json"), "w") as fh:
-        json.dump(results, fh)
-    s = bench_schuler.score(work, results)
+    paths, s, t_gen, t_run = blind_suite(bench_schuler, work, args.cases, seed=args.seed,
+                                         design=design, desc="schuler")
     # separability of the catalogue on this design (any record of it: the Jacobians barely
     # depend on the errors)
     rep = diagnose(load_record(paths[0]), rig="schuler", design_advice=False)
