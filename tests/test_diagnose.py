@@ -107,6 +107,25 @@ def test_score_equals_refit_drop_in_the_linear_regime():
 def test_bh_and_fisher_g():
     q = bh_qvalues(np.array([0.01, 0.04, 0.03, 0.5]))
     np.testing.assert_allclose(q, [0.04, 0.16 / 3, 0.16 / 3, 0.5], rtol=1e-12)
+    # weighted BH = BH on p / w (weights rescaled to mean 1), worked by hand
+    q = bh_qvalues(np.array([0.01, 0.04, 0.03]), weights=[4.0, 1.0, 1.0])  # w = 2, 0.5, 0.5
+    np.testing.assert_allclose(q, [0.015, 0.08, 0.08], rtol=1e-12)
+    with pytest.raises(ValueError, match="positive"):
+        bh_qvalues(np.array([0.1, 0.2]), weights=[1.0, 0.0])
+    # the diagnosis's weights (library half): under the global null with independent tests the
+    # chance of any q < alpha stays alpha (sum of alpha w_i / m), 20,000 draws
+    from gyrojax.diagnose._diagnose import _bh_weights
+
+    w = _bh_weights(150, 6, 0.5)
+    p_null = np.random.default_rng(5).uniform(size=(20000, 156))
+    q_null = np.stack([bh_qvalues(p, w) for p in p_null])
+    far = np.mean(np.any(q_null < 0.05, axis=1))
+    assert 0.045 <= far <= 0.055, far
+    # ... of which the 6 library tests hold half (plain BH would give them 6/156 of it)
+    far_library = np.mean(np.any(q_null[:, 150:] < 0.05, axis=1))
+    assert 0.021 <= far_library <= 0.029, far_library
+    with pytest.raises(ValueError, match="library_share=1.5"):
+        _bh_weights(10, 2, 1.5)
     # Fisher's g: P(g > x) for q = 2 ordinates is 2 (1 - x) for x >= 1/2
     assert fisher_g_pvalue(0.8, 2) == pytest.approx(0.4)
     rng = np.random.default_rng(2)
