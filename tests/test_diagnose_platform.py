@@ -14,6 +14,7 @@ from gyrojax.diagnose import diagnose
 from gyrojax.diagnose._platform import PlatformProblem
 from gyrojax.io import load_record
 from gyrojax.models.platform import DEFAULT_MOUNTING, TRUE_TABLE2
+from gyrojax.rotations import skew
 
 NO_OO = sum([["--set", f"D_oo_{ax}=0"] for ax in "xyz"], [])
 
@@ -84,8 +85,7 @@ def test_hidden_base_misalignment_from_the_cli(tmp_path, capsys):
     the schedule given to the diagnosis (--schedule overrides the record's): attributed, the refit
     recovers it (3 stderr), the held-out gap closes; bad input exits 2 naming the problem."""
     d = np.array([0.0, 0.0, 200.0]) * units.ARCSEC
-    skew = np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]])
-    mounting = (expm(-skew) @ DEFAULT_MOUNTING).tolist()
+    mounting = (expm(-np.asarray(skew(d))) @ DEFAULT_MOUNTING).tolist()
     rec, out = tmp_path / "m.nc", tmp_path / "m.json"
     assert main(["simulate", "--rig", "platform", "--schedule", json.dumps({"mounting": mounting}),
                  "--out", str(rec), "--seed", "5"] + NO_OO) == 0

@@ -31,6 +31,7 @@ from gyrojax.models.platform import (
     schedule,
     specific_force_direction,
 )
+from gyrojax.rotations import skew
 from gyrojax.simulate import integrate
 
 RIG = PlatformRig()
@@ -421,13 +422,9 @@ def test_bench_effects_against_closed_forms():
     dchi = np.array([40.0, -70.0, 25.0]) * units.ARCSEC
     p = base | {f"dchi_{ax}": jnp.asarray(c) for ax, c in zip("xyz", dchi)}
     turned = eqx.tree_at(lambda c: c.mounting, static,
-                         jnp.asarray(expm(-_skew(dchi))
+                         jnp.asarray(expm(-np.asarray(skew(jnp.asarray(dchi))))
                                      @ np.asarray(static.mounting)))
     got = np.asarray(integrate(RIG, p, static, ts))
     want = np.asarray(integrate(RIG, base, turned, ts))
     assert np.max(np.abs(got - want)) < 1e-12
     assert np.max(np.abs(got - np.asarray(integrate(RIG, base, static, ts)))) > 1e-5
-
-
-def _skew(w):
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])

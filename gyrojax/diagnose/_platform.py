@@ -47,6 +47,7 @@ from ..models.platform import (
     kinematic_matrix,
     platform_matrix,
     schedule,
+    specific_force_direction,
 )
 from ..models.platform_schedule import CHANNELS as REC_CHANNELS
 from ..models.platform_schedule import (
@@ -82,10 +83,6 @@ N_GRID = 8
 NOMINAL = tuple(n for n in COEFF_NAMES if not n.startswith("D_oo"))
 
 
-def _skew(w):
-    return jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
 @eqx.filter_jit
 def _dwell(ts, t0, angles, cond, vibrated, theta, taus):
     """One dwell: centred ``angles - h`` (n, 3), centred drift-coefficient columns (n, 3, 30) and
@@ -96,12 +93,12 @@ def _dwell(ts, t0, angles, cond, vibrated, theta, taus):
 
     def rate(delta, a):
         """Angle rate of the averaged model with the base rotated by ``delta``: the Earth rate
-        and the gravity direction both move (C_r^b' = (I - [delta x]) C_r^b)."""
-        m = (jnp.eye(3) - _skew(delta)) @ cond.mounting
-        n = platform_matrix(a).T @ (m @ jnp.array([0.0, 0.0, 1.0]))
+        and the gravity direction both move (the rig's base, ``R(-delta) C_r^b``)."""
+        m = PlatformRig.mounting(dict(zip(("dchi_x", "dchi_y", "dchi_z"), delta)), cond)
+        n = specific_force_direction(a, m)
         drift = drift_regressor(n, jnp.ones_like(cond.kappa), cond.kappa) @ theta
-        w_r = cond.mounting.T @ cond.earth_rate_base()
-        return kinematic_matrix(a[1], a[2]) @ (-drift - platform_matrix(a).T @ (m @ w_r))
+        w_ie = cond.earth_rate_base(m)
+        return kinematic_matrix(a[1], a[2]) @ (-drift - platform_matrix(a).T @ w_ie)
 
     def per_sample(a, t):
         mk = kinematic_matrix(a[1], a[2])
