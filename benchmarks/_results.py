@@ -97,24 +97,36 @@ def suite_lines(s: dict, ool_label: str) -> list[str]:
 
 
 def blind_suite(harness, work, n_cases: int, *, seed: int, design, desc: str,
-                null_fraction: float = 0.3):
+                null_fraction: float = 0.3, **generate_kw):
     """Generate ``n_cases`` sealed cases of a rig's harness module (``generate``/``run``/
     ``score``) into ``work``, diagnose them with a progress bar, keep ``results.json`` and score.
+    ``generate_kw``: more arguments of ``generate`` (``lambdas``, ``families``).
     Returns ``(paths, score, t_generate_s, t_diagnose_s)``."""
-    import json
     import time
-
-    from tqdm import tqdm
 
     t0 = time.perf_counter()
     paths = harness.generate(work, n_cases, seed=seed, design=design,
-                             null_fraction=null_fraction)
+                             null_fraction=null_fraction, **generate_kw)
     t_gen = time.perf_counter() - t0
-    bar = tqdm(total=n_cases, desc=desc, unit="case")
+    results, t_run = diagnose_suite(harness, work, design, desc)
+    return paths, harness.score(work, results), t_gen, t_run
+
+
+def diagnose_suite(harness, work, design, desc: str, name: str = "results.json"):
+    """Diagnose the sealed cases in ``work`` under ``design`` (a progress bar), keep the
+    results as ``name``; returns ``(results, seconds)``."""
+    import json
+    import time
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    n = len(list(Path(work).glob("case_*.nc")))
+    bar = tqdm(total=n, desc=desc, unit="case")
     t0 = time.perf_counter()
     results = harness.run(work, design=design, progress=lambda i, n: bar.update(1))
     bar.close()
     t_run = time.perf_counter() - t0
-    with open(os.path.join(work, "results.json"), "w") as fh:
+    with open(os.path.join(work, name), "w") as fh:
         json.dump(results, fh)
-    return paths, harness.score(work, results), t_gen, t_run
+    return results, t_run

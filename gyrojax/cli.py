@@ -452,7 +452,8 @@ def cmd_diagnose(args):
     if not 0 < args.alpha < 0.5:
         raise UsageError(f"--alpha {args.alpha}: give a significance level in (0, 0.5)")
     report = diagnose(record, rig=args.rig, effects=effects, holdout=args.holdout,
-                      alpha=args.alpha, noise_std=noise)
+                      alpha=args.alpha, noise_std=noise, split=args.split,
+                      refit_all=args.refit_all)
     print(report.markdown())
     _emit_json(report.to_json(), args.json)
     if args.plot:
@@ -632,6 +633,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--holdout", type=float, default=0.25,
                    help="fraction of the record (its end) held out for the before/after gap "
                         "(default 0.25)")
+    p.add_argument("--split", choices=("same-design", "design-shift"),
+                   help="held-out plan (platform: same-design = the end of every dwell, the "
+                        "default; design-shift = the last vibration amplitude's run, whole)")
+    p.add_argument("--refit-all", action="store_true",
+                   help="also refit every other catalogued effect, so each candidate carries "
+                        "its held-out gap after and reduction (the verdict is unchanged)")
     p.add_argument("--noise-arcsec", type=float,
                    help="angle noise std in arcsec (default: estimated from the residual)")
     p.add_argument("--alpha", type=float, default=0.05,

@@ -3,11 +3,13 @@ same effect made visible by a second amplitude, a null, and a hidden base misali
 Records come from the ODE model (diffrax), the diagnosis from the linear (S22) design."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.linalg import expm
 
+import gyrojax
 from gyrojax import units
 from gyrojax.cli import main
 from gyrojax.diagnose import diagnose
@@ -78,6 +80,42 @@ def test_two_amplitudes_attribute_d_oo_and_null(records):
     null = diagnose(load_record(records["null"]), rig="platform")
     assert null.verdict["kind"] == "no-gap"
     assert null.verdict["heldout_gap_before"] < null.verdict["heldout_null_band"][1]
+
+
+def test_design_shift_split_sees_what_the_train_design_cannot(records, capsys):
+    """Spec §4.2 stage 4 / G7: hidden D_oo on a 9 + 7 g test. The design-shift split trains on
+    the 9 g run only, where D_oo has no signature: the train rows show nothing, yet the 7 g
+    run's held-out gap is thousands of times its null band: the verdict is `confounded` naming
+    D_oo (visible on the whole record) and not rectification (invisible on both runs). The
+    same test without D_oo stays within the band; a one-amplitude record has no design shift;
+    refit_all gives every visible candidate its held-out gap without changing the verdict."""
+    two = load_record(records["two"])
+    rep = diagnose(two, rig="platform", split="design-shift", design_advice=False)
+    v = rep.verdict
+    assert v["kind"] == "confounded" and v["effects"] == ["anisoelastic_oo"]
+    assert v["heldout_gap_before"] > 1000 * v["heldout_null_band"][1]
+    assert rep.n_train == rep.n_heldout == 14 * 50 and "design shift" in rep.split
+    (cell,) = [x for x in rep.where if x["significant"]]
+    assert cell["axis"] == "heldout"
+    assert _row(rep, "anisoelastic_oo")["flag"] == "structurally confounded"
+    null = diagnose(load_record(records["null"]), rig="platform", split="design-shift",
+                    design_advice=False)
+    assert null.verdict["kind"] == "no-gap"
+    assert null.verdict["heldout_gap_before"] < null.verdict["heldout_null_band"][1]
+    with pytest.raises(ValueError, match="one amplitude"):
+        diagnose(load_record(records["one"]), rig="platform", split="design-shift")
+    same = diagnose(two, rig="platform", refit_all=True, design_advice=False)
+    assert same.verdict["effects"] == ["anisoelastic_oo"]
+    cands = {c["name"]: c for c in same.to_json()["candidates"]}
+    for name in ("base_misalignment", "warmup_transient", "drift_ramp"):
+        assert cands[name]["heldout_gap_after"] > 100 * same.verdict["heldout_gap_after"]
+    esg = Path(gyrojax.__file__).parent / "data" / "esg_equatorial_24h.csv"
+    assert main(["diagnose", str(esg), "--rig", "esg", "--latitude", "55.75", "--scheme",
+                 "equatorial", "--split", "design-shift"]) == 2
+    assert "has one held-out split" in capsys.readouterr().err
+    assert main(["diagnose", str(records["two"]), "--rig", "platform", "--split",
+                 "design-shift"]) == 0
+    assert "Verdict: confounded** (anisoelastic_oo)" in capsys.readouterr().out
 
 
 def test_hidden_base_misalignment_from_the_cli(tmp_path, capsys):
@@ -175,3 +213,6 @@ def test_platform_blind_harness(tmp_path):
     s = bp.score(tmp_path / "b", [mis, ramp, oo, line])
     assert s["structural_silent"]["rate"] == 1.0
     assert s["out_of_library_honest"]["rate"] == 1.0
+    # G7 oracle: the hidden effect's own refit (refit_all, blind) against the verdict's pick
+    assert s["heldout_vs_oracle"]["n"] >= 1 and s["heldout_vs_oracle"]["rate"] == 1.0
+    assert set(mis["single_refits"]) >= {"base_misalignment", "drift_ramp", "anisoelastic_oo"}

@@ -27,6 +27,7 @@ from ._report import GapReport
 from ._stats import (
     LAMBDA_80,
     Screen,
+    _f_sf,
     _orth,
     _project,
     ambiguity_set,
@@ -68,7 +69,16 @@ def library(rig: str) -> dict:
     return {k: v[0] for k, v in lib.items()}
 
 
-def _problem(record, rig, holdout, noise_std, effects, order):
+def _problem(record, rig, holdout, noise_std, effects, order, split=None):
+    prob = _rig_problem(record, rig, holdout, noise_std, effects, order, split)
+    if split is not None and not hasattr(prob, "SPLITS"):
+        raise ValueError(f"split={split!r}: --rig {rig} has one held-out split "
+                         f"({getattr(prob, 'split_kind', 'the record end, time-ordered')}); "
+                         "leave --split out")
+    return prob
+
+
+def _rig_problem(record, rig, holdout, noise_std, effects, order, split):
     if rig == "esg":
         from ._esg import ESG_LIBRARY, ESGProblem
 
@@ -86,7 +96,8 @@ def _problem(record, rig, holdout, noise_std, effects, order):
         from ._platform import PLATFORM_LIBRARY, PlatformProblem
 
         _check_effects(effects, PLATFORM_LIBRARY, rig)
-        return PlatformProblem(record, holdout=holdout, noise_std=noise_std, effects=effects)
+        return PlatformProblem(record, holdout=holdout, noise_std=noise_std, effects=effects,
+                               **({"split": split} if split is not None else {}))
     if rig == "schuler":
         from ._schuler import SCHULER_LIBRARY, SchulerProblem
 
@@ -175,7 +186,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
              holdout: float = 0.25,
              alpha: float = 0.05, noise_std=None, design_advice: bool = True,
              max_refits: int = 3, prior: str = "design", order: str = "exact",
-             library_share: float = 0.5) -> GapReport:
+             library_share: float = 0.5, split: str | None = None,
+             refit_all: bool = False) -> GapReport:
     """Diagnose the gap between the rig's nominal model and ``record``.
 
     **Arguments:**
@@ -193,6 +205,12 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     - `prior`: Bayes-factor prior, ``"design"`` (g-prior, default) or ``"scale"`` (prior scales).
     - `library_share`: share of the weighted-BH weight held by the library's tests (the gap map
       holds the rest; ``None``: equal weights, plain BH over every test).
+    - `split`: the held-out plan where a rig offers more than one (platform:
+      ``"same-design"``, the default, or ``"design-shift"``: the last vibration amplitude's run
+      held out whole); ``None``: the rig's default.
+    - `refit_all`: also refit every other visible catalogued effect alone (at its best-scoring
+      grid value), so that every candidate carries its held-out gap after and reduction; they
+      join ``refits`` with ``"screened": False`` and do not change the verdict.
 
     **Returns:** a :class:`GapReport` (``.to_json()``, ``.markdown()``).
     """
@@ -201,7 +219,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     if conditions:
         record = record.with_conditions(**dict(conditions))
     _check_record(record, holdout)
-    prob = _problem(record, rig, holdout, noise_std, effects, order)
+    prob = _problem(record, rig, holdout, noise_std, effects, order, split)
     n, c = prob.n_train, len(prob.channels)
     params0 = prob.fit_nominal()
     pred0 = prob.predict(params0)
@@ -239,6 +257,12 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
                           n_params=jn.shape[1] + nuisance,
                           noise_dof=noise_dof, lines=prob.lines, jn=jn)
     noise_rows = prob.noise_screen(params0) if hasattr(prob, "noise_screen") else []
+    n_ho = len(e_all) - n * c
+    extra = getattr(prob, "heldout_extra", 0.0)
+    band = _null_band(jn_all, n * c, n_ho, extra, noise_dof * c)
+    g_nom = heldout_gap(e_all.reshape(-1, c)) if n_ho else float("nan")
+    if n_ho and getattr(prob, "design_shift", False):
+        cells.append(_heldout_cell(g_nom, band, n_ho - ho_dof, noise_dof * c, prob.split_kind))
     p_all = np.array([x["p"] for x in cells] + [r.p for r in rows] + [x["p"] for x in noise_rows])
     q_all = bh_qvalues(p_all, _bh_weights(len(cells), len(rows) + len(noise_rows),
                                           library_share))
@@ -267,10 +291,6 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
 
     # held-out gap and refits
     t0 = time.perf_counter()
-    n_ho = len(e_all) - n * c
-    extra = getattr(prob, "heldout_extra", 0.0)
-    band = _null_band(jn_all, n * c, n_ho, extra, noise_dof * c)
-    g_nom = heldout_gap(e_all.reshape(-1, c)) if n_ho else float("nan")
     g_nom_train = float(np.mean(e ** 2) - 1)
 
     def run_refit(combo):
@@ -318,8 +338,17 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
                 refits.append(run_refit([top, partner])[0])
     timings["refit_s"] = time.perf_counter() - t0
 
-    verdict = _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band)
+    verdict = _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band,
+                       _shift_hidden(rows, cells, jn_all, s_full))
     verdict = _with_noise(verdict, noise_rows, alpha)
+    if refit_all:
+        t0 = time.perf_counter()
+        done = {tuple(rf["effects"]) for rf in refits}
+        for r in rows:
+            if (r.sig.name,) not in done and r.dof > 0 and r.flag not in (
+                    "no signature", "structurally confounded"):
+                refits.append(dict(run_refit([r])[0], screened=False))
+        timings["refit_all_s"] = time.perf_counter() - t0
     if getattr(prob, "notes", None):
         verdict["notes"] = list(prob.notes)
 
@@ -417,6 +446,32 @@ def _null_band(jn_all, m_train, m_ho, extra: float = 0.0, noise_dof: float = np.
     return (mean, mean + 1.96 * np.sqrt(2.0 / m_ho + 2.0 / noise_dof) * (1 + mean))
 
 
+def _shift_hidden(rows, cells, jn_all, s_full):
+    """Effects with no signature on the train design that have one on the whole record (train
+    plus the design-shifted held-out rows): the candidates for a gap seen only held out."""
+    if not any(x["axis"] == "heldout" and x.get("significant") for x in cells):
+        return []
+    u = nominal_basis(jn_all)
+    out = []
+    for r in rows:
+        if r.flag in ("structurally confounded", "no signature"):
+            j = s_full[r.sig.name].jac[r.grid_index]
+            if np.sum(_project(u, j) ** 2) >= 1e-6 * np.sum(j ** 2):
+                out.append(r.sig.name)
+    return out
+
+
+def _heldout_cell(g, band, m, noise_dof, kind) -> dict:
+    """The held-out gap of a design-shift split as one cell of the map: a model that fits the
+    train design but not the shifted one (an effect without signature on the train design) shows
+    only here. F reference: held-out sum of squares over its null expectation (leverage
+    included), against the noise estimate's dof."""
+    ratio = (1 + g) / (1 + band[0])
+    return dict(axis="heldout", cell=kind, channel="all", statistic=float(m * (1 + g)),
+                dof=float(m), expected=float(m * (1 + band[0])),
+                excess=float(m * (g - band[0])), p=_f_sf(ratio, m, noise_dof))
+
+
 def _onestep_display(r: Screen) -> dict:
     return {n: float(b * ps) for n, b, ps in zip(r.sig.names, r.beta, r.sig.prior_scale)}
 
@@ -501,12 +556,23 @@ def _design_advice(prob, params0, sigma, flagged):
 
 
 
-def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band):
+def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band,
+             shift_hidden=()):
     base = {"heldout_gap_before": g_nom, "heldout_null_band": list(band)}
     if not detected:
         return {"kind": "no-gap", "effects": [], "heldout_gap_after": None, **base,
                 "reason": f"no gap-map cell or library test significant at q < {alpha}"}
     sig_rows = [r for r in rows if getattr(r, "q", 1.0) < alpha]
+    shifted = [x for x in cells if x["axis"] == "heldout" and x.get("significant")]
+    if not sig_rows and shifted and shift_hidden and not any(
+            x.get("significant") for x in cells if x["axis"] != "heldout"):
+        return {"kind": "confounded", "effects": list(shift_hidden),
+                "heldout_gap_after": None, **base,
+                "reason": "the model fits the train design but not the held-out one "
+                          f"({shifted[0]['cell']}, G = {g_nom:.3g} above its null band "
+                          f"{band[1]:.3g}); candidates: the effects without a signature on "
+                          f"the train design that have one on the whole record: "
+                          f"{', '.join(shift_hidden)}"}
     if not sig_rows:
         where = [f"{x['axis']} {x['cell']} {x['channel']}" for x in cells if x.get("significant")]
         return {"kind": "unexplained", "effects": [], "heldout_gap_after": None, **base,

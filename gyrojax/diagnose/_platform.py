@@ -23,10 +23,17 @@ with a null value, entering the angles through the kinematics of (S12)):
 - ``vibration_rectification``: a constant drift in vibrated dwells only (deg/h, seed 003): with
   every dwell vibrated it is exactly ``D_f``; a 0 g amplitude makes it visible.
 
-Held-out split: the last ``holdout`` of every dwell (same design). Each dwell's angle offsets
-are fitted on its train part (centring by the train-block mean); the diagnosis is told their
-dof (``nuisance_dof``) and their share of the held-out gap (``heldout_extra``). Holding out whole
-positions instead would leave the 27-coefficient model underdetermined on Table 1.
+Held-out splits (``split``):
+
+- ``"same-design"`` (default): the last ``holdout`` of every dwell. Each dwell's angle offsets
+  are fitted on its train part (centring by the train-block mean); the diagnosis is told their
+  dof (``nuisance_dof``) and their share of the held-out gap (``heldout_extra``). Holding out
+  whole positions instead would leave the 27-coefficient model underdetermined on Table 1.
+- ``"design-shift"``: the last vibration amplitude's run held out whole (another vibration
+  level, spec §4.2 stage 4), the other runs wholly train. Every dwell is centred by its own
+  mean; the held-out dwells' offsets are fitted on the held-out rows (``heldout_dof``). A
+  confusable pick (a ramp for a transient, rectification for ``D_f``) that fits the train
+  runs extrapolates wrongly to the new level and time, which the same-design split cannot see.
 """
 
 from __future__ import annotations
@@ -125,10 +132,14 @@ class PlatformProblem:
     """A platform test record reduced to block means of the centred angles."""
 
     rig_name = "platform"
-    split_kind = "same design: the last part of every dwell held out"
+    SPLITS = {"same-design": "same design: the last part of every dwell held out",
+              "design-shift": "design shift: the last vibration amplitude's run held out"}
 
     def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
-                 effects=None, order=None, blocks: int = 50):
+                 effects=None, order=None, blocks: int = 50, split: str = "same-design"):
+        if split not in self.SPLITS:
+            raise ValueError(f"split={split!r} for --rig platform; use one of "
+                             f"{', '.join(self.SPLITS)}")
         missing = [c for c in REC_CHANNELS if c not in record.channels]
         if missing:
             raise ValueError(f"platform record lacks channel(s) {missing}; a platform test record "
@@ -166,29 +177,47 @@ class PlatformProblem:
         self.dwell_s = dwell_span(s)
         span = n_dw * self.dwell_s
         self.taus = tuple(float(x) for x in np.geomspace(span / 40, span / 2, N_GRID))
-        self.k_ho = int(round(holdout * self.n_blocks)) if holdout > 0 else 0
-        if self.n_blocks - self.k_ho < 4:
-            raise ValueError(f"holdout={holdout} leaves {self.n_blocks - self.k_ho} of "
-                             f"{self.n_blocks} blocks per dwell to fit; lower --holdout")
+        n_pos = len(s["positions_deg"])
+        self.split_kind = self.SPLITS[split]
+        if split == "design-shift":
+            if len(self.amps) < 2:
+                raise ValueError("split='design-shift' holds out the last vibration amplitude's "
+                                 f"run; this record has one amplitude "
+                                 f"({s['table_amplitudes_g'][0]:g} g): use "
+                                 "split='same-design' or record a second amplitude")
+            self.k_ho = 0  # whole runs: every block of a train dwell is train
+            self.held_runs = (len(self.amps) - 1,)
+            self.design_shift = True
+        else:
+            self.k_ho = int(round(holdout * self.n_blocks)) if holdout > 0 else 0
+            if self.n_blocks - self.k_ho < 4:
+                raise ValueError(f"holdout={holdout} leaves {self.n_blocks - self.k_ho} of "
+                                 f"{self.n_blocks} blocks per dwell to fit; lower --holdout")
+            self.held_runs = ()
         self.y, self.t, self._cols = self._design(self.angles, self.conds, self.amps,
                                                   jnp.zeros(30))
-        self.n_train = n_dw * (self.n_blocks - self.k_ho)
         k_tr = self.n_blocks - self.k_ho
-        self.nuisance_dof = 3 * n_dw  # one offset per angle and dwell, fitted on its train part
-        self.heldout_extra = 1.0 / k_tr  # the offsets' variance on the held-out rows, in G
+        n_train_dw = n_dw - n_pos * len(self.held_runs)
+        self.n_train = n_train_dw * k_tr
+        self.nuisance_dof = 3 * n_train_dw  # one offset per angle and train dwell
+        if self.held_runs:
+            self.heldout_dof = 3 * (n_dw - n_train_dw)  # offsets fitted on the held-out rows
+            self.heldout_extra = 0.0
+        else:
+            self.heldout_extra = 1.0 / k_tr  # the offsets' variance on the held-out rows, in G
 
     # -- the linear design --------------------------------------------------------------------
     def _design(self, angles, conds, amps, theta):
         """Block means over every dwell (amplitude-major, as recorded), each centred by the mean
-        of its train blocks (= its angle offsets fitted on the train rows): the train blocks of
-        every dwell in time order, then the held-out tails. Returns angles (N, 3), block times
-        (N,) and the columns (N, 3, 30 + k)."""
+        of its train blocks (= its angle offsets fitted on the train rows; a held-out run's
+        dwells by their own mean): the train blocks of every dwell in time order, then the
+        held-out ones. Returns angles (N, 3), block times (N,) and the columns (N, 3, 30 + k)."""
         ts = jnp.asarray(self.ts)
         groups = _blocks(len(self.ts), self.n_blocks)
-        k_tr = self.n_blocks - self.k_ho
         parts = {"train": ([], [], []), "heldout": ([], [], [])}
         k = 0
         for a, (ang, cond) in enumerate(zip(angles, conds)):
+            k_tr = 0 if a in self.held_runs else self.n_blocks - self.k_ho
             for p in range(ang.shape[0]):
                 c = jax.tree.map(lambda x, p=p: x[p], cond)
                 t0 = k * self.dwell_s
@@ -198,7 +227,8 @@ class PlatformProblem:
                 y = np.asarray(y)
                 yb = np.stack([y[g].mean(0) for g in groups])
                 cb = np.stack([full[g].mean(0) for g in groups])
-                yb, cb = yb - yb[:k_tr].mean(0), cb - cb[:k_tr].mean(0)
+                ref = slice(0, k_tr or None)
+                yb, cb = yb - yb[ref].mean(0), cb - cb[ref].mean(0)
                 tb = np.array([t0 + self.ts[g].mean() for g in groups])
                 for part, sl in (("train", slice(0, k_tr)), ("heldout", slice(k_tr, None))):
                     for lst, v in zip(parts[part], (yb, tb, cb)):

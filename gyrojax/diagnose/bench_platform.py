@@ -26,6 +26,7 @@ to the drawn ``lambda`` and integrated again.
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
@@ -67,6 +68,7 @@ class PlatformDesign:
     noise_arcsec: float = 1.0
     holdout: float = 0.25
     blocks: int = 50  # the diagnosis's default block count per dwell
+    split: str = "same-design"  # or "design-shift": the last amplitude's run held out
 
     def schedule(self, amplitudes=None) -> dict:
         return load_schedule({"positions_deg": TABLE1_DEG.tolist(),
@@ -198,12 +200,20 @@ def _ool_shape(rng, family, s, shape):
 
 
 def run(case_dir, *, design: PlatformDesign | None = None, progress=None) -> list:
-    """Diagnose every record in ``case_dir`` (never reading ``sealed/``)."""
+    """Diagnose every record in ``case_dir`` (never reading ``sealed/``) with the design's
+    split, refitting every catalogue effect as well (the scorer's oracle). Records on one
+    amplitude (the structural cases) have no design shift and keep the same-design split."""
     design = design or PlatformDesign()
-    return run_cases(case_dir, "platform", design.holdout, progress=progress)
+    return run_cases(case_dir, "platform", design.holdout, split=design.split, refit_all=True,
+                     progress=progress, split_for=_split_for)
 
 
-def score(case_dir, results) -> dict:
+def _split_for(record, split):
+    amps = json.loads(record.conditions["schedule_json"])["table_amplitudes_g"]
+    return split if len(amps) > 1 else "same-design"
+
+
+def score(case_dir, results, separable=None) -> dict:
     """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`)."""
     return score_cases(case_dir, results, MEAN_FAMILIES, (), OUT_OF_LIBRARY,
-                       structural=STRUCTURAL)
+                       structural=STRUCTURAL, separable=separable)
