@@ -93,6 +93,12 @@ def suite_lines(s: dict, ool_label: str) -> list[str]:
         f"(mean-effect cases detected above the null band); closure "
         f"{fmt_rate(s['heldout_closure'])}.",
         f"- Out-of-library ({ool_label}) not attributed: {fmt_rate(s['out_of_library_honest'])}.",
+        *([f"- G9 (out-of-library, remainder noncentrality after the best catalogue fit >= 32, "
+           f"from the truth side): not confidently attributed (attributed with posterior "
+           f"> 0.9) {fmt_rate(s['ool_strong_not_confident'])}, unexplained or ambiguous "
+           f"{fmt_rate(s['ool_strong_unexplained_or_ambiguous'])}; confident misattribution "
+           f"over every out-of-library case {fmt_rate(s['ool_confident_misattribution'])} "
+           f"(G9: >= 0.80, <= 0.10)."] if s.get("ool_remainder_from_truth") else []),
         ""]
 
 

@@ -245,6 +245,41 @@ def test_imu_blind_harness_design_shift(tmp_path):
     assert s["heldout_closure"]["rate"] == 1.0
 
 
+def test_imu_out_of_library_mimic_fails_its_heldout_check(tmp_path):
+    """Spec §6 G9. An accelerometer bias that jumps at one pose change (out of the catalogue) is
+    mimicked on the train rows by catalogue effects (truth side: the remainder after the best
+    fit of one effect or a pair is < 2 % of the step's noncentrality); the diagnosis names the
+    best single mimic, but its refit makes the held-out gap worse, so the verdict is
+    `unexplained`, not `attributed`."""
+    from gyrojax.diagnose import bench_imu
+
+    bench_imu.generate(tmp_path, 1, seed=5, null_fraction=0.0, lambdas=(64.0,),
+                       families=("pose_step",))
+    sealed = tmp_path.parent / f"{tmp_path.name}_sealed"
+    (tmp_path / "sealed").rename(sealed)
+    (r,) = bench_imu.run(tmp_path)
+    (truth,) = json.loads((sealed / "manifest.json").read_text())["cases"].values()
+    assert truth["remainder_lambda"] < 0.02 * truth["nominal_lambda"]
+    assert truth["remainder_lambda"] < 0.02 * truth["nominal_lambda"]
+    assert r["verdict"] == "unexplained" and r["effects"][:1] == [truth["closest_effect"]]
+    assert r["heldout_gap_after"] > max(r["heldout_gap_before"], r["null_band_after"][1])
+
+
+def test_heldout_transfer_rule():
+    """The verdict's held-out check: a refit that leaves the held-out gap outside its band and
+    removes less than half of it does not transfer; closing it, or removing most of it, does."""
+    from gyrojax.diagnose._diagnose import _does_not_transfer
+
+    def rf(before, after, closure):
+        return {"heldout_gap_before": before, "heldout_gap_after": after, "closure": closure}
+
+    assert _does_not_transfer(rf(0.10, 1.6, False))  # worse than nominal
+    assert _does_not_transfer(rf(1.41, 1.09, False))  # 23 % removed, band 0.37
+    assert not _does_not_transfer(rf(1.41, 0.50, False))  # 65 % removed
+    assert not _does_not_transfer(rf(0.30, 0.29, True))  # within its band
+    assert not _does_not_transfer(rf(float("nan"), None, None))  # no held-out part
+
+
 # -- bad input -------------------------------------------------------------------------------
 def test_bad_input_errors():
     rec = _record(seed=2)

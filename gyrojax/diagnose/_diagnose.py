@@ -446,6 +446,17 @@ def _null_band(jn_all, m_train, m_ho, extra: float = 0.0, noise_dof: float = np.
     return (mean, mean + 1.96 * np.sqrt(2.0 / m_ho + 2.0 / noise_dof) * (1 + mean))
 
 
+def _does_not_transfer(refit) -> bool:
+    """An attribution fails its held-out check when the refit leaves the held-out gap outside
+    its null band *and* removes less than half of it (or adds to it): the effect mimics the
+    train residual but does not predict new data (an out-of-library term it happens to fit, spec
+    §6 G9). A right effect whose gap is merely not fully closed still removes most of it."""
+    g0, g1 = refit["heldout_gap_before"], refit["heldout_gap_after"]
+    if refit.get("closure") is not False or g1 is None or not np.isfinite(g0):
+        return False
+    return bool(g1 > 0.5 * g0)
+
+
 def _shift_hidden(rows, cells, jn_all, s_full):
     """Effects with no signature on the train design that have one on the whole record (train
     plus the design-shifted held-out rows): the candidates for a gap seen only held out."""
@@ -603,6 +614,14 @@ def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band
                 "heldout_gap_after": chosen["heldout_gap_after"], **base, "cells": cells_left[:10],
                 "reason": "after refitting the best catalogued effect(s) the localised gap map "
                           "still has significant cells"}
+    if _does_not_transfer(chosen):
+        return {"kind": "unexplained", "effects": chosen["effects"],
+                "heldout_gap_after": chosen["heldout_gap_after"], **base,
+                "reason": f"the refit with {' + '.join(chosen['effects'])} fits the train part "
+                          f"but not the held-out part (held-out gap {g_nom:.3g} -> "
+                          f"{chosen['heldout_gap_after']:.3g}, null band <= "
+                          f"{chosen['heldout_null_band_after'][1]:.3g}): it mimics the gap "
+                          "without explaining it"}
     return {"kind": "attributed", "effects": chosen["effects"],
             "heldout_gap_after": chosen["heldout_gap_after"], **base,
             "posterior": {r.sig.name: r.posterior for r in amb},

@@ -155,6 +155,21 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
         lambda t, r: r["heldout_gap_after"] <= r["null_band_after"][1])
     out["out_of_library_honest"] = _rate(ool, lambda t, r: r["verdict"] in
                                          ("unexplained", "ambiguous", "no-gap"))
+
+    def confident(t, r):
+        """Attributed with posterior > 0.9 (an effect without a posterior, e.g. a noise-model
+        term, counts as confident)."""
+        return r["verdict"] == "attributed" and bool(r["effects"]) and max(
+            r["posterior"].get(e, 1.0) for e in r["effects"]) > 0.9
+
+    # spec §6 G9 over the out-of-library cases whose remainder noncentrality after the best
+    # library fit (truth side, ``remainder_lambda``; else the case's lambda) is >= 32
+    strong = [(t, r) for t, r in ool if t.get("remainder_lambda", t["lambda"]) >= 32]
+    out["ool_strong_not_confident"] = _rate(strong, lambda t, r: not confident(t, r))
+    out["ool_strong_unexplained_or_ambiguous"] = _rate(
+        strong, lambda t, r: r["verdict"] in ("unexplained", "ambiguous"))
+    out["ool_confident_misattribution"] = _rate(ool, confident)
+    out["ool_remainder_from_truth"] = bool(ool) and all("remainder_lambda" in t for t, _ in ool)
     if structural:
         out["structural_silent"] = _rate([(t, r) for t, r in rows if t["family"] in structural],
                                          lambda t, r: r["verdict"] in ("no-gap", "confounded"))
