@@ -36,6 +36,7 @@ from ._stats import (
     gap_map_cells,
     nominal_basis,
     screen,
+    visible,
 )
 
 __all__ = ["diagnose", "library", "RIGS"]
@@ -466,8 +467,7 @@ def _shift_hidden(rows, cells, jn_all, s_full):
     out = []
     for r in rows:
         if r.flag in ("structurally confounded", "no signature"):
-            j = s_full[r.sig.name].jac[r.grid_index]
-            if np.sum(_project(u, j) ** 2) >= 1e-6 * np.sum(j ** 2):
+            if visible(u, s_full[r.sig.name].jac[r.grid_index]):
                 out.append(r.sig.name)
     return out
 

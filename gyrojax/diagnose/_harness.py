@@ -35,7 +35,7 @@ def separability(record, rig: str, sigma, split=None) -> dict:
     spec §5.6 calls an effect separable at <= 0.9. ``sigma``: the channels' noise (SI; only the
     ratios between channels matter)."""
     from ._diagnose import _problem, _train_slice
-    from ._stats import _project, canonical_correlation, nominal_basis
+    from ._stats import _project, canonical_correlation, nominal_basis, visible
 
     prob = _problem(record, rig, 0.25, None, None, None, split)
     params0 = prob.fit_nominal()
@@ -43,8 +43,7 @@ def separability(record, rig: str, sigma, split=None) -> dict:
     m = prob.n_train * len(prob.channels)
     jn, sigs = jn[:m], [_train_slice(s, m) for s in sigs]
     u = nominal_basis(jn)
-    vis = [s for s in sigs  # visible fraction >= 1e-6, the diagnosis' threshold
-           if np.sum(_project(u, s.jac[0]) ** 2) >= 1e-6 * np.sum(s.jac[0] ** 2)]
+    vis = [s for s in sigs if visible(u, s.jac[0])]  # the diagnosis' threshold
     return {a.name: max(canonical_correlation(_project(u, ja), _project(u, jb))
                         for b in vis if b is not a for ja in a.jac for jb in b.jac)
             for a in vis}

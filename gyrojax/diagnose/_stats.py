@@ -101,6 +101,12 @@ def _lm(jt, e, raw_scale):
 VISIBLE_MIN = 1e-6  # visible fraction below which a direction counts as absorbed (untested)
 
 
+def visible(u, j) -> bool:
+    """Whether the columns ``j`` keep a visible fraction >= ``VISIBLE_MIN`` of their energy
+    once the nominal basis ``u`` is projected out."""
+    return bool(np.sum(_project(u, j) ** 2) >= VISIBLE_MIN * np.sum(j ** 2))
+
+
 def _tested_directions(j, jt):
     """The coefficient directions an effect's score test uses, and their information.
 
