@@ -32,7 +32,14 @@ import tempfile
 sys.path.insert(0, os.path.dirname(__file__))
 
 import numpy as np  # noqa: E402
-from _results import blind_suite, diagnose_suite, machine_line, publish, suite_lines  # noqa: E402
+from _results import (  # noqa: E402
+    ORACLE_NOTE,
+    blind_suite,
+    diagnose_suite,
+    machine_line,
+    publish,
+    suite_lines,
+)
 from _results import fmt_rate as _fmt  # noqa: E402
 
 from gyrojax import units  # noqa: E402
@@ -90,6 +97,9 @@ def split_table(same, shift) -> list[str]:
 
     rows = [("power (all lambdas)", lambda s: _fmt(_pooled(s, "power"))),
             ("top-1 (all lambdas)", lambda s: _fmt(_pooled(s, "top1"))),
+            ("top-1, families separable on the split's train rows (all lambdas)",
+             lambda s: _fmt(_pooled(s, "top1_separable"))),
+            ("Bayes-oracle top-1 (all lambdas)", lambda s: _fmt(_pooled(s, "oracle_top1"))),
             ("held-out R, median (detected, above band)",
              lambda s: med(s["heldout_reduction_median"])),
             ("closure (detected)", lambda s: _fmt(s["heldout_closure"])),
@@ -106,8 +116,11 @@ def split_table(same, shift) -> list[str]:
 
 def _pooled(s, key):
     """A rate pooled over the lambdas of a score's ``by_lambda``."""
-    k = sum(b[key]["rate"] * b[key]["n"] for b in s["by_lambda"].values() if b[key]["n"])
-    n = sum(b[key]["n"] for b in s["by_lambda"].values())
+    parts = [b[key] for b in s["by_lambda"].values() if b[key] is not None]
+    k = sum(b["rate"] * b["n"] for b in parts)
+    n = sum(b["n"] for b in parts)
+    if not n:
+        return None
     rate = k / n if n else float("nan")
     return {"rate": rate, "se": float(np.sqrt(rate * (1 - rate) / n)) if n else float("nan"),
             "n": n}
@@ -143,7 +156,7 @@ def suite(args, work, design):
              "catalogue effect, over every pair of grid values): "
              + ", ".join(f"{e} {v:.4f}" for e, v in sorted(sep.items()))
              + f". Separable (<= 0.9): {', '.join(separable) or 'none'}.", ""]
-    lines += suite_lines(s, "readout_line, readout_step")
+    lines += [ORACLE_NOTE, ""] + suite_lines(same, "readout_line, readout_step")
     lines += ["### Same-design and design-shift held-out splits (spec §6 G7)", "",
               "The same cases diagnosed again with the design-shift split (the 7 g run held "
               f"out whole, trained on the 0 and 9 g runs; {t_shift:.0f} s). Oracle: the hidden "

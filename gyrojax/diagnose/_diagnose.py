@@ -510,6 +510,8 @@ def _row_json(r: Screen, prob, excess, n, c, cells):
         "params": list(r.sig.names), "units": list(r.sig.units),
         "prior_scale": [float(x) for x in r.sig.prior_scale],
         "score": r.lm, "dof": r.dof, "p": r.p, "q": getattr(r, "q", None),
+        # the score statistic and its dof at every grid value (one entry without a grid)
+        "score_grid": [float(x) for x in r.lm_grid], "dof_grid": [int(x) for x in r.dof_grid],
         "log_bf": r.log_bf, "posterior": r.posterior,
         "onestep": _onestep_display(r),
         "onestep_se": {nm: float(s * ps) for nm, s, ps in zip(r.sig.names, r.beta_se,

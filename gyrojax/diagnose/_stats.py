@@ -143,6 +143,13 @@ def _log_bf_g(lm, dof, lambda0):
     return 0.5 * g / (1 + g) * lm - 0.5 * dof * math.log1p(g)
 
 
+def grid_log_bf(lms, dofs, lambda0) -> float:
+    """Design-prior Bayes factor of a grid effect: :func:`_log_bf_g` at each grid value
+    (score ``lms[g]`` on ``dofs[g]`` dof), averaged over the grid with equal weights."""
+    lbf = [_log_bf_g(float(lm), int(d), lambda0) for lm, d in zip(lms, dofs)]
+    return float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
+
+
 def _log_bf(info, s):
     p = info.shape[0]
     a = info + np.eye(p)
@@ -170,6 +177,7 @@ class Screen:
     alias_std: np.ndarray  # the same in the nominal parameters' standard errors
     projected: np.ndarray  # J~ at the chosen grid value
     lm_grid: np.ndarray
+    dof_grid: np.ndarray  # tested dof at each grid value (visible directions differ along a grid)
     posterior: float = 0.0
 
 
@@ -250,9 +258,9 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
         jt, dof, beta, cov, info, s, _ = stats_g[gi]
         if prior == "scale":
             lbf = [_log_bf(st[4], st[5]) for st in stats_g]
+            log_bf = float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
         else:
-            lbf = [_log_bf_g(lm_g, st[1], lambda0) for lm_g, st in zip(lms, stats_g)]
-        log_bf = float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
+            log_bf = grid_log_bf(lms, [st[1] for st in stats_g], lambda0)
         if dof == 0:
             p = 1.0
         elif len(lms) == 1:
@@ -266,7 +274,8 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
         alias = cov_n @ (jn.T @ sig.jac[gi])
         alias_std = alias / se_n[:, None]
         out.append(Screen(sig, lms[gi], dof, p, log_bf, gi, beta, np.sqrt(np.diag(cov)), v, flag,
-                          null, conf, alias, alias_std, jt, np.asarray(lms)))
+                          null, conf, alias, alias_std, jt, np.asarray(lms),
+                          np.asarray([st[1] for st in stats_g])))
     _posteriors(out, prior_none)
     return out
 

@@ -295,6 +295,7 @@ def run(case_dir, *, design: IMUDesign | None = None, progress=None) -> list:
     return run_cases(case_dir, "imu", design.holdout, progress=progress)
 
 
-def score(case_dir, results) -> dict:
+def score(case_dir, results, separable=None) -> dict:
     """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`)."""
-    return score_cases(case_dir, results, MEAN_FAMILIES, NOISE_FAMILIES, OUT_OF_LIBRARY)
+    return score_cases(case_dir, results, MEAN_FAMILIES, NOISE_FAMILIES, OUT_OF_LIBRARY,
+                       separable=separable)
