@@ -77,20 +77,40 @@ def fmt_rate(r) -> str:
     return f"{r['rate']:.2f} ± {r['se']:.2f} (n={r['n']})"
 
 
+def calibration_line(pooled, by_lambda: dict) -> str:
+    """One line on the posteriors' calibration (spec §6 G4: ECE <= 0.05) from
+    :func:`gyrojax.diagnose.bench.calibration` results, pooled and per lambda."""
+    if pooled is None:
+        return "- Posterior calibration: no posteriors."
+    per = ", ".join(f"lambda {k} {c['ece']:.2f} (calibrated {c['ece_calibrated_median']:.2f}, "
+                    f"n={c['n']})" for k, c in by_lambda.items() if c is not None)
+    return ("- Posterior calibration (spec §6 G4: ECE <= 0.05), the posteriors renormalised over "
+            f"the catalogue, in-library cases: ECE of the top posterior {pooled['ece']:.3f} "
+            f"(a calibrated forecaster at these confidences and n: median "
+            f"{pooled['ece_calibrated_median']:.3f}, 95 % {pooled['ece_calibrated_95']:.3f}; "
+            f"mean confidence {pooled['mean_confidence']:.2f} vs top-1 "
+            f"{pooled['accuracy']:.2f}), Brier {pooled['brier']:.3f}, n={pooled['n']}; ECE per "
+            f"lambda: {per}.")
+
+
 def suite_lines(s: dict, ool_label: str) -> list[str]:
     """The per-lambda table and the summary lines of one suite scored by
     :func:`gyrojax.diagnose._harness.score_cases`."""
-    lines = ["| lambda | power | top-1 | top-1, separable families | Bayes-oracle top-1 | "
-             "top-1 / oracle | named | mean set size |", "|---|---|---|---|---|---|---|---|"]
+    lines = ["| lambda | power | top-1 | top-1, separable families | Bayes-oracle top-1, "
+             "separable | Bayes-oracle top-1 | top-1 / oracle | named | mean set size |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for lam, b in s["by_lambda"].items():
         size = "-" if b["mean_set_size"] is None else f"{b['mean_set_size']:.2f}"
         lines.append(f"| {lam} | {fmt_rate(b['power'])} | {fmt_rate(b['top1'])} | "
-                     f"{fmt_rate(b['top1_separable'])} | {fmt_rate(b['oracle_top1'])} | "
+                     f"{fmt_rate(b['top1_separable'])} | "
+                     f"{fmt_rate(b.get('oracle_top1_separable'))} | {fmt_rate(b['oracle_top1'])} | "
                      f"{fmt_rate(b['oracle_efficiency'])} | {fmt_rate(b['named'])} | {size} |")
     fam = ", ".join(f"{f} {fmt_rate(r)}" for f, r in s["by_family"].items())
     med = s["heldout_reduction_median"]
     return lines + [
         "", f"- top-1 by family (all lambdas): {fam}.",
+        calibration_line(s.get("calibration"),
+                         {k: b.get("calibration") for k, b in s["by_lambda"].items()}),
         f"- Held-out gap: median reduction {'-' if med is None else f'{med:.2f}'} "
         f"(mean-effect cases detected above the null band); closure "
         f"{fmt_rate(s['heldout_closure'])}.",

@@ -5,8 +5,8 @@ two out-of-library effects), diagnoses them without the manifest, runs the basel
 records (B1 Ljung-Box whiteness, B2 refit-all + BIC), unseals and scores. Writes the section
 ``gap_blind`` of RESULTS.md.
 
-    python benchmarks/gap_blind.py                      # 160 cases + 1000 nulls (~30 min)
-    python benchmarks/gap_blind.py --cases 24 --nulls 0 # quick look
+    python benchmarks/gap_blind.py                      # 160 cases + 1000 nulls + 40 OOL (~15 min)
+    python benchmarks/gap_blind.py --cases 24 --nulls 0 --ool-cases 0 # quick look
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
 
-from _results import ORACLE_NOTE, machine_line, publish  # noqa: E402
+from _results import ORACLE_NOTE, calibration_line, machine_line, publish  # noqa: E402
 from _results import fmt_rate as _fmt  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -39,6 +39,9 @@ def main(argv=None):
     ap.add_argument("--nulls", type=int, default=1000,
                     help="extra null cases for the false-alarm rate (spec §6 G1: >= 1000; "
                          "diagnosis and B1 only)")
+    ap.add_argument("--ool-cases", type=int, default=40,
+                    help="extra out-of-library cases at lambda 32/64/128 for spec §6 G9 "
+                         "(diagnosis only)")
     ap.add_argument("--keep", help="directory to keep the cases and results in")
     ap.add_argument("--rescore", metavar="DIR",
                     help="score the results kept in DIR by an earlier --keep run (no rerun)")
@@ -74,6 +77,18 @@ def main(argv=None):
             meta["nulls"] = {"n": args.nulls, "far": ns["far"], "b1_far": ns["b1_far"],
                              "t_s": time.perf_counter() - t0,
                              "median_diagnose_s": ns["cost"]["median_diagnose_s"]}
+        if args.ool_cases:
+            ool_dir = os.path.join(work, "ool")
+            t0 = time.perf_counter()
+            bench.generate(ool_dir, args.ool_cases, seed=args.seed + 2, design=design,
+                           null_fraction=0.0, lambdas=(32.0, 64.0, 128.0),
+                           families=bench.OUT_OF_LIBRARY)
+            ool_results = bench.run(ool_dir, design=design, baselines=False)
+            os_ = bench.score(ool_dir, ool_results)
+            meta["ool"] = {"n": args.ool_cases, "t_s": time.perf_counter() - t0} | {
+                k: os_[k] for k in ("ool_strong_not_confident",
+                                    "ool_strong_unexplained_or_ambiguous",
+                                    "ool_confident_misattribution", "out_of_library_honest")}
         with open(os.path.join(work, "results.json"), "w") as fh:
             json.dump(results, fh)
         with open(os.path.join(work, "run_meta.json"), "w") as fh:
@@ -106,15 +121,17 @@ def main(argv=None):
              "library effect, over every pair of grid values): "
              + ", ".join(f"{e} {v:.4f}" for e, v in sorted(sep.items()))
              + f". Separable (<= 0.9): {', '.join(separable) or 'none'}.", "", ORACLE_NOTE, "",
-             "| lambda | power | top-1 | top-1, separable families | Bayes-oracle top-1 | "
-             "top-1 / oracle | top-3 | 90 % set coverage | mean set size | "
-             "confident misattribution | B1 Ljung-Box power | B2 refit-all+BIC top-1 |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| lambda | power | top-1 | top-1, separable families | Bayes-oracle top-1, "
+             "separable | Bayes-oracle top-1 | top-1 / oracle | top-3 | 90 % set coverage | "
+             "mean set size | confident misattribution | B1 Ljung-Box power | "
+             "B2 refit-all+BIC top-1 |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for k in lams:
         b = s[k]
         size = "-" if b["mean_set_size"] is None else f"{b['mean_set_size']:.2f}"
         lines.append(f"| {k.split('=')[1]} | {_fmt(b['power'])} | {_fmt(b['top1'])} | "
-                     f"{_fmt(b['top1_separable'])} | {_fmt(b['oracle_top1'])} | "
+                     f"{_fmt(b['top1_separable'])} | {_fmt(b['oracle_top1_separable'])} | "
+                     f"{_fmt(b['oracle_top1'])} | "
                      f"{_fmt(b['oracle_efficiency'])} | "
                      f"{_fmt(b['top3'])} | {_fmt(b['set_coverage'])} | {size} | "
                      f"{_fmt(b['confident_misattribution'])} | {_fmt(b['b1_power'])} | "
@@ -122,6 +139,8 @@ def main(argv=None):
     c = s["cost"]
     med = s["heldout_reduction_median"]
     lines += ["",
+              calibration_line(s.get("calibration"),
+                               {k.split("=")[1]: s[k].get("calibration") for k in lams}),
               f"- Held-out gap (same-design): median reduction "
               f"{'-' if med is None else f'{med:.2f}'} over attributed/ambiguous library cases; "
               f"closure (held-out gap within the refitted model's 95 % band) "
@@ -129,6 +148,17 @@ def main(argv=None):
               f"- Out-of-library cases (2 h heater square wave, 5 h line) not confidently "
               f"attributed: {_fmt(s['out_of_library_honest'])}. Two-effect cases with both "
               f"effects named or in the set: {_fmt(s['two_effects_both_named'])}.",
+              *([f"- Out-of-library run ({meta['ool']['n']} more sealed heater_cycle / "
+                 f"hvac_line cases at lambda 32/64/128, seed {meta['seed'] + 2}, "
+                 f"{meta['ool']['t_s']:.0f} s): G9, remainder noncentrality after the best "
+                 "library fit (one effect or a pair, truth side, on the diagnosis' grids) "
+                 ">= 32: not confidently attributed "
+                 f"{_fmt(meta['ool']['ool_strong_not_confident'])}, unexplained or ambiguous "
+                 f"{_fmt(meta['ool']['ool_strong_unexplained_or_ambiguous'])}; confident "
+                 "misattribution over every out-of-library case "
+                 f"{_fmt(meta['ool']['ool_confident_misattribution'])} (G9: >= 0.80, <= 0.10); "
+                 f"not attributed at all {_fmt(meta['ool']['out_of_library_honest'])}."]
+                if meta.get("ool") else []),
               f"- Cost per case (median): whole diagnosis {c['median_diagnose_s']:.2f} s; "
               f"screening (Jacobians + score tests) {c['median_screen_s']:.2f} s vs B2 refit-all "
               f"{c['median_refit_all_s']:.2f} s "

@@ -99,6 +99,8 @@ def split_table(same, shift) -> list[str]:
             ("top-1 (all lambdas)", lambda s: _fmt(_pooled(s, "top1"))),
             ("top-1, families separable on the split's train rows (all lambdas)",
              lambda s: _fmt(_pooled(s, "top1_separable"))),
+            ("Bayes-oracle top-1 on the same separable families (all lambdas)",
+             lambda s: _fmt(_pooled(s, "oracle_top1_separable"))),
             ("Bayes-oracle top-1 (all lambdas)", lambda s: _fmt(_pooled(s, "oracle_top1"))),
             ("held-out R, median (detected, above band)",
              lambda s: med(s["heldout_reduction_median"])),

@@ -113,7 +113,7 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     from scipy import stats as st
 
     from gyrojax.diagnose._stats import _project, grid_log_bf, nominal_basis
-    from gyrojax.diagnose.bench import oracle_choice, ratio_rate
+    from gyrojax.diagnose.bench import calibration, oracle_choice, ratio_rate
 
     rng = np.random.default_rng(3)
     m, lam = 60, 24.0
@@ -152,6 +152,19 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     assert np.mean(ses) == pytest.approx(np.std(ratios), rel=0.08)
     truth = (p_y * p_x_given_y + (1 - p_y) * p_x_given_not) / p_y
     assert np.mean(ratios) == pytest.approx(truth, rel=0.01)
+    # posterior calibration (spec §6 G4), worked by hand: confidence 0.9 (the posteriors sum to
+    # 0.5, the rest is "no effect": renormalised), right 60 times in 100 -> ECE 0.3, Brier
+    # 0.6 * 0.02 + 0.4 * 1.62; a forecaster whose outcomes are Bernoulli(confidence) shows the
+    # ECE of the calibrated reference
+    pairs = [({"family": "a" if k < 60 else "b"}, {"posterior": {"a": 0.45, "b": 0.05}})
+             for k in range(100)]
+    cal = calibration(pairs)
+    assert cal["ece"] == pytest.approx(0.3) and cal["brier"] == pytest.approx(0.66)
+    conf = rng.uniform(0.3, 1.0, 400)
+    pairs = [({"family": "a" if rng.uniform() < c else "b"}, {"posterior": {"a": c, "b": 1 - c}})
+             for c in conf]
+    cal = calibration(pairs)
+    assert cal["ece"] < cal["ece_calibrated_95"] and cal["ece_calibrated_median"] < 0.06
 
 
 def test_bh_and_fisher_g():
@@ -313,6 +326,14 @@ def test_blind_harness_is_sealed_and_scores(tmp_path):
         block["top1"]["rate"] / block["oracle_top1"]["rate"])
     assert bench.score(tmp_path, results, separable=["rotor_tilt"])[
         "lambda=400"]["top1_separable"]["n"] == 2
+    # spec §6 G9's truth side: an out-of-library term's noncentrality recomputed by projection
+    # equals the generator's (information-matrix) lambda; the best library fit leaves part of it
+    bench.generate(tmp_path / "ool", 1, seed=3, null_fraction=0.0, lambdas=(64.0,),
+                   families=("hvac_line",))
+    (t,) = json.loads((tmp_path / "ool" / "sealed" / "manifest.json").read_text())[
+        "cases"].values()
+    assert t["nominal_lambda"] == pytest.approx(64.0, rel=1e-8)
+    assert 0 < t["remainder_lambda"] <= t["remainder_single_lambda"] < 64
     manifest = json.loads((sealed / "manifest.json").read_text())["cases"]
     assert {r["sha"] for r in results} == set(manifest)
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import load_record
-from .bench import _rate, _scores, _sha, oracle_choice, ratio_rate
+from .bench import _rate, _scores, _sha, calibration, ool_scores, oracle_choice, ratio_rate
 
 __all__ = ["run_cases", "score_cases", "projector", "separability"]
 
@@ -137,9 +137,13 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
             # spec §6 G3: top-1 on the separable families, and against the Bayes oracle (mean
             # effects: the oracle reads the score statistics, which noise effects do not have)
             "top1_separable": _rate([(t, r) for t, r in sub if t["family"] in sep], top),
+            "oracle_top1_separable": _rate([(t, r) for t, r in sub_mean if t["family"] in sep],
+                                           oracle),
             "oracle_top1": _rate(sub_mean, oracle),
             "oracle_efficiency": ratio_rate(sub_mean, top, oracle),
+            "calibration": calibration(sub_mean),
         }
+    out["calibration"] = calibration([(t, r) for t, r in lib if t["family"] in mean_families])
     out["by_family"] = {f: _rate([(t, r) for t, r in lib if t["family"] == f], top)
                         for f in sorted({t["family"] for t, _ in lib})}
     mean_lib = [(t, r) for t, r in lib if t["family"] in mean_families]
@@ -174,20 +178,7 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
     out["out_of_library_honest"] = _rate(ool, lambda t, r: r["verdict"] in
                                          ("unexplained", "ambiguous", "no-gap"))
 
-    def confident(t, r):
-        """Attributed with posterior > 0.9 (an effect without a posterior, e.g. a noise-model
-        term, counts as confident)."""
-        return r["verdict"] == "attributed" and bool(r["effects"]) and max(
-            r["posterior"].get(e, 1.0) for e in r["effects"]) > 0.9
-
-    # spec §6 G9 over the out-of-library cases whose remainder noncentrality after the best
-    # library fit (truth side, ``remainder_lambda``; else the case's lambda) is >= 32
-    strong = [(t, r) for t, r in ool if t.get("remainder_lambda", t["lambda"]) >= 32]
-    out["ool_strong_not_confident"] = _rate(strong, lambda t, r: not confident(t, r))
-    out["ool_strong_unexplained_or_ambiguous"] = _rate(
-        strong, lambda t, r: r["verdict"] in ("unexplained", "ambiguous"))
-    out["ool_confident_misattribution"] = _rate(ool, confident)
-    out["ool_remainder_from_truth"] = bool(ool) and all("remainder_lambda" in t for t, _ in ool)
+    out |= ool_scores(ool)  # spec §6 G9
     if structural:
         out["structural_silent"] = _rate([(t, r) for t, r in rows if t["family"] in structural],
                                          lambda t, r: r["verdict"] in ("no-gap", "confounded"))

@@ -134,6 +134,8 @@ def _hidden(rng, family, p, cond, design, lam):
         if family in OUT_OF_LIBRARY:
             out_term = (_ool_columns(family, ts)[:, 0] * b[0]).reshape(len(ts), 2)
             truth["amplitude"] = float(b[0])
+            truth |= remainder_after_library(jb[:, 0] * b[0], jn, _library_columns(
+                p, cond, ts[:n_train], sigma))
         else:
             for name, v in zip(_EFFECT_PARAMS[family], b):
                 p[name] = jnp.asarray(v)
@@ -150,6 +152,27 @@ def _hidden(rng, family, p, cond, design, lam):
         raise ValueError(f"unknown case family {family!r}")
     truth["lambda"] = float(lam) if family != "null" else 0.0
     return p, out_term, truth
+
+
+def _library_columns(p, cond, ts, sigma) -> dict:
+    """Truth-side whitened columns of every library effect on the rows ``ts`` (family -> one
+    block per grid value, on the diagnosis' decay-time and onset grids)."""
+    from ._esg import TRANSIENT_TIMES_H
+
+    onsets = ts[0] / 3600 + (ts[-1] - ts[0]) / 3600 * np.arange(1, 9) / 9
+    names = tuple(n for v in _EFFECT_PARAMS.values() for n in v)
+    cols = {}
+    for g, tau_h in enumerate(TRANSIENT_TIMES_H):
+        pg = dict(p) | {"k_tr": jnp.asarray(1.0 / (tau_h * 3600 * units.EARTH_RATE)),
+                        "t_step": jnp.asarray(onsets[g] * 3600 * units.EARTH_RATE)}
+        j = _model_jac(pg, cond, ts, names) / sigma
+        k = 0
+        for fam, fn in _EFFECT_PARAMS.items():
+            if g == 0 or fam in ("drift_transient", "drift_step"):
+                cols.setdefault(fam, []).append(j[:, k:k + len(fn)])
+            k += len(fn)
+    cols["diurnal_line"] = [_output_columns("diurnal_line", ts).reshape(len(ts) * 2, 4) / sigma]
+    return cols
 
 
 def _ool_columns(family, ts):
@@ -332,6 +355,56 @@ def _rate(pairs, fn):
     return {"rate": p, "se": _se(p, len(pairs)), "n": len(pairs)}
 
 
+def _basis(j):
+    """Orthonormal basis of the column span of ``j`` (rank-revealing QR)."""
+    q, r = np.linalg.qr(j)
+    keep = np.abs(np.diag(r)) > 1e-10 * np.abs(np.diag(r)).max()
+    return q[:, keep]
+
+
+def remainder_after_library(d, jn, cols) -> dict:
+    """Truth side of spec §6 G9: the noncentrality of a whitened out-of-library term ``d``
+    (train rows) left after the nominal parameters (columns ``jn``) and the best catalogue fit
+    the diagnosis can make (one effect, or a pair: its greedy second step) are fitted.
+    ``cols``: family -> list of column blocks (one per grid value). Returns the
+    nominal-projected lambda, the remainder after the best fit (one effect or a pair), after
+    the best single effect, and that effect."""
+
+    def left(extra):
+        q = _basis(np.concatenate([jn] + list(extra), axis=1))
+        r = d - q @ (q.T @ d)
+        return float(r @ r)
+
+    fams = list(cols)
+    single = min(((a, left([ca])) for a in fams for ca in cols[a]), key=lambda x: x[1])
+    pair = min(left([ca, cb]) for i, a in enumerate(fams) for b in fams[i + 1:]
+               for ca in cols[a] for cb in cols[b])
+    return {"nominal_lambda": left([]), "remainder_lambda": min(single[1], pair),
+            "remainder_single_lambda": single[1], "closest_effect": single[0]}
+
+
+def confident(r) -> bool:
+    """Attributed with posterior > 0.9 (an effect without a posterior, e.g. a noise-model term,
+    counts as confident)."""
+    return r["verdict"] == "attributed" and bool(r["effects"]) and max(
+        r["posterior"].get(e, 1.0) for e in r["effects"]) > 0.9
+
+
+def ool_scores(ool) -> dict:
+    """Spec §6 G9 over out-of-library (truth, result) pairs: over the cases whose remainder
+    noncentrality after the best library fit (truth side, ``remainder_lambda``; else the
+    case's lambda) is >= 32, the share not confidently attributed and the share unexplained or
+    ambiguous; over every case, the confident misattributions."""
+    strong = [(t, r) for t, r in ool if t.get("remainder_lambda", t["lambda"]) >= 32]
+    return {
+        "ool_strong_not_confident": _rate(strong, lambda t, r: not confident(r)),
+        "ool_strong_unexplained_or_ambiguous": _rate(
+            strong, lambda t, r: r["verdict"] in ("unexplained", "ambiguous")),
+        "ool_confident_misattribution": _rate(ool, lambda t, r: confident(r)),
+        "ool_remainder_from_truth": bool(ool) and all("remainder_lambda" in t for t, _ in ool),
+    }
+
+
 def _scores(ranking) -> dict:
     """What the oracle needs from a blind run: each effect's score statistic and dof at every
     grid value (``{name: [scores, dofs]}``)."""
@@ -349,6 +422,42 @@ def oracle_choice(r, lam: float):
         return None
     lbf = {k: grid_log_bf(sc, d, lam) for k, (sc, d) in r["scores"].items()}
     return max(lbf, key=lbf.get)
+
+
+def calibration(pairs, n_bins: int = 10):
+    """Spec §5.6 set calibration of the posteriors over in-library (truth, result) pairs, with
+    each result's posteriors renormalised over the catalogue (an effect is present): expected
+    calibration error of the top posterior (``n_bins`` equal-width bins; ``|accuracy -
+    confidence|`` weighted by the bin's share) and the multi-class Brier score. ``None``
+    without posteriors."""
+    conf, hit, brier = [], [], []
+    for t, r in pairs:
+        post = r.get("posterior") or {}
+        total = sum(post.values())
+        if total <= 0:
+            continue
+        p = {k: v / total for k, v in post.items()}
+        top = max(p, key=p.get)
+        conf.append(p[top])
+        hit.append(float(top == t["family"]))
+        brier.append(sum((v - (k == t["family"])) ** 2 for k, v in p.items())
+                     + (0.0 if t["family"] in p else 1.0))
+    if not conf:
+        return None
+    conf, hit = np.asarray(conf), np.asarray(hit)
+    bins = np.minimum((conf * n_bins).astype(int), n_bins - 1)
+
+    def ece(h):
+        return sum(abs(h[bins == b].mean() - conf[bins == b].mean()) * np.mean(bins == b)
+                   for b in range(n_bins) if np.any(bins == b))
+
+    # the ECE a perfectly calibrated forecaster shows with these confidences and this n (the
+    # binned ECE is biased upwards at small n): outcomes drawn as Bernoulli(confidence)
+    rng = np.random.default_rng(0)
+    null = [ece((rng.uniform(size=conf.size) < conf).astype(float)) for _ in range(1000)]
+    return {"ece": float(ece(hit)), "ece_calibrated_median": float(np.median(null)),
+            "ece_calibrated_95": float(np.quantile(null, 0.95)), "brier": float(np.mean(brier)),
+            "n": len(conf), "mean_confidence": float(conf.mean()), "accuracy": float(hit.mean())}
 
 
 def ratio_rate(pairs, num, den):
@@ -395,6 +504,8 @@ def score(case_dir, results, separable=None) -> dict:
             "top1_separable": rate([(t, r) for t, r in sub if t["family"] in sep],
                                    lambda t, r: _top(r) == t["family"]),
             "oracle_top1": rate(sub, lambda t, r: oracle_choice(r, lam) == t["family"]),
+            "oracle_top1_separable": rate([(t, r) for t, r in sub if t["family"] in sep],
+                                          lambda t, r: oracle_choice(r, lam) == t["family"]),
             "oracle_efficiency": ratio_rate(sub, lambda t, r: _top(r) == t["family"],
                                             lambda t, r: oracle_choice(r, lam) == t["family"]),
             "set_coverage": rate([(t, r) for t, r in sub if r["ambiguity"]],
@@ -404,9 +515,11 @@ def score(case_dir, results, separable=None) -> dict:
                               if any(r["ambiguity"] for _, r in sub) else None),
             "confident_misattribution": rate(sub, lambda t, r: max(r["posterior"].values()) > 0.9
                                              and _top(r) != t["family"]),
+            "calibration": calibration(sub),
             "b1_power": rate(sub, lambda t, r: r.get("b1_detect")),
             "b2_top1": rate(sub, lambda t, r: r.get("b2_choice") == t["family"]),
         }
+    out["calibration"] = calibration(lib)
     red = [_reduction(r) for t, r in lib if r["verdict"] in ("attributed", "ambiguous")]
     red = [x for x in red if x is not None]
     out["heldout_reduction_median"] = float(np.median(red)) if red else None
@@ -416,6 +529,7 @@ def score(case_dir, results, separable=None) -> dict:
     out["out_of_library_honest"] = rate(ool, lambda t, r: r["verdict"] in
                                         ("unexplained", "ambiguous", "no-gap")
                                         or max(r["posterior"].values()) <= 0.9)
+    out |= ool_scores(ool)  # spec §6 G9
     out["two_effects_both_named"] = rate(two, lambda t, r: {e["family"] for e in t["effects"]}
                                          <= set(r["effects"]) | set(r["ambiguity"]))
     diag = [r["time_diagnose_s"] for _, r in rows]

@@ -37,7 +37,7 @@ from ..analysis.spectral import term_spectra
 from ..models.imu import IMUConditions, IMURig, Pose, cube_poses, imu_measure, simulate_imu
 from ..record import BenchRecord
 from ._harness import run_cases, score_cases
-from .bench import _Sealer
+from .bench import _basis, _Sealer, remainder_after_library
 
 __all__ = ["IMUDesign", "generate", "run", "score", "MEAN_FAMILIES", "NOISE_FAMILIES",
            "OUT_OF_LIBRARY"]
@@ -130,13 +130,6 @@ def _lambda_scale(params, design, names, b, n_train_frac):
     return 1.0 / math.sqrt(float(b @ (jt.T @ jt) @ b))
 
 
-def _basis(j):
-    """Orthonormal basis of the column span of ``j`` (rank-revealing QR)."""
-    q, r = np.linalg.qr(j)
-    keep = np.abs(np.diag(r)) > 1e-10 * np.abs(np.diag(r)).max()
-    return q[:, keep]
-
-
 def _remainder_lambda(params, design, term):
     """Truth side of spec §6 G9: the noncentrality of an additive term ``term`` (n, 6) on the
     train static samples (whitened) that is left after the nominal parameters (biases, pose
@@ -158,17 +151,7 @@ def _remainder_lambda(params, design, term):
             k += len(fn)
         d = (np.asarray(term)[idx] / sig).reshape(-1)
 
-    def left(extra):
-        q = _basis(np.concatenate([jn] + list(extra), axis=1))
-        r = d - q @ (q.T @ d)
-        return float(r @ r)
-
-    fams = list(cols)
-    single = min(((a, left([ca])) for a in fams for ca in cols[a]), key=lambda x: x[1])
-    pair = min(left([ca, cb]) for i, a in enumerate(fams) for b in fams[i + 1:]
-               for ca in cols[a] for cb in cols[b])
-    return {"nominal_lambda": left([]), "remainder_lambda": min(single[1], pair),
-            "remainder_single_lambda": single[1], "closest_effect": single[0]}
+    return remainder_after_library(d, jn, cols)
 
 
 def _train_jacobian(params, design, names, n_train_frac):
