@@ -138,6 +138,14 @@ def _check_record(record: BenchRecord, holdout: float):
                          "need at least 60 - record longer or lower --holdout")
 
 
+def _noise_level(problem, resid):
+    """``(sigma, dof, source)`` of the train residual: the problem's own noise model where it
+    has one (e.g. the IMU's AR prewhitening), else :func:`_noise`."""
+    if hasattr(problem, "noise_level"):
+        return problem.noise_level(resid)
+    return _noise(problem, resid)
+
+
 def _noise(problem, resid):
     """Per-channel noise level and its dof: given, or from first differences (von Neumann)."""
     if problem.noise_std is not None:
@@ -225,8 +233,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     params0 = prob.fit_nominal()
     pred0 = prob.predict(params0)
     resid_all = prob.y - pred0
-    sigma, noise_dof, noise_src = (prob.noise_level(resid_all[:n]) if hasattr(prob, "noise_level")
-                                   else _noise(prob, resid_all[:n]))
+    sigma, noise_dof, noise_src = _noise_level(prob, resid_all[:n])
 
     def standardize(resid):
         if hasattr(prob, "standardize"):

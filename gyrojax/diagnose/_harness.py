@@ -35,15 +35,14 @@ def separability(record, rig: str, sigma, split=None) -> dict:
     spec §5.6 calls an effect separable at <= 0.9. ``sigma``: the channels' noise (SI; only the
     ratios between channels matter); ``None``: the problem's own noise model on this record (the
     diagnosis's, e.g. the IMU's AR prewhitening)."""
-    from ._diagnose import _noise, _problem, _train_slice
+    from ._diagnose import _noise_level, _problem, _train_slice
     from ._stats import _project, canonical_correlation, nominal_basis, visible
 
     prob = _problem(record, rig, 0.25, None, None, "exact", split)
     params0 = prob.fit_nominal()
     if sigma is None:
         resid = (prob.y - prob.predict(params0))[: prob.n_train]
-        sigma = (prob.noise_level(resid) if hasattr(prob, "noise_level")
-                 else _noise(prob, resid))[0]
+        sigma = _noise_level(prob, resid)[0]
     jn, sigs = prob.jacobians(params0, sigma)
     m = prob.n_train * len(prob.channels)
     jn, sigs = jn[:m], [_train_slice(s, m) for s in sigs]
