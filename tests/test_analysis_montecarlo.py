@@ -27,6 +27,24 @@ def test_chunked_monte_carlo_equals_direct_vmap():
         monte_carlo(fn, {"a": jnp.zeros(3), "b": jnp.zeros((4, 2))})
 
 
+def test_vectorized_batch_function_equals_the_per_draw_function():
+    """``vectorized=True`` calls a batch function on each chunk as is; here it maps its second
+    stage in sub-batches with lax.map, and must give what vmap of the per-draw function gives."""
+    draws = {"a": jnp.arange(37.0), "b": jnp.arange(74.0).reshape(37, 2)}
+
+    def per_draw(d):
+        return jnp.sin(d["a"]) + d["b"] @ jnp.array([1.0, -2.0])
+
+    def batch(d):
+        stage1 = jax.vmap(lambda x: jnp.sin(x["a"]))(d)
+        stage2 = jax.lax.map(lambda b: b @ jnp.array([1.0, -2.0]), d["b"], batch_size=4)
+        return stage1 + stage2
+
+    out = monte_carlo(batch, draws, chunk_size=8, vectorized=True)  # 5 chunks, the last padded
+    np.testing.assert_allclose(out, jax.vmap(per_draw)(draws), rtol=1e-14)
+    assert out.shape == (37,)
+
+
 def test_sharded_over_two_host_devices():
     """The same call shards each chunk over every JAX device (here 2 forced CPU devices)."""
     code = textwrap.dedent("""

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from ..record import BenchRecord
-from ._linalg import scaled_lstsq
+from ._linalg import scaled_lstsq_columns
 from ._result import AbstractNamedEstimate
 
 __all__ = ["RegressionResult", "integral_regression", "regression_design"]
@@ -42,7 +42,14 @@ class RegressionResult(AbstractNamedEstimate):
 
 def regression_design(rig, record: BenchRecord, conditions, *, window: int = 1,
                       names: Sequence[str] | None = None, quadrature: str = "trapezoid"):
-    """The stacked block design ``A`` (2r, k) and right-hand side ``b`` (2r,) of (6.3)-(6.4)."""
+    """The stacked block design ``A`` (2r, k) and right-hand side ``b`` (2r,) of (6.3)-(6.4): the
+    ``r`` block rows of the first channel, then those of the second."""
+    ab_t, names = _design_columns(rig, record, conditions, window, names, quadrature)
+    return ab_t[:-1].T, ab_t[-1], names
+
+
+def _design_columns(rig, record, conditions, window, names, quadrature):
+    """``[A b]^T`` (k+1, 2r), each column of ``A`` (and ``b``) one contiguous row."""
     if window < 1:
         raise ValueError(f"window={window}: the block length must be an integer >= 1 sample")
     if quadrature not in ("trapezoid", "simpson"):
@@ -54,38 +61,43 @@ def regression_design(rig, record: BenchRecord, conditions, *, window: int = 1,
     bad = [n for n in names if n not in all_names]
     if bad:
         raise ValueError(f"{bad} are not regression parameters of this rig; use {all_names}")
-    cols = jnp.array([all_names.index(n) for n in names])
     tau = record.t * rig.time_scale
     alpha = record.y
-    c, f = rig.regression_terms(alpha, conditions)  # (n, 2), (n, 2, k)
-    f = f[..., cols]
     n = tau.shape[0]
     r = (n - 1) // window
     if r < 1:
         raise ValueError(f"window={window} is longer than the record ({n} samples)")
     m = r * window
+    (c1, c2), f1, f2 = rig.regression_columns(alpha, conditions)
     if quadrature == "trapezoid":
-        h = jnp.diff(tau)[:m]
-        inc_f = 0.5 * h[:, None, None] * (f[1 : m + 1] + f[:m])
-        inc_c = 0.5 * h[:, None] * (c[1 : m + 1] + c[:m])
-        per = window
+        h = 0.5 * jnp.diff(tau)[:m]
+
+        def block_integral(x):
+            return (h * (x[1 : m + 1] + x[:m])).reshape(r, window).sum(1)
     else:  # composite Simpson over pairs of intervals (uniform sampling within each pair)
         h = (tau[2 : m + 1 : 2] - tau[:m:2]) / 6.0
-        inc_f = h[:, None, None] * (f[: m : 2] + 4 * f[1:m:2] + f[2 : m + 1 : 2])
-        inc_c = h[:, None] * (c[: m : 2] + 4 * c[1:m:2] + c[2 : m + 1 : 2])
-        per = window // 2
-    a = inc_f.reshape(r, per, 2, -1).sum(1)
-    cq = inc_c.reshape(r, per, 2).sum(1)
+
+        def block_integral(x):
+            return (h * (x[: m : 2] + 4 * x[1:m:2] + x[2 : m + 1 : 2])).reshape(r, -1).sum(1)
+
     ends = alpha[: m + 1 : window]
-    b = ends[1:] - ends[:-1] - cq
-    return a.reshape(2 * r, -1), b.reshape(2 * r), names
+    rows = [(block_integral(f1[all_names.index(nm)]), block_integral(f2[all_names.index(nm)]))
+            for nm in names]
+    rows.append((ends[1:, 0] - ends[:-1, 0] - block_integral(c1),
+                 ends[1:, 1] - ends[:-1, 1] - block_integral(c2)))
+    # in-place row updates, not a stacking concatenate (which XLA evaluates operand by operand
+    # for every element: several times slower here)
+    ab_t = jnp.zeros((len(rows), 2 * r), alpha.dtype)
+    for i, (x1, x2) in enumerate(rows):
+        ab_t = ab_t.at[i, :r].set(x1).at[i, r:].set(x2)
+    return ab_t, names
 
 
 @eqx.filter_jit
-def _solve(a, b):
-    p, cov_unit, s = scaled_lstsq(a, b)
-    res = b - a @ p
-    dof = jnp.maximum(a.shape[0] - jnp.sum(s > 1e-12 * s[0]), 1)
+def _solve(ab_t):
+    p, cov_unit, s = scaled_lstsq_columns(ab_t)
+    res = ab_t[-1] - p @ ab_t[:-1]
+    dof = jnp.maximum(ab_t.shape[1] - jnp.sum(s > 1e-12 * s[0]), 1)
     sigma2 = jnp.sum(res**2) / dof
     cov = sigma2 * cov_unit
     return p, jnp.sqrt(jnp.diag(cov)), cov, jnp.sqrt(jnp.mean(res**2)), s
@@ -97,7 +109,7 @@ def integral_regression(rig, record: BenchRecord, conditions, *, window: int = 1
     """Estimate the linear-model parameters of ``rig`` from a record by integral regression.
 
     **Arguments:**
-    - `rig`: a rig with ``regression_terms`` and ``regression_names`` (the ESG rig).
+    - `rig`: a rig with ``regression_columns`` and ``regression_names`` (the ESG rig).
     - `record`: the measured angles; `conditions`: the rig's conditions (latitude, scheme).
     - `window`: block length ``s`` in samples (spec §8.3); 1 uses every sample interval.
     - `names`: subset of ``rig.regression_names`` to estimate (the others are held at zero), e.g.
@@ -107,8 +119,7 @@ def integral_regression(rig, record: BenchRecord, conditions, *, window: int = 1
 
     **Returns:** a :class:`RegressionResult`. Works under ``jax.vmap`` over records.
     """
-    a, b, names = regression_design(rig, record, conditions, window=window, names=names,
-                                    quadrature=quadrature)
-    p, se, cov, rms, s = _solve(a, b)
+    ab_t, names = _design_columns(rig, record, conditions, window, names, quadrature)
+    p, se, cov, rms, s = _solve(ab_t)
     return RegressionResult(names=names, values=p, stderr=se, covariance=cov, residual_rms=rms,
                             singular_values=s)

@@ -255,15 +255,33 @@ class ESGRig(AbstractRig):
     def regression_terms(self, alpha, conditions):
         """``c(alpha)`` (2,) and ``F(alpha)`` (2, k) of $\\alpha' = c + F p$ (spec (6.7), (6.10)).
 
-        Written out from the spec (with the corrected ``f18``) rather than differentiated: it is
-        the hot path of the regression; tests check it against the autodiff tangent of the exact
-        model. ``alpha`` may carry leading batch axes.
+        Written out from the spec (with the corrected ``f18``) rather than differentiated; tests
+        check it against the autodiff tangent of the exact model. ``alpha`` may carry leading batch
+        axes. The stacked form of :meth:`regression_columns`.
+        """
+        c, f1, f2 = self.regression_columns(alpha, conditions)
+        f = jnp.stack([jnp.stack(f1, axis=-1), jnp.stack(f2, axis=-1)], axis=-2)
+        return jnp.stack(c, axis=-1), f
+
+    def regression_columns(self, alpha, conditions):
+        """:meth:`regression_terms` as lists of arrays shaped like ``alpha[..., 0]``: ``(c1, c2)``,
+        then the ``k`` columns of the first row of ``F``, then of the second.
+
+        The hot path of the integral regression. The trigonometry of the measured angles is
+        computed once and stored (XLA would otherwise re-evaluate it inside every column's fused
+        loop, and a stacking concatenate evaluates every operand per element); each column is then
+        a few multiplications of stored arrays.
         """
         u_zeta, g_zeta = conditions.base_vectors()
         a1, a2 = alpha[..., 0], alpha[..., 1]
-        s1, c1, s2, c2 = jnp.sin(a1), jnp.cos(a1), jnp.sin(a2), jnp.cos(a2)
+        c2 = jnp.cos(a2)
         sec = 1.0 / c2
-        t2 = s2 * sec
+        s2 = jnp.sin(a2)
+        trig = (jnp.sin(a1), jnp.cos(a1), s2, c2, sec, s2 * sec)
+        store = jnp.zeros((len(trig), *a1.shape), a1.dtype)
+        for i, v in enumerate(trig):  # in-place updates: one loop per value, nothing repeated
+            store = store.at[i].set(v)
+        s1, c1, s2, c2, sec, t2 = store
 
         # projections x_i . v for platform axes x1 = (c2, s1 s2, -c1 s2), x2 = (0, c1, s1),
         # x3 = (s2, -s1 c2, c1 c2) in base components (spec §3.3)
@@ -298,8 +316,7 @@ class ESGRig(AbstractRig):
                                        [0.0, -s1x, c1x * c2x]])
             b1 = [sum(e1[i] * jac[i, j] for i in range(3)) for j in range(3)]
             b2 = [sum(e2[i] * jac[i, j] for i in range(3)) for j in range(3)]
-        f = jnp.stack([jnp.stack(row1 + b1, axis=-1), jnp.stack(row2 + b2, axis=-1)], axis=-2)
-        return jnp.stack([-u1 * sec, -u2], axis=-1), f
+        return (-u1 * sec, -u2), row1 + b1, row2 + b2
 
 
 def _drift_param(name, effect=None, scale=0.01, description=""):
