@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gyrojax.analysis.montecarlo import monte_carlo
+from gyrojax.analysis.montecarlo import monte_carlo, staged
 from gyrojax.analysis.mounting import mounting_error_budget
 
 
@@ -45,11 +45,29 @@ def test_vectorized_batch_function_equals_the_per_draw_function():
     assert out.shape == (37,)
 
 
+def test_staged_trials_equal_the_composed_per_draw_function():
+    """``staged(first, second)``: first vmapped over the batch, second in lax.map sub-batches
+    (a divisor of the batch, here 37 -> 1 and 8 -> 8, 4 -> 4), same values as vmap of both."""
+    draws = {"a": jnp.arange(37.0), "b": jnp.arange(74.0).reshape(37, 2)}
+
+    def first(d):
+        return jnp.sin(d["a"]) * d["b"]
+
+    def second(d, y):
+        return {"s": y.sum() + d["a"], "v": y * 2}
+
+    ref = jax.vmap(lambda d: second(d, first(d)))(draws)
+    for chunk in (37, 8, 4):
+        out = monte_carlo(staged(first, second), draws, chunk_size=chunk, vectorized=True)
+        np.testing.assert_allclose(out["s"], ref["s"], rtol=1e-14)
+        np.testing.assert_allclose(out["v"], ref["v"], rtol=1e-14)
+
+
 def test_sharded_over_two_host_devices():
     """The same call shards each chunk over every JAX device (here 2 forced CPU devices)."""
     code = textwrap.dedent("""
         import gyrojax, jax, jax.numpy as jnp, numpy as np
-        from gyrojax.analysis.montecarlo import monte_carlo
+        from gyrojax.analysis.montecarlo import monte_carlo, staged
         assert len(jax.devices()) == 2, jax.devices()
         seen = []
         def fn(x):

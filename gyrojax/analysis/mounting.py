@@ -25,7 +25,7 @@ from ..estimate.regression import integral_regression, regression_design
 from ..models.esg import DRIFT_NAMES, SCHEMES, ESGConditions, ESGRig
 from ..record import BenchRecord
 from ..simulate import integrate
-from .montecarlo import monte_carlo
+from .montecarlo import monte_carlo, staged
 
 __all__ = ["mounting_error_tables", "mounting_error_budget", "MountingTables", "MountingBudget",
            "PAPER_TABLE2", "PAPER_TABLE3"]
@@ -93,14 +93,17 @@ def mounting_error_tables(latitude_deg: float = 55.75, *, schemes=SCHEMES, drift
     params = jax.tree.map(lambda *x: jnp.tile(jnp.stack(x), ns), *cases)
     cond_b = jax.tree.map(lambda x: jnp.repeat(x, nc, axis=0), conds)
 
-    def one(draw):
+    def simulate(draw):
         p, c = draw
-        y = integrate(rig, p, c, ts)
-        rec = BenchRecord(ts, y, rig.channels)
-        est = integral_regression(rig, rec, c, names=DRIFT_NAMES).values
-        return y, est
+        return integrate(rig, p, c, ts)
 
-    ys, est = monte_carlo(one, (params, cond_b), chunk_size=ns * nc)
+    def identify(draw, y):
+        rec = BenchRecord(ts, y, rig.channels)
+        return y, integral_regression(rig, rec, draw[1], names=DRIFT_NAMES).values
+
+    # one device: batched LAPACK on several CPU devices can deadlock jaxlib 0.10.2 (notes)
+    ys, est = monte_carlo(staged(simulate, identify), (params, cond_b), chunk_size=ns * nc,
+                          devices=jax.devices()[:1], vectorized=True)
     ys = ys.reshape(ns, nc, *ys.shape[1:])
     est = est.reshape(ns, nc, -1)
     angle, drift_err, worst = {}, {}, {}
@@ -179,13 +182,16 @@ def mounting_error_budget(key, n_draws: int, latitude_deg: float = 55.75, *, sch
                        jnp.ones(len(joint_names), bool)])
     noise = noise_arcsec * units.ARCSEC
 
-    def one(draw):
+    def simulate(draw):
         i, dc, th, kd = draw
         c = jax.tree.map(lambda x: x[i], conds)
         p = base | {"theta1": th[0], "theta2": th[1], "dchi1": dc[0], "dchi2": dc[1],
                     "dchi3": dc[2]}
         y = integrate(rig, p, c, ts)
-        y = y + noise * jax.random.normal(jax.random.wrap_key_data(kd), y.shape)
+        return y + noise * jax.random.normal(jax.random.wrap_key_data(kd), y.shape)
+
+    def identify(draw, y):
+        c = jax.tree.map(lambda x: x[draw[0]], conds)
         rec = BenchRecord(ts, y, rig.channels)
         a, b, _ = regression_design(rig, rec, c, names=joint_names)
         # both fits from one design in one batched solve: two independent LAPACK solves after a
@@ -194,8 +200,9 @@ def mounting_error_budget(key, n_draws: int, latitude_deg: float = 55.75, *, sch
         err = (est - drift) * units.EARTH_RATE_DEG_PER_HOUR
         return err[0], err[1]
 
-    e_only, e_joint = monte_carlo(one, (sidx, dchi, theta, keys), chunk_size=chunk_size,
-                                  progress=progress)
+    e_only, e_joint = monte_carlo(staged(simulate, identify), (sidx, dchi, theta, keys),
+                                  chunk_size=chunk_size, progress=progress,
+                                  devices=jax.devices()[:1], vectorized=True)
     drift_only = {s: e_only[sidx == i] for i, s in enumerate(schemes)}
     joint = {s: e_joint[sidx == i] for i, s in enumerate(schemes)}
     return MountingBudget(schemes, drift_only, joint, n_draws)
