@@ -77,6 +77,17 @@ def fmt_rate(r) -> str:
     return f"{r['rate']:.2f} ± {r['se']:.2f} (n={r['n']})"
 
 
+def far_text(s) -> str:
+    """The null cases' false-alarm rate, and where the BH level was calibrated by null draws
+    (spec §6 G1), what the uncalibrated weighted BH at q < 0.05 gives on the same cases."""
+    text = f"false-alarm rate {fmt_rate(s['far'])}"
+    lvl = s.get("level_median")
+    if s.get("far_plain_bh") and lvl is not None and abs(lvl - 0.05) > 1e-12:
+        text += (f" (BH level calibrated by 499 null draws per record, median {lvl:.3f}; "
+                 f"uncalibrated, q < 0.05: {fmt_rate(s['far_plain_bh'])})")
+    return text
+
+
 def calibration_line(pooled, by_lambda: dict) -> str:
     """One line on the posteriors' calibration (spec §6 G4: ECE <= 0.05) from
     :func:`gyrojax.diagnose.bench.calibration` results, pooled and per lambda."""

@@ -25,6 +25,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from _results import (  # noqa: E402
     ORACLE_NOTE,
     blind_suite,
+    far_text,
     machine_line,
     publish,
     rescore,
@@ -60,7 +61,7 @@ def main(argv=None):
              "Carlo standard error (n cases). top-1 = the verdict's first effect (or the top "
              "posterior) is the hidden one; named = the hidden effect is in the verdict or the "
              "90 % ambiguity set.", "",
-             f"- Nulls: false-alarm rate {_fmt(s['far'])}.",
+             f"- Nulls: {far_text(s)}.",
              f"- Structural: a hidden suspension-tape torque (0.5-2 nN m, i.e. 22-89 arcsec of "
              f"equilibrium shift) left unattributed (no-gap or confounded): "
              f"{_fmt(s['structural_silent'])}; it is flagged structurally confounded in every "

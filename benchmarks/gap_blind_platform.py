@@ -36,6 +36,7 @@ from _results import (  # noqa: E402
     ORACLE_NOTE,
     blind_suite,
     diagnose_suite,
+    far_text,
     machine_line,
     publish,
     suite_lines,
@@ -73,9 +74,9 @@ def nulls(args, work, design):
              "", machine_line(), "",
              f"{args.nulls} sealed nulls on design D2 (seed {args.seed + 1}; the 27 nominal "
              f"coefficients drawn per case), generated in {t_gen:.0f} s, diagnosed in "
-             f"{t_run:.0f} s (median {s['median_diagnose_s']:.2f} s per case): false-alarm rate "
-             f"(verdict not no-gap, alpha 0.05, weighted BH over map + library) "
-             f"{_fmt(s['far'])}; spec §6 G1: [0.03, 0.06]."]
+             f"{t_run:.0f} s (median {s['median_diagnose_s']:.2f} s per case): verdict not "
+             f"no-gap at alpha 0.05 (weighted BH over map + library): {far_text(s)}; spec §6 G1: "
+             "[0.03, 0.06]."]
     publish(args.out, "gap_blind_platform_nulls", lines)
 
 
@@ -149,7 +150,7 @@ def suite(args, work, design):
              "± Monte Carlo standard error (n cases). top-1 = the verdict's first effect (or the "
              "top posterior) is the hidden one; named = the hidden effect is in the verdict or "
              "the 90 % ambiguity set.", "",
-             f"- Nulls: false-alarm rate {_fmt(s['far'])}.",
+             f"- Nulls: {far_text(s)}.",
              "- Structural (seed 001): hidden D_oo at its prior scale (0.03 deg/h/g^2) on a "
              "single-amplitude test left unattributed (no-gap or confounded): "
              f"{_fmt(s['structural_silent'])}; the aliases D_f + kappa D_oo, D_ii - D_oo, "

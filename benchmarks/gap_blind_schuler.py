@@ -24,12 +24,12 @@ sys.path.insert(0, os.path.dirname(__file__))
 from _results import (  # noqa: E402
     ORACLE_NOTE,
     blind_suite,
+    far_text,
     machine_line,
     publish,
     rescore,
     suite_lines,
 )
-from _results import fmt_rate as _fmt  # noqa: E402
 
 from gyrojax.diagnose import bench_schuler  # noqa: E402
 from gyrojax.diagnose._harness import separability  # noqa: E402
@@ -60,7 +60,7 @@ def main(argv=None):
              "compile each effect's refit). Rates ± Monte Carlo standard error (n cases). top-1 = "
              "the verdict's first effect (or the top posterior) is the hidden one; named = the "
              "hidden effect is in the verdict or the 90 % ambiguity set.", "",
-             f"- Nulls: false-alarm rate {_fmt(s['far'])}.",
+             f"- Nulls: {far_text(s)}.",
              "- Separability on D5 (largest projected canonical correlation with another "
              "catalogue effect, over every pair of grid values): "
              + ", ".join(f"{e} {v:.4f}" for e, v in sorted(sep.items()))

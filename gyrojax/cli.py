@@ -451,9 +451,13 @@ def cmd_diagnose(args):
         noise = _positive("--noise-arcsec", args.noise_arcsec) * units.ARCSEC
     if not 0 < args.alpha < 0.5:
         raise UsageError(f"--alpha {args.alpha}: give a significance level in (0, 0.5)")
+    if args.null_draws != 0 and args.null_draws < int(round(1 / args.alpha)) - 1:
+        raise UsageError(f"--null-draws {args.null_draws}: too few for --alpha {args.alpha}; "
+                         f"give 0 (no calibration) or at least {int(round(1 / args.alpha)) - 1}"
+                         " (default 499)")
     report = diagnose(record, rig=args.rig, effects=effects, holdout=args.holdout,
                       alpha=args.alpha, noise_std=noise, split=args.split,
-                      refit_all=args.refit_all)
+                      refit_all=args.refit_all, null_draws=args.null_draws)
     print(report.markdown())
     _emit_json(report.to_json(), args.json)
     if args.plot:
@@ -643,6 +647,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="angle noise std in arcsec (default: estimated from the residual)")
     p.add_argument("--alpha", type=float, default=0.05,
                    help="significance level after Benjamini-Hochberg control (default 0.05)")
+    p.add_argument("--null-draws", type=int, default=499,
+                   help="residuals drawn from the linearised null to calibrate the BH level to "
+                        "a false-alarm rate of exactly --alpha (default 499; 0: plain weighted "
+                        "BH at --alpha; rigs with their own noise model use the plain level)")
     p.add_argument("--plot", metavar="PNG", help="gap map, residuals before/after, ranking")
     p.set_defaults(func=cmd_diagnose)
 

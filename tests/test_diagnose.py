@@ -198,6 +198,56 @@ def test_bh_and_fisher_g():
         pw = np.abs(np.fft.rfft(x)[1:128]) ** 2
         hits += fisher_g_pvalue(pw.max() / pw.sum(), len(pw)) < 0.05
     assert 0.02 <= hits / 400 <= 0.09
+    # far below its null typical value (~ln q / q) g has p = 1; the alternating series used to
+    # cancel to 0 there (a spurious "largest line" at a flat periodogram)
+    assert fisher_g_pvalue(0.003, 539) == 1.0
+    np.testing.assert_allclose(fisher_g_pvalue(np.array([0.003, 0.8]), 2), [1.0, 0.4])
+
+
+def test_calibrated_level_gives_alpha_on_fresh_nulls_by_the_per_residual_code():
+    """The calibrated BH level (vectorised map + library over null draws) against a second
+    method: fresh null residuals scored one at a time by ``screen`` and ``gap_map_cells``, whose
+    smallest weighted-BH q falls below the level in a fraction alpha of them; plain BH at alpha
+    is conservative on these correlated tests."""
+    from gyrojax.diagnose._diagnose import _bh_weights, _calibrated_level, _null_sampler
+    from gyrojax.diagnose._stats import gap_map_cells, map_design, nominal_basis, screen_designs
+
+    rng = np.random.default_rng(11)
+    n, c = 200, 2
+    t = np.arange(n) * 60.0
+    tt = np.linspace(-1, 1, n)
+    jn = np.zeros((n, c, 3))
+    jn[:, 0, 0], jn[:, 1, 1], jn[:, :, 2] = 1.0, tt, np.sin(3 * tt)[:, None]
+    jn = jn.reshape(n * c, 3)
+    ramp = np.zeros((n, c, 1))
+    ramp[:, 0, 0] = tt ** 2
+    steps = np.stack([((tt > s)[:, None] * np.array([1.0, 0.5])).reshape(n * c, 1)
+                      for s in np.linspace(-0.6, 0.6, 7)])
+    sigs = [Signature("ramp", "trend", ("r",), ("1",), np.ones(1), ramp.reshape(1, n * c, 1)),
+            Signature("step", "step", ("s",), ("1",), np.ones(1), steps, grid=tuple(range(7)))]
+    designs = screen_designs(jn, sigs, n_boot=500)
+    noise_dof = 2 * (n - 1) / 3
+    lines = {"hour": 3600.0}
+    md = map_design(t, ("a", "b"), n_params=3, noise_dof=noise_dof, lines=lines, jn=jn)
+    w = _bh_weights(md.n_cells, 2, 0.5)
+    u = nominal_basis(jn)
+    draw = _null_sampler(object(), [], [], u, n, c, True)
+    level, _ = _calibrated_level(designs, md, w, 0.05, 9999, draw, seed=3)
+    minq = []
+    for _ in range(1000):
+        z = rng.standard_normal(n * c)
+        z -= u @ (u.T @ z)
+        z = z.reshape(n, c)
+        z /= np.sqrt(np.mean(np.diff(z, axis=0) ** 2, axis=0) / 2)
+        cells = gap_map_cells(z, t, ("a", "b"), n_params=3, noise_dof=noise_dof, lines=lines,
+                              jn=jn, design=md)
+        rows = screen(z.reshape(-1), jn, sigs, designs=designs)
+        p = np.array([x["p"] for x in cells] + [r.p for r in rows])
+        minq.append(bh_qvalues(p, w).min())
+    minq = np.array(minq)
+    far = np.mean(minq < level)  # 0.05 +- 0.007 (n = 1000), the level's own scatter +- 0.003
+    assert 0.025 <= far <= 0.08, (far, level)
+    assert level > 0.05 and np.mean(minq < 0.05) < far  # plain BH: conservative here
 
 
 # -- the ESG pipeline ------------------------------------------------------------------------
@@ -417,6 +467,8 @@ def test_bad_input_errors():
         diagnose(BenchRecord(rec.t, rec.y, rec.channels, ()))
     with pytest.raises(ValueError, match="holdout"):
         diagnose(rec, holdout=0.95)
+    with pytest.raises(ValueError, match="null_draws=10 with alpha=0.05: give 0"):
+        diagnose(rec, null_draws=10)
 
 
 def test_cli_diagnose(tmp_path, capsys):

@@ -82,6 +82,30 @@ def test_two_amplitudes_attribute_d_oo_and_null(records):
     assert null.verdict["heldout_gap_before"] < null.verdict["heldout_null_band"][1]
 
 
+def test_null_draws_of_the_calibrated_level_follow_the_data_residual(records):
+    """The platform's null residuals for the calibrated BH level: centred per train dwell like
+    the data (the offsets), orthogonal to the nominal span, and with the noise given their mean
+    squared norm is the residual dof n c - p - offsets (analytic: trace of the projector); the
+    diagnosis reports the calibrated level on the same-design split (not on the design shift)."""
+    from gyrojax.diagnose._stats import nominal_basis
+
+    prob = PlatformProblem(load_record(records["null"]), noise_std=units.ARCSEC)
+    params = prob.fit_nominal()
+    jn_all, _ = prob.jacobians(params, np.full(3, units.ARCSEC))
+    n = prob.n_train
+    u = nominal_basis(jn_all[: n * 3])
+    z = prob.null_residuals(np.random.default_rng(0), 2000, u)
+    k_tr = prob.n_blocks - prob.k_ho
+    assert np.abs(z.reshape(2000, -1, k_tr, 3).sum(axis=2)).max() < 1e-9
+    assert np.abs(z.reshape(2000, -1) @ u).max() < 1e-9
+    dof = n * 3 - u.shape[1] - prob.nuisance_dof
+    msq = np.mean(np.sum(z ** 2, axis=(1, 2)))
+    assert abs(msq / dof - 1) < 3 * np.sqrt(2 / dof / 2000) + 1e-3, (msq, dof)
+    rep = diagnose(load_record(records["null"]), rig="platform", design_advice=False)
+    assert rep.multiplicity["null_draws"] == 499 and "calibrated" in rep.multiplicity["method"]
+    assert 0.0 < rep.multiplicity["global_p"] <= 1.0
+
+
 def test_design_shift_split_sees_what_the_train_design_cannot(records, capsys):
     """Spec §4.2 stage 4 / G7: hidden D_oo on a 9 + 7 g test. The design-shift split trains on
     the 9 g run only, where D_oo has no signature: the train rows show nothing, yet the 7 g
@@ -102,6 +126,7 @@ def test_design_shift_split_sees_what_the_train_design_cannot(records, capsys):
                     design_advice=False)
     assert null.verdict["kind"] == "no-gap"
     assert null.verdict["heldout_gap_before"] < null.verdict["heldout_null_band"][1]
+    assert null.multiplicity["null_draws"] == 0  # the held-out cell is outside the simulation
     with pytest.raises(ValueError, match="one amplitude"):
         diagnose(load_record(records["one"]), rig="platform", split="design-shift")
     same = diagnose(two, rig="platform", refit_all=True, design_advice=False)

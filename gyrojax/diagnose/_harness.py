@@ -16,7 +16,17 @@ from pathlib import Path
 import numpy as np
 
 from ..io import load_record
-from .bench import _rate, _scores, _sha, calibration, ool_scores, oracle_choice, ratio_rate
+from .bench import (
+    _rate,
+    _scores,
+    _sha,
+    calibration,
+    multiplicity_fields,
+    ool_scores,
+    oracle_choice,
+    plain_bh_far,
+    ratio_rate,
+)
 
 __all__ = ["run_cases", "score_cases", "projector", "separability"]
 
@@ -84,6 +94,7 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
             "single_refits": {rf["effects"][0]: rf["heldout_gap_after"] for rf in rep.refits
                               if len(rf["effects"]) == 1},
             "time_diagnose_s": time.perf_counter() - t0,
+            **multiplicity_fields(rep),
         })
         if progress is not None:
             progress(k + 1, len(paths))
@@ -124,7 +135,8 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
     def oracle(t, r):
         return oracle_choice(r, t["lambda"]) == t["family"]
 
-    out = {"far": _rate(nulls, lambda t, r: r["verdict"] != "no-gap"), "by_lambda": {}}
+    out = {"far": _rate(nulls, lambda t, r: r["verdict"] != "no-gap"), **plain_bh_far(nulls),
+           "by_lambda": {}}
     for lam in sorted({t["lambda"] for t, _ in lib}):
         sub = [(t, r) for t, r in lib if t["lambda"] == lam]
         sizes = [len(r["ambiguity"]) for _, r in sub if r["ambiguity"]]

@@ -293,6 +293,22 @@ class PlatformProblem:
         return s, len(d) / 1.94, ("estimated from second differences of the residual within "
                                   "dwells")
 
+    def null_residuals(self, rng, b: int, u) -> np.ndarray:
+        """``b`` whitened train residuals under the linearised null (the diagnosis' calibrated
+        level): white block means, centred per train dwell like the data (the offsets), taken
+        off the nominal span ``u``, and divided by :meth:`noise_level`'s estimate when the noise
+        is not given. Shape ``(b, n_train, 3)``."""
+        k_tr = self.n_blocks - self.k_ho
+        z = rng.standard_normal((b, self.n_train // k_tr, k_tr, 3))
+        z -= z.mean(axis=2, keepdims=True)
+        z = z.reshape(b, -1)
+        z -= (z @ u) @ u.T
+        z = z.reshape(b, -1, k_tr, 3)
+        if self.noise_std is None:
+            d = np.diff(z, n=2, axis=2)
+            z /= np.sqrt(np.mean(d * d, axis=(1, 2)) / 6)[:, None, None, :]
+        return z.reshape(b, self.n_train, 3)
+
     def predict(self, params: dict, extra=None) -> np.ndarray:
         v = np.array([params[n] for n in NOMINAL])
         pred = np.einsum("nck,k->nc", self._nominal_cols(self._cols), v)

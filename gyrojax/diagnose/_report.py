@@ -71,6 +71,7 @@ class GapReport:
     residual_after: np.ndarray | None = dataclasses.field(default=None, repr=False)
     noise_effects: list = dataclasses.field(default_factory=list)
     split: str = "time-ordered (held-out = the record's end)"
+    multiplicity: dict = dataclasses.field(default_factory=dict)
 
     @property
     def kind(self) -> str:
@@ -116,8 +117,17 @@ class GapReport:
             "ambiguity": self.ambiguity, "second_effect": self.second,
             "noise_effects": self.noise_effects,
             "refits": self.refits, "design_advice": self.design_advice,
-            "verdict": self.verdict, "alpha": self.alpha, "timings": self.timings,
+            "verdict": self.verdict, "alpha": self.alpha, "multiplicity": self.multiplicity,
+            "timings": self.timings,
         })
+
+    def _multiplicity_text(self) -> str:
+        m = self.multiplicity or {"method": "weighted BH", "level": self.alpha}
+        text = f"{m['method']}, significant at q < {m['level']:.3g}"
+        if m.get("null_draws"):
+            text += (f" (alpha {self.alpha} over {m['null_draws']} null draws; global p "
+                     f"{m['global_p']:.3g})")
+        return text
 
     def markdown(self) -> str:
         v = self.verdict
@@ -134,7 +144,8 @@ class GapReport:
         sig = ", ".join(f"{ch} {_noise_text(self.rig, ch, s)}"
                         for ch, s in zip(self.channels, self.noise["std"]))
         lines += [f"Noise level: {sig} ({self.noise['source']}); train gap {self.gap['train']:.3g}",
-                  "", "## Where (significant cells, weighted BH q < alpha)", ""]
+                  f"Multiplicity: {self._multiplicity_text()}",
+                  "", "## Where (significant cells)", ""]
         hits = [x for x in self.where if x.get("significant")]
         if hits:
             lines += ["| axis | cell | channel | statistic | expected | q |", "|---|---|---|---|---|---|"]

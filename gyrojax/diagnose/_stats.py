@@ -21,7 +21,7 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy import stats
+from scipy import special, stats
 
 __all__ = ["Signature", "Screen", "screen", "bh_qvalues", "gap_map_cells", "canonical_correlation"]
 
@@ -223,65 +223,143 @@ def visibility_flag(v: float, has_null: bool, visible_dims: int, n_confounded: i
     return "partly no signature" if has_null else "visible"
 
 
+@dataclasses.dataclass
+class SignatureDesign:
+    """The data-independent part of one signature's score test (see :func:`screen_designs`).
+
+    - `jt`, `d`, `w`: per grid value, the projected Jacobian ``J~``, the tested directions and
+      their information (:func:`_tested_directions`);
+    - `bases`: per grid value, the orthonormal basis ``J~ D / sqrt(w)`` of the tested directions
+      (``LM_g = |W_g^T e|^2``);
+    - `sup_null`: for grid effects, the bootstrap draws of ``sup_g LM_g`` under H0 (sorted).
+    """
+
+    sig: Signature
+    jt: list
+    d: list
+    w: list
+    bases: list
+    sup_null: np.ndarray | None
+
+
+def screen_designs(jn: np.ndarray, sigs: list[Signature], *, n_boot: int = 2000,
+                   seed: int = 0) -> tuple[np.ndarray, list[SignatureDesign]]:
+    """The nominal basis ``U`` and each signature's :class:`SignatureDesign`: everything of the
+    score tests that does not depend on the residual, so that many residuals (the observed one,
+    and the null draws of the calibrated global test) are scored by matrix products."""
+    u = nominal_basis(jn)
+    rng = np.random.default_rng(seed)
+    out = []
+    for sig in sigs:
+        jts, ds, ws, bases = [], [], [], []
+        for g in range(sig.jac.shape[0]):
+            j = sig.jac[g]
+            jt = _project(u, j)
+            d, w = _tested_directions(j, jt)
+            jts.append(jt)
+            ds.append(d)
+            ws.append(w)
+            bases.append((jt @ d) / np.sqrt(w) if w.size else np.zeros((jt.shape[0], 0)))
+        sup = _sup_null(bases, n_boot, rng) if len(bases) > 1 else None
+        out.append(SignatureDesign(sig, jts, ds, ws, bases, sup))
+    return u, out
+
+
+def _grid_lm(design: SignatureDesign, e: np.ndarray) -> np.ndarray:
+    """Score statistics ``(G, ...)`` at every grid value for residual(s) ``e`` (``m`` or
+    ``m x B``)."""
+    return np.stack([np.sum((b.T @ e) ** 2, axis=0) for b in design.bases])
+
+
+def _pvalue(design: SignatureDesign, lm, dof):
+    """p-value of the (sup-)score ``lm`` (array) with ``dof`` tested directions at its grid value."""
+    lm, dof = np.asarray(lm, float), np.asarray(dof)
+    if design.sup_null is None:
+        p = stats.chi2.sf(lm, np.maximum(dof, 1))
+    else:
+        p = _smooth_bootstrap_p(design.sup_null, lm, len(design.bases), np.maximum(dof, 1))
+    return np.where(dof == 0, 1.0, p)
+
+
+def _smooth_bootstrap_p(sup, lm, n_grid, dof):
+    """Bootstrap p-value ``P(sup >= lm)`` from the sorted draws ``sup``, made continuous in
+    ``lm``: ``(1 + #{sup >= lm} + f) / (1 + B)`` with ``f`` the linear position of ``lm`` between
+    its neighbouring draws, and beyond the largest draw the Bonferroni tail of the grid
+    (``n_grid chi2.sf(lm, dof)``) scaled to meet ``1 / (1 + B)`` there. The raw count has
+    atoms at multiples of ``1 / (1 + B)``, which make the smallest q-value discrete and the
+    calibrated global test (:func:`gyrojax.diagnose._diagnose._calibrated_level`) conservative
+    at ties; the smooth version keeps the same values at the draws."""
+    n_boot = sup.size
+    lm = np.asarray(lm, float)
+    idx = np.searchsorted(sup, lm, side="left")  # first draw >= lm
+    count = n_boot - idx
+    hi = sup[np.minimum(idx, n_boot - 1)]
+    lo = sup[np.maximum(idx - 1, 0)]
+    frac = np.where((idx > 0) & (idx < n_boot) & (hi > lo), (hi - lm) / np.where(hi > lo,
+                                                                                hi - lo, 1.0), 0.0)
+    p = (1 + count + frac) / (1 + n_boot)
+    tail = stats.chi2.sf(lm, dof) / np.maximum(stats.chi2.sf(sup[-1], dof), 1e-300)
+    p_tail = np.minimum(1.0 / (1 + n_boot) * tail, n_grid * stats.chi2.sf(lm, dof))
+    return np.where(idx >= n_boot, p_tail, np.minimum(p, 1.0))
+
+
+def library_pvalues(designs: list[SignatureDesign], e: np.ndarray) -> np.ndarray:
+    """The screening p-values of every signature for residuals ``e`` (``m x B``): ``(K, B)``."""
+    rows = []
+    for des in designs:
+        lms = _grid_lm(des, e)
+        gi = np.argmax(lms, axis=0)
+        dofs = np.array([w.size for w in des.w])
+        rows.append(_pvalue(des, lms[gi, np.arange(lms.shape[1])], dofs[gi]))
+    return np.array(rows).reshape(len(designs), e.shape[1])
+
+
 def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int = 2000,
            seed: int = 0, prior_none: float = 0.5, prior: str = "design",
-           lambda0: float = 32.0) -> list[Screen]:
+           lambda0: float = 32.0, designs=None) -> list[Screen]:
     """Efficient-score screening of every signature against the residual ``e`` (whitened).
 
     ``jn``: whitened nominal Jacobian (``m x p``, columns per nominal scale). Grid effects get the
     sup over their grid with a bootstrap p-value from ``n_boot`` draws (seeded). Posteriors use
     prior probability ``prior_none`` for "no effect" and the rest shared equally; the Bayes factor
     uses ``prior="design"`` (g-prior expecting noncentrality ``lambda0``, the default) or
-    ``prior="scale"`` (``b ~ N(0, prior_scale^2)``, spec §4.2 step 5).
+    ``prior="scale"`` (``b ~ N(0, prior_scale^2)``, spec §4.2 step 5). ``designs``: the output of
+    :func:`screen_designs` for these ``jn`` and ``sigs`` (computed here when not given).
     """
     if prior not in ("design", "scale"):
         raise ValueError(f"prior={prior!r}; use 'design' or 'scale'")
-    u = nominal_basis(jn)
+    u, designs = designs if designs is not None else screen_designs(jn, sigs, n_boot=n_boot,
+                                                                    seed=seed)
     cov_n = np.linalg.pinv(jn.T @ jn)
     se_n = np.sqrt(np.maximum(np.diag(cov_n), 1e-300))
-    rng = np.random.default_rng(seed)
     out = []
-    for sig in sigs:
-        lms, stats_g = [], []
-        for g in range(sig.jac.shape[0]):
-            j = sig.jac[g]
-            jt = _project(u, j)
-            d, w = _tested_directions(j, jt)
-            jd = jt @ d  # orthogonal columns, squared norms w
-            sd = jd.T @ e
-            lm = float(np.sum(sd * sd / w)) if w.size else 0.0
-            beta = d @ (sd / w) if w.size else np.zeros(j.shape[1])
-            cov = (d / w) @ d.T if w.size else np.zeros((j.shape[1], j.shape[1]))
-            lms.append(lm)
-            stats_g.append((jt, w.size, beta, cov, jt.T @ jt, jt.T @ e, jd / np.sqrt(w)))
+    for des in designs:
+        sig = des.sig
+        lms = [float(x) for x in _grid_lm(des, e)]
+        dofs = [w.size for w in des.w]
         gi = int(np.argmax(lms))
-        jt, dof, beta, cov, info, s, _ = stats_g[gi]
+        jt, d, w, dof = des.jt[gi], des.d[gi], des.w[gi], dofs[gi]
+        sd = (jt @ d).T @ e
+        beta = d @ (sd / w) if w.size else np.zeros(jt.shape[1])
+        cov = (d / w) @ d.T if w.size else np.zeros((jt.shape[1], jt.shape[1]))
         if prior == "scale":
-            lbf = [_log_bf(st[4], st[5]) for st in stats_g]
+            lbf = [_log_bf(x.T @ x, x.T @ e) for x in des.jt]
             log_bf = float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
         else:
-            log_bf = grid_log_bf(lms, [st[1] for st in stats_g], lambda0)
-        if dof == 0:
-            p = 1.0
-        elif len(lms) == 1:
-            p = float(stats.chi2.sf(lms[0], dof))
-        else:
-            p = _sup_pvalue([st[6] for st in stats_g], lms[gi], n_boot, rng)
-            if p <= 1.0 / (1 + n_boot):  # beyond every draw: the Bonferroni bound over the grid
-                p = min(p, len(lms) * float(stats.chi2.sf(lms[gi], dof)))
+            log_bf = grid_log_bf(lms, dofs, lambda0)
+        p = float(_pvalue(des, lms[gi], dof))
         v, null, conf = _visibility(sig.jac[gi], u)
         flag = visibility_flag(v, bool(null), sig.jac.shape[2] - len(null), len(conf))
         alias = cov_n @ (jn.T @ sig.jac[gi])
         alias_std = alias / se_n[:, None]
         out.append(Screen(sig, lms[gi], dof, p, log_bf, gi, beta, np.sqrt(np.diag(cov)), v, flag,
-                          null, conf, alias, alias_std, jt, np.asarray(lms),
-                          np.asarray([st[1] for st in stats_g])))
+                          null, conf, alias, alias_std, jt, np.asarray(lms), np.asarray(dofs)))
     _posteriors(out, prior_none)
     return out
 
 
-def _sup_pvalue(bases, observed, n_boot, rng):
-    """P(sup_g LM_g >= observed) under H0, by Monte Carlo over the joint law of the scores.
+def _sup_null(bases, n_boot, rng):
+    """Draws of ``sup_g LM_g`` under H0 (sorted), by Monte Carlo over the joint law of the scores.
 
     Each grid value's standardised score is ``t_g = W_g^T z`` with ``W_g`` the orthonormal basis
     of its tested directions (already orthogonal to the nominal span) and ``z ~ N(0, I_m)``; so
@@ -290,7 +368,7 @@ def _sup_pvalue(bases, observed, n_boot, rng):
     """
     w = np.concatenate(bases, axis=1)
     if w.shape[1] == 0:
-        return 1.0
+        return np.full(n_boot, 0.0)
     gram = w.T @ w
     ev, evec = np.linalg.eigh((gram + gram.T) / 2)
     root = evec * np.sqrt(np.clip(ev, 0.0, None))  # gram = root root^T
@@ -301,6 +379,14 @@ def _sup_pvalue(bases, observed, n_boot, rng):
         tb = t[k:k + b.shape[1]]
         sup = np.maximum(sup, np.sum(tb * tb, axis=0))
         k += b.shape[1]
+    return np.sort(sup)
+
+
+def _sup_pvalue(bases, observed, n_boot, rng):
+    """P(sup_g LM_g >= observed) under H0 from :func:`_sup_null`'s draws."""
+    if sum(b.shape[1] for b in bases) == 0:
+        return 1.0
+    sup = _sup_null(bases, n_boot, rng)
     return float((1 + np.sum(sup >= observed)) / (1 + n_boot))
 
 
@@ -350,32 +436,55 @@ def bh_qvalues(p: np.ndarray, weights=None) -> np.ndarray:
     return out
 
 
-def fisher_g_pvalue(g: float, q: int) -> float:
-    """P(Fisher's g >= g) for ``q`` periodogram ordinates of white noise (exact series)."""
-    if q < 2:
-        return 1.0
-    total, j = 0.0, 1
-    while j <= q and j * g < 1:
-        total += (-1) ** (j - 1) * math.comb(q, j) * (1 - j * g) ** (q - 1)
-        j += 1
-    return float(min(max(total, 0.0), 1.0))
+def fisher_g_pvalue(g, q: int):
+    """P(Fisher's g >= g) for ``q`` periodogram ordinates of white noise (exact series,
+    ``sum_j (-1)^(j-1) C(q, j) (1 - j g)^(q-1)`` over ``j g < 1``); ``g`` a float or an array.
 
-
-def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_params: int,
-                  noise_dof: float, lines: dict[str, float], jn: np.ndarray,
-                  min_window: int = 16, levels: int = 5) -> list[dict]:
-    """The Stage-1 map of a whitened residual ``e`` (``n x c``).
-
-    - time x channel: windowed sums of squares over dyadic windows, against
-      ``E0 = n_w (1 - p/n)`` with an F reference when the noise level was estimated with
-      ``noise_dof`` degrees of freedom (``inf``: known);
-    - frequency: 2-dof score tests at the known ``lines`` (name -> period in s) per channel with
-      the nominal span projected out, and Fisher's g for the largest unlisted line.
-    Cells: dicts with axis, cell, channel, statistic, dof, expected, p.
+    The terms grow huge when ``g`` is far below its null typical value ``~ln(q)/q`` and the
+    alternating sum then cancels to noise (it returned 0 at ``g = 0.003, q = 539``); there the
+    p-value is 1 to many digits and is returned as such (largest term above ``1e6``).
     """
-    n, c = e.shape
-    cells = []
+    scalar = np.ndim(g) == 0
+    g = np.atleast_1d(np.asarray(g, float))
+    if q < 2:
+        p = np.ones_like(g)
+        return float(p[0]) if scalar else p
+    jmax = int(min(q, np.floor(1.0 / max(float(g.min()), 1.0 / q))))
+    j = np.arange(1, jmax + 1, dtype=float)
+    logc = special.gammaln(q + 1) - special.gammaln(j + 1) - special.gammaln(q - j + 1)
+    x = 1.0 - j[None, :] * g[:, None]
+    term = np.where(x > 0, np.exp(logc + (q - 1) * np.log(np.where(x > 0, x, 1.0))), 0.0)
+    total = np.sum(np.where(j % 2 == 1, 1.0, -1.0) * term, axis=1)
+    p = np.where(term.max(axis=1) > 1e6, 1.0, np.clip(total, 0.0, 1.0))
+    return float(p[0]) if scalar else p
+
+
+@dataclasses.dataclass
+class MapDesign:
+    """The data-independent part of the gap map (:func:`map_design`): its cells, in order, and
+    what each needs to be evaluated on a residual."""
+
+    n: int
+    c: int
+    t: np.ndarray
+    channels: tuple
+    noise_dof: float
+    windows: list  # (level, k, a, b, channel, expected)
+    line_cells: list  # (name, period, channel, basis J~ (n c, 2), cov (2, 2), dof)
+    fisher: bool
+
+    @property
+    def n_cells(self) -> int:
+        return len(self.windows) + len(self.line_cells) + (self.c if self.fisher else 0)
+
+
+def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise_dof: float,
+               lines: dict[str, float], jn: np.ndarray, min_window: int = 16,
+               levels: int = 5) -> MapDesign:
+    """The cells of :func:`gap_map_cells` for ``n = len(t)`` samples of ``channels``."""
+    n, c = len(t), len(channels)
     frac = 1.0 - n_params / max(n * c, 1)
+    windows = []
     for lev in range(levels):
         nw = n >> lev
         if nw < min_window:
@@ -383,41 +492,102 @@ def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_
         for k in range(1 << lev):
             a, b = k * nw, (k + 1) * nw if k < (1 << lev) - 1 else n
             for ch in range(c):
-                stat = float(np.sum(e[a:b, ch] ** 2))
-                e0 = (b - a) * frac
-                p = _f_sf(stat / e0, e0, noise_dof)
-                cells.append(dict(axis="time", cell=f"{t[a] / 3600:.2f}-{t[b - 1] / 3600:.2f} h",
-                                  channel=channels[ch], statistic=stat, dof=e0, expected=e0,
-                                  excess=stat - e0, p=p, t0=float(t[a]), t1=float(t[b - 1]),
-                                  level=lev))
+                windows.append((lev, k, a, b, ch, (b - a) * frac))
     u = nominal_basis(jn)
-    flat = e.reshape(-1)
+    line_cells = []
     for name, period in lines.items():
         w = 2 * np.pi / period
         for ch in range(c):
             cols = np.zeros((n, c, 2))
             cols[:, ch, 0], cols[:, ch, 1] = np.sin(w * t), np.cos(w * t)
-            jt = _project(u, cols.reshape(n * c, 2))
-            lm, dof, *_ = _lm(jt, flat, float(np.max(np.sum(cols.reshape(n * c, 2) ** 2, 0))))
-            p = float(stats.chi2.sf(lm, dof)) if dof else 1.0
-            cells.append(dict(axis="frequency", cell=f"{name} ({period / 3600:.4g} h)",
-                              channel=channels[ch], statistic=lm, dof=dof, expected=dof,
-                              excess=lm - dof, p=p))
-    if n >= 16:
+            cols = cols.reshape(n * c, 2)
+            jt = _project(u, cols)
+            _, dof, _, cov, _, _ = _lm(jt, np.zeros(n * c), float(np.max(np.sum(cols ** 2, 0))))
+            line_cells.append((name, period, ch, jt, cov, dof))
+    return MapDesign(n, c, np.asarray(t, float), tuple(channels), noise_dof, windows, line_cells,
+                     n >= 16)
+
+
+def map_statistics(design: MapDesign, e: np.ndarray):
+    """Statistics, p-values and (for the largest-line cells) periodogram peaks of the gap map for
+    residuals ``e`` (``B x n x c``): arrays ``(B, cells)`` in :func:`gap_map_cells`' order."""
+    bsz, n, c = e.shape
+    stat, pv, extra = [], [], []
+    cs = np.concatenate([np.zeros((bsz, 1, c)), np.cumsum(e * e, axis=1)], axis=1)
+    if design.windows:
+        _, _, a, b, ch, e0 = (np.array(x) for x in zip(*design.windows))
+        x = cs[:, b, ch] - cs[:, a, ch]  # (B, windows)
+        stat += list(x.T)
+        pv += list(np.reshape(_f_sf(x / e0, e0, design.noise_dof), x.shape).T)
+        extra += [np.zeros(bsz)] * x.shape[1]
+    flat = e.reshape(bsz, n * c)
+    for _, _, _, jt, cov, dof in design.line_cells:
+        sc = flat @ jt  # (B, 2)
+        lm = np.sum(sc * (sc @ cov), axis=1)
+        stat.append(lm)
+        pv.append(stats.chi2.sf(lm, dof) if dof else np.ones(bsz))
+        extra.append(np.zeros(bsz))
+    if design.fisher:
+        x = e - e.mean(axis=1, keepdims=True)
+        power = np.abs(np.fft.rfft(x, axis=1)[:, 1:(n - 1) // 2 + 1]) ** 2  # (B, q, c)
+        g = power.max(axis=1) / power.sum(axis=1)
+        kmax = np.argmax(power, axis=1) + 1
+        q = power.shape[1]
         for ch in range(c):
-            x = e[:, ch] - e[:, ch].mean()
-            power = np.abs(np.fft.rfft(x)[1:(n - 1) // 2 + 1]) ** 2
-            g = float(power.max() / power.sum())
-            kmax = int(np.argmax(power)) + 1
-            dt = (t[-1] - t[0]) / (n - 1)
-            cells.append(dict(axis="frequency", cell=f"largest line ({n * dt / kmax / 3600:.3g} h)",
-                              channel=channels[ch], statistic=g, dof=len(power),
-                              expected=1.0 / len(power), excess=0.0,
-                              p=fisher_g_pvalue(g, len(power)), period_s=n * dt / kmax))
+            stat.append(g[:, ch])
+            pv.append(fisher_g_pvalue(g[:, ch], q))
+            extra.append(kmax[:, ch].astype(float))
+    return np.array(stat).T, np.array(pv).T, np.array(extra).T
+
+
+def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_params: int,
+                  noise_dof: float, lines: dict[str, float], jn: np.ndarray,
+                  min_window: int = 16, levels: int = 5, design: MapDesign | None = None
+                  ) -> list[dict]:
+    """The Stage-1 map of a whitened residual ``e`` (``n x c``).
+
+    - time x channel: windowed sums of squares over dyadic windows, against
+      ``E0 = n_w (1 - p/n)`` with an F reference when the noise level was estimated with
+      ``noise_dof`` degrees of freedom (``inf``: known);
+    - frequency: 2-dof score tests at the known ``lines`` (name -> period in s) per channel with
+      the nominal span projected out, and Fisher's g for the largest unlisted line.
+    Cells: dicts with axis, cell, channel, statistic, dof, expected, p. ``design``: the
+    :func:`map_design` of these arguments (computed here when not given).
+    """
+    n, c = e.shape
+    if design is None:
+        design = map_design(t, channels, n_params=n_params, noise_dof=noise_dof, lines=lines,
+                            jn=jn, min_window=min_window, levels=levels)
+    stat, pv, extra = (x[0] for x in map_statistics(design, e[None]))
+    cells = []
+    i = 0
+    for lev, k, a, b, ch, e0 in design.windows:
+        cells.append(dict(axis="time", cell=f"{t[a] / 3600:.2f}-{t[b - 1] / 3600:.2f} h",
+                          channel=channels[ch], statistic=float(stat[i]), dof=e0, expected=e0,
+                          excess=float(stat[i]) - e0, p=float(pv[i]), t0=float(t[a]),
+                          t1=float(t[b - 1]), level=lev))
+        i += 1
+    for name, period, ch, _, _, dof in design.line_cells:
+        cells.append(dict(axis="frequency", cell=f"{name} ({period / 3600:.4g} h)",
+                          channel=channels[ch], statistic=float(stat[i]), dof=dof, expected=dof,
+                          excess=float(stat[i]) - dof, p=float(pv[i])))
+        i += 1
+    if design.fisher:
+        q = (n - 1) // 2
+        dt = (t[-1] - t[0]) / (n - 1)
+        for ch in range(c):
+            period = n * dt / extra[i]
+            cells.append(dict(axis="frequency", cell=f"largest line ({period / 3600:.3g} h)",
+                              channel=channels[ch], statistic=float(stat[i]), dof=q,
+                              expected=1.0 / q, excess=0.0, p=float(pv[i]), period_s=period))
+            i += 1
     return cells
 
 
 def _f_sf(ratio, d1, d2):
+    """Upper tail of the F(d1, d2) law (chi2(d1)/d1 when ``d2`` is infinite); arrays or floats."""
     if not np.isfinite(d2):
-        return float(stats.chi2.sf(ratio * d1, d1))
-    return float(stats.f.sf(ratio, d1, d2))
+        out = stats.chi2.sf(np.asarray(ratio) * d1, d1)
+    else:
+        out = stats.f.sf(ratio, d1, d2)
+    return float(out) if np.ndim(out) == 0 else out

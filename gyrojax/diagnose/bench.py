@@ -294,8 +294,10 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
                                      if rf["effects"] == (rep.verdict.get("effects") or [])),
                                     None),
             "time_diagnose_s": t_diag,
+            **multiplicity_fields(rep),
             "time_screen_s": rep.timings.get("screening_s", 0.0) + rep.timings.get("jacobians_s",
                                                                                    0.0),
+            "time_calibration_s": rep.timings.get("calibration_s", 0.0),
         }
         if baselines:
             e = np.asarray(rep.residual_all)[: rep.n_train]
@@ -339,6 +341,25 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
         if progress is not None:
             progress(k + 1, len(paths))
     return results
+
+
+def multiplicity_fields(rep) -> dict:
+    """What a blind result keeps of the multiplicity decision: the smallest weighted-BH q over
+    the map and the library, and the level it was held to (calibrated or ``alpha``)."""
+    return {"min_q": min([x["q"] for x in rep.where] + [r["q"] for r in rep.ranking],
+                         default=1.0),
+            "level": rep.multiplicity.get("level", rep.alpha)}
+
+
+def plain_bh_far(nulls) -> dict:
+    """On the null cases ``(truth, result)``: the false-alarm rate weighted BH would have at the
+    uncalibrated level 0.05 (smallest q < 0.05), and the median calibrated level."""
+    nulls = [(t, r) for t, r in nulls if "min_q" in r]
+    if not nulls:
+        return {}
+    levels = sorted(r["level"] for _, r in nulls)
+    return {"far_plain_bh": _rate(nulls, lambda t, r: r["min_q"] < 0.05),
+            "level_median": levels[len(levels) // 2]}
 
 
 def _se(p, n):
@@ -493,6 +514,7 @@ def score(case_dir, results, separable=None) -> dict:
     two = [(t, r) for t, r in rows if t["family"] == "two_effects"]
     sep = tuple(LIBRARY_FAMILIES if separable is None else separable)
     out = {"far": rate(nulls, lambda t, r: r["verdict"] != "no-gap"),
+           **plain_bh_far(nulls),
            "b1_far": rate(nulls, lambda t, r: r.get("b1_detect")),
            "b2_false_selection": rate(nulls, lambda t, r: r.get("b2_choice", "none") != "none")}
     for lam in sorted({t["lambda"] for t, _ in lib}):
@@ -538,6 +560,8 @@ def score(case_dir, results, separable=None) -> dict:
     nref = [r["n_refits"] for _, r in rows if "n_refits" in r]
     out["cost"] = {"median_diagnose_s": float(np.median(diag)),
                    "median_screen_s": float(np.median(scr)),
+                   "median_calibration_s": float(np.median(
+                       [r.get("time_calibration_s", 0.0) for _, r in rows])),
                    "median_refit_all_s": float(np.median(refit)) if refit else None,
                    "n_refits": int(np.median(nref)) if nref else None}
     strong = [(t, r) for t, r in lib if t.get("lambda", 0) >= 32 and "b2_lr_choice" in r]
