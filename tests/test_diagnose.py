@@ -175,6 +175,10 @@ def test_bh_and_fisher_g():
     np.testing.assert_allclose(q, [0.015, 0.08, 0.08], rtol=1e-12)
     with pytest.raises(ValueError, match="positive"):
         bh_qvalues(np.array([0.1, 0.2]), weights=[1.0, 0.0])
+    # one family per row (the calibrated level's null draws): the same q-values row by row
+    pp = np.random.default_rng(1).uniform(size=(20, 7)) ** 3
+    ww = np.arange(1.0, 8.0)
+    np.testing.assert_array_equal(bh_qvalues(pp, ww), np.stack([bh_qvalues(r, ww) for r in pp]))
     # the diagnosis's weights (library half): under the global null with independent tests the
     # chance of any q < alpha stays alpha (sum of alpha w_i / m), 20,000 draws
     from gyrojax.diagnose._diagnose import _bh_weights

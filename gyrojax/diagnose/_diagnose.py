@@ -504,17 +504,9 @@ def _calibrated_level(designs, mdesign, weights, alpha, n_draws, draw, *, seed):
         z = draw(rng, b)
         _, p_map, _ = map_statistics(mdesign, z)
         p_lib = library_pvalues(sig_designs, z.reshape(b, n * c).T).T
-        minq.append(_min_bh_q(np.concatenate([p_map, p_lib], axis=1), weights))
+        minq.append(bh_qvalues(np.concatenate([p_map, p_lib], axis=1), weights).min(axis=1))
     minq = np.sort(np.concatenate(minq))
     return float(minq[k - 1]), minq
-
-
-def _min_bh_q(p, weights=None):
-    """Smallest (weighted) BH q-value of each row of ``p`` (``B x n``): ``min_j p_(j) n / j``."""
-    n = p.shape[1]
-    if weights is not None:
-        p = p / (np.asarray(weights) / np.mean(weights))
-    return np.minimum(np.min(np.sort(p, axis=1) * n / np.arange(1, n + 1), axis=1), 1.0)
 
 
 def _with_noise(verdict, noise_rows, alpha):

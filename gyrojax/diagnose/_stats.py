@@ -418,21 +418,22 @@ def ambiguity_set(rows: list[Screen], mass: float = 0.9) -> list[Screen]:
 def bh_qvalues(p: np.ndarray, weights=None) -> np.ndarray:
     """Benjamini-Hochberg q-values; with ``weights`` (positive, rescaled to mean 1) the weighted
     procedure of Genovese, Roeder & Wasserman (2006), BH on ``p / w``, which keeps the FDR at
-    the level for weights fixed before the data are seen."""
+    the level for weights fixed before the data are seen. ``p`` may be ``(..., n)``: one family
+    per row (the calibrated level's null draws)."""
     p = np.asarray(p, float)
-    n = p.size
+    n = p.shape[-1]
     if n == 0:
         return p
     if weights is not None:
         w = np.asarray(weights, float)
-        if w.shape != p.shape or np.any(w <= 0):
+        if w.shape != p.shape[-1:] or np.any(w <= 0):
             raise ValueError(f"BH weights must be positive, one per p-value; got {w}")
         p = p / (w / w.mean())
-    order = np.argsort(p)
-    q = p[order] * n / np.arange(1, n + 1)
-    q = np.minimum.accumulate(q[::-1])[::-1]
-    out = np.empty(n)
-    out[order] = np.minimum(q, 1.0)
+    order = np.argsort(p, axis=-1)
+    q = np.take_along_axis(p, order, axis=-1) * n / np.arange(1, n + 1)
+    q = np.flip(np.minimum.accumulate(np.flip(q, -1), axis=-1), -1)
+    out = np.empty_like(q)
+    np.put_along_axis(out, order, np.minimum(q, 1.0), axis=-1)
     return out
 
 
