@@ -170,9 +170,15 @@ def _noise(problem, resid):
     if problem.noise_std is not None:
         s = np.broadcast_to(np.asarray(problem.noise_std, float), (resid.shape[1],)).copy()
         return s, np.inf, "given"
-    d = np.diff(resid, axis=0)
-    s = np.sqrt(np.mean(d * d, axis=0) / 2)
-    return s, 2 * (resid.shape[0] - 1) / 3, "estimated from first differences of the residual"
+    return (first_difference_level(resid), 2 * (resid.shape[0] - 1) / 3,
+            "estimated from first differences of the residual")
+
+
+def first_difference_level(resid):
+    """Per-channel white-noise level of ``resid`` (``(..., n, c)``) from its first differences
+    (von Neumann): the estimator of the data and of the calibrated level's null draws."""
+    d = np.diff(resid, axis=-2)
+    return np.sqrt(np.mean(d * d, axis=-2) / 2)
 
 
 def _greedy_second(e, span, rows, first: Screen, alpha):
@@ -474,8 +480,7 @@ def _null_sampler(prob, noise_rows, cells, u, n, c, estimated):
         z -= (z @ u) @ u.T
         z = z.reshape(b, n, c)
         if estimated:
-            d = np.diff(z, axis=1)
-            z /= np.sqrt(np.mean(d * d, axis=1) / 2)[:, None, :]
+            z /= first_difference_level(z)[:, None, :]
         return z
     return draw
 

@@ -286,12 +286,18 @@ class PlatformProblem:
         if self.noise_std is not None:
             s = np.broadcast_to(np.asarray(self.noise_std, float), (3,)).copy()
             return s, np.inf, "given"
-        k_tr = self.n_blocks - self.k_ho
-        d = np.diff(resid.reshape(-1, k_tr, 3), n=2, axis=1).reshape(-1, 3)
-        s = np.sqrt(np.mean(d * d, axis=0) / 6)
+        s = self._second_difference_level(resid[None])[0]
+        n_d = resid.shape[0] - 2 * (resid.shape[0] // (self.n_blocks - self.k_ho))
         # dof of the second-difference estimate: n (sum a_k^2)^2 / sum over lags of acf^2 ~ n/1.94
-        return s, len(d) / 1.94, ("estimated from second differences of the residual within "
-                                  "dwells")
+        return s, n_d / 1.94, ("estimated from second differences of the residual within "
+                               "dwells")
+
+    def _second_difference_level(self, resid):
+        """Per-channel level of train residuals ``(B, n_train, 3)`` from second differences
+        within dwells (white noise: var = 6 sigma^2): the data's and the null draws' estimator."""
+        k_tr = self.n_blocks - self.k_ho
+        d = np.diff(resid.reshape(resid.shape[0], -1, k_tr, 3), n=2, axis=2)
+        return np.sqrt(np.mean(d * d, axis=(1, 2)) / 6)
 
     def null_residuals(self, rng, b: int, u) -> np.ndarray:
         """``b`` whitened train residuals under the linearised null (the diagnosis' calibrated
@@ -303,11 +309,10 @@ class PlatformProblem:
         z -= z.mean(axis=2, keepdims=True)
         z = z.reshape(b, -1)
         z -= (z @ u) @ u.T
-        z = z.reshape(b, -1, k_tr, 3)
+        z = z.reshape(b, self.n_train, 3)
         if self.noise_std is None:
-            d = np.diff(z, n=2, axis=2)
-            z /= np.sqrt(np.mean(d * d, axis=(1, 2)) / 6)[:, None, None, :]
-        return z.reshape(b, self.n_train, 3)
+            z /= self._second_difference_level(z)[:, None, :]
+        return z
 
     def predict(self, params: dict, extra=None) -> np.ndarray:
         v = np.array([params[n] for n in NOMINAL])
