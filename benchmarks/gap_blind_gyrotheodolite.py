@@ -23,6 +23,7 @@ import tempfile
 sys.path.insert(0, os.path.dirname(__file__))
 
 from _results import (  # noqa: E402
+    ORACLE_LAMBDAS,
     ORACLE_NOTE,
     blind_suite,
     far_text,
@@ -35,7 +36,10 @@ from _results import fmt_rate as _fmt  # noqa: E402
 
 from gyrojax import units  # noqa: E402
 from gyrojax.diagnose import bench_gyrotheodolite as bg  # noqa: E402
-from gyrojax.diagnose._harness import separability  # noqa: E402
+from gyrojax.diagnose._harness import (  # noqa: E402
+    oracle_detection_thresholds,
+    separability,
+)
 from gyrojax.io import load_record  # noqa: E402
 
 
@@ -52,7 +56,8 @@ def main(argv=None):
                                          desc="gyrotheodolite")
     sep = separability(load_record(paths[0]), "gyrotheodolite", [units.ARCSEC])
     separable = sorted(e for e, v in sep.items() if v <= 0.9)
-    s = rescore(bg, work, separable=separable)
+    s = rescore(bg, work, separable=separable, oracle_thresholds=oracle_detection_thresholds(
+        load_record(paths[0]), "gyrotheodolite", [units.ARCSEC], ORACLE_LAMBDAS))
     lines = ["## Gap diagnosis, blind gyrotheodolite suite (`benchmarks/gap_blind_gyrotheodolite.py`)",
              "", machine_line(), "",
              f"Design: {json.dumps(dataclasses.asdict(design))}. {args.cases} sealed cases "

@@ -22,12 +22,21 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
 
-from _results import ORACLE_NOTE, machine_line, publish, suite_lines  # noqa: E402
+from _results import (  # noqa: E402
+    ORACLE_LAMBDAS,
+    ORACLE_NOTE,
+    machine_line,
+    publish,
+    suite_lines,
+)
 from _results import fmt_rate as _fmt  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from gyrojax.diagnose import bench_imu  # noqa: E402
-from gyrojax.diagnose._harness import separability  # noqa: E402
+from gyrojax.diagnose._harness import (  # noqa: E402
+    oracle_detection_thresholds,
+    separability,
+)
 from gyrojax.io import load_record  # noqa: E402
 
 SUITES = {
@@ -62,10 +71,12 @@ def main(argv=None):
             json.dump(results, fh)
         # separability of the mean effects on this design (any record: the AR noise model and
         # the Jacobians barely change between cases)
-        sep = separability(load_record(sorted(Path(d).glob("case_*.nc"))[0]), "imu", None)
+        first = load_record(sorted(Path(d).glob("case_*.nc"))[0])
+        sep = separability(first, "imu", None)
         meta[label + " sep"] = sep
-        scores[label] = bench_imu.score(d, results,
-                                        separable=[e for e, v in sep.items() if v <= 0.9])
+        scores[label] = bench_imu.score(
+            d, results, separable=[e for e, v in sep.items() if v <= 0.9],
+            oracle_thresholds=oracle_detection_thresholds(first, "imu", None, ORACLE_LAMBDAS))
         if args.ool_cases > 0 and design.kind == "multi":
             od = os.path.join(work, f"suite{k}_ool")
             t0 = time.perf_counter()

@@ -33,6 +33,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 import numpy as np  # noqa: E402
 from _results import (  # noqa: E402
+    ORACLE_LAMBDAS,
     ORACLE_NOTE,
     blind_suite,
     diagnose_suite,
@@ -45,7 +46,10 @@ from _results import fmt_rate as _fmt  # noqa: E402
 
 from gyrojax import units  # noqa: E402
 from gyrojax.diagnose import bench_platform as bp  # noqa: E402
-from gyrojax.diagnose._harness import separability  # noqa: E402
+from gyrojax.diagnose._harness import (  # noqa: E402
+    oracle_detection_thresholds,
+    separability,
+)
 from gyrojax.io import load_record  # noqa: E402
 
 
@@ -80,12 +84,13 @@ def nulls(args, work, design):
     publish(args.out, "gap_blind_platform_nulls", lines)
 
 
-def both_splits(work, design, separable, desc):
+def both_splits(work, design, separable, desc, thresholds=None):
     """Score the cases in ``work`` (diagnosed with the same-design split) and diagnose them again
     with the design-shift split: ``(same, shift, t_shift_s)``. ``separable``: per split, the
-    families separable on its train design."""
+    families separable on its train design; ``thresholds``: the Bayes oracle's detection
+    thresholds on the same-design split."""
     same = bp.score(work, json.loads(open(os.path.join(work, "results.json")).read()),
-                    separable=separable["same-design"])
+                    separable=separable["same-design"], oracle_thresholds=thresholds)
     res, t_shift = diagnose_suite(bp, work, dataclasses.replace(design, split="design-shift"),
                                   desc + " (design shift)", name="results_design_shift.json")
     return same, bp.score(work, res, separable=separable["design-shift"]), t_shift
@@ -139,7 +144,9 @@ def suite(args, work, design):
     sep = seps["same-design"]
     separable = sorted(e for e, v in sep.items() if v <= 0.9)
     per_split = {k: sorted(e for e, v in x.items() if v <= 0.9) for k, x in seps.items()}
-    same, shift, t_shift = both_splits(work, design, per_split, "platform")
+    thresholds = oracle_detection_thresholds(load_record(full), "platform",
+                                             np.full(3, units.ARCSEC), ORACLE_LAMBDAS)
+    same, shift, t_shift = both_splits(work, design, per_split, "platform", thresholds)
     lines = ["## Gap diagnosis, blind platform suite D2 (`benchmarks/gap_blind_platform.py`)",
              "", machine_line(), "",
              f"Design D2: {json.dumps(dataclasses.asdict(design))} (Table 1 positions). "

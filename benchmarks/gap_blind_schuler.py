@@ -22,6 +22,7 @@ import tempfile
 sys.path.insert(0, os.path.dirname(__file__))
 
 from _results import (  # noqa: E402
+    ORACLE_LAMBDAS,
     ORACLE_NOTE,
     blind_suite,
     far_text,
@@ -32,7 +33,10 @@ from _results import (  # noqa: E402
 )
 
 from gyrojax.diagnose import bench_schuler  # noqa: E402
-from gyrojax.diagnose._harness import separability  # noqa: E402
+from gyrojax.diagnose._harness import (  # noqa: E402
+    oracle_detection_thresholds,
+    separability,
+)
 from gyrojax.io import load_record  # noqa: E402
 
 
@@ -51,7 +55,9 @@ def main(argv=None):
     # depend on the errors)
     sep = separability(load_record(paths[0]), "schuler", design.sigma)
     separable = sorted(e for e, v in sep.items() if v <= 0.9)
-    s = rescore(bench_schuler, work, separable=separable)
+    s = rescore(bench_schuler, work, separable=separable,
+                oracle_thresholds=oracle_detection_thresholds(
+                    load_record(paths[0]), "schuler", design.sigma, ORACLE_LAMBDAS))
     lines = ["## Gap diagnosis, blind Schuler-test suite (`benchmarks/gap_blind_schuler.py`)", "",
              machine_line(), "",
              f"Design D5: {json.dumps(dataclasses.asdict(design))}. {args.cases} sealed cases "

@@ -167,6 +167,31 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     assert cal["ece"] < cal["ece_calibrated_95"] and cal["ece_calibrated_median"] < 0.06
 
 
+def test_oracle_detection_threshold_by_residual_draws():
+    """The Bayes oracle's detection threshold (drawn in the library's small score space) against
+    a second method: whitened residuals drawn in the record's own space, projected off the
+    nominal span and scored by ``screen``'s designs; the oracle statistic of ``bench`` (from the
+    scores a blind run records) must exceed the threshold in a fraction alpha of them."""
+    from gyrojax.diagnose._harness import _train_jacobians, oracle_detection_thresholds
+    from gyrojax.diagnose._stats import _grid_lm, grid_log_bf, screen_designs
+    from gyrojax.diagnose.bench import oracle_detect_statistic
+
+    rec = _record(seed=2)
+    sigma = [units.ARCSEC, units.ARCSEC]
+    thr = oracle_detection_thresholds(rec, "esg", sigma, (16.0,), n_draws=20_000)
+    jn, sigs = _train_jacobians(rec, "esg", sigma, None)
+    u, designs = screen_designs(jn, sigs, n_boot=0)
+    z = np.random.default_rng(7).standard_normal((jn.shape[0], 2000))
+    z -= u @ (u.T @ z)
+    lms = [(_grid_lm(d, z), [w.size for w in d.w]) for d in designs]
+    stat = np.array([oracle_detect_statistic(
+        {"scores": {d.sig.name: [lm[:, b], dof] for d, (lm, dof) in zip(designs, lms)}}, 16.0)
+        for b in range(z.shape[1])])
+    assert len(lms) == 6 and grid_log_bf(lms[0][0][:, 0], lms[0][1], 16.0) != 0.0
+    far = np.mean(stat > thr[16.0])  # 0.05 +- 0.005 (n = 2000)
+    assert 0.035 <= far <= 0.065, (far, thr)
+
+
 def test_bh_and_fisher_g():
     q = bh_qvalues(np.array([0.01, 0.04, 0.03, 0.5]))
     np.testing.assert_allclose(q, [0.04, 0.16 / 3, 0.16 / 3, 0.5], rtol=1e-12)

@@ -24,11 +24,13 @@ from .bench import (
     multiplicity_fields,
     ool_scores,
     oracle_choice,
+    oracle_power,
     plain_bh_far,
     ratio_rate,
 )
 
-__all__ = ["run_cases", "score_cases", "projector", "separability"]
+__all__ = ["run_cases", "score_cases", "projector", "separability",
+           "oracle_detection_thresholds"]
 
 
 def projector(jn):
@@ -45,8 +47,20 @@ def separability(record, rig: str, sigma, split=None) -> dict:
     spec §5.6 calls an effect separable at <= 0.9. ``sigma``: the channels' noise (SI; only the
     ratios between channels matter); ``None``: the problem's own noise model on this record (the
     diagnosis's, e.g. the IMU's AR prewhitening)."""
-    from ._diagnose import _noise_level, _problem, _train_slice
     from ._stats import _project, canonical_correlation, nominal_basis, visible
+
+    jn, sigs = _train_jacobians(record, rig, sigma, split)
+    u = nominal_basis(jn)
+    vis = [s for s in sigs if visible(u, s.jac[0])]  # the diagnosis' threshold
+    return {a.name: max(canonical_correlation(_project(u, ja), _project(u, jb))
+                        for b in vis if b is not a for ja in a.jac for jb in b.jac)
+            for a in vis}
+
+
+def _train_jacobians(record, rig, sigma, split):
+    """The whitened nominal Jacobian and the catalogue's signatures on the train rows of
+    ``split``, at the nominal fit of ``record`` (``sigma``: see :func:`separability`)."""
+    from ._diagnose import _noise_level, _problem, _train_slice
 
     prob = _problem(record, rig, 0.25, None, None, "exact", split)
     params0 = prob.fit_nominal()
@@ -55,12 +69,44 @@ def separability(record, rig: str, sigma, split=None) -> dict:
         sigma = _noise_level(prob, resid)[0]
     jn, sigs = prob.jacobians(params0, sigma)
     m = prob.n_train * len(prob.channels)
-    jn, sigs = jn[:m], [_train_slice(s, m) for s in sigs]
-    u = nominal_basis(jn)
-    vis = [s for s in sigs if visible(u, s.jac[0])]  # the diagnosis' threshold
-    return {a.name: max(canonical_correlation(_project(u, ja), _project(u, jb))
-                        for b in vis if b is not a for ja in a.jac for jb in b.jac)
-            for a in vis}
+    return jn[:m], [_train_slice(s, m) for s in sigs]
+
+
+def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
+                                alpha: float = 0.05, n_draws: int = 20_000,
+                                seed: int = 0) -> dict:
+    """Null thresholds of the Bayes-oracle detector (:func:`~gyrojax.diagnose.bench.
+    oracle_detect_statistic`) on the design of ``record``: per noncentrality, the ``1 - alpha``
+    quantile of the statistic under the linearised null, from ``n_draws`` draws of the library's
+    score vectors (jointly Gaussian, covariance the Gram matrix of the tested directions' bases;
+    drawn in that small space as :func:`~gyrojax.diagnose._stats._sup_null` does). The
+    statistic is the Neyman-Pearson statistic of the generator's alternative (equal odds
+    between the catalogue's effects, a design prior expecting exactly ``lambda``), so rejecting
+    above the threshold is the most powerful level-``alpha`` test a diagnosis could run: the
+    reference for spec §6 G2's detection power."""
+    from ._stats import _grid_log_bf, screen_designs
+
+    jn, sigs = _train_jacobians(record, rig, sigma, split)
+    _, designs = screen_designs(jn, sigs, n_boot=0)
+    bases = [b for des in designs for b in des.bases]
+    w = np.concatenate(bases, axis=1)
+    gram = w.T @ w
+    ev, evec = np.linalg.eigh((gram + gram.T) / 2)
+    t = (evec * np.sqrt(np.clip(ev, 0.0, None))) @ np.random.default_rng(seed).standard_normal(
+        (w.shape[1], n_draws))
+    lms, k = [], 0
+    for des in designs:
+        rows = []
+        for b in des.bases:
+            rows.append(np.sum(t[k:k + b.shape[1]] ** 2, axis=0))
+            k += b.shape[1]
+        lms.append((np.array(rows), [b.shape[1] for b in des.bases]))
+    out = {}
+    for lam in lambdas:
+        stat = np.stack([_grid_log_bf(lm, d, lam) for lm, d in lms])
+        stat = np.logaddexp.reduce(stat, axis=0) - np.log(len(lms))
+        out[float(lam)] = float(np.quantile(stat, 1 - alpha))
+    return out
 
 
 def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool = False,
@@ -102,7 +148,7 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
 
 
 def score_cases(case_dir, results, mean_families, noise_families=(), out_of_library=(),
-                structural=(), separable=None) -> dict:
+                structural=(), separable=None, oracle_thresholds=None) -> dict:
     """Unseal and score. top-1: the verdict's first effect (or the top posterior) is the hidden
     one (noise effects: the first significant noise-model effect); named: the hidden effect is
     in the verdict, the ambiguity set or the noise-model list. ``structural``: families with no
@@ -113,7 +159,9 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
     (``run_cases(refit_all=True)``): the oracle comparison of spec §6 G7 over the detected
     cases of the ``separable`` families (default: every mean family) whose held-out gap
     exceeds its null band: the share whose reduction ``R = 1 - G_after / G_before`` reaches
-    0.9 x the oracle's (the hidden effect's own refit)."""
+    0.9 x the oracle's (the hidden effect's own refit). ``oracle_thresholds`` (``{lambda:
+    threshold}``, :func:`oracle_detection_thresholds`): also the Bayes oracle's detection power
+    (spec §6 G2's reference) on the mean families."""
     manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
     rows = [(manifest[r["sha"]], r) for r in results]
     nulls = [(t, r) for t, r in rows if t["family"] == "null"]
@@ -152,6 +200,7 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
                                            oracle),
             "oracle_top1": _rate(sub_mean, oracle),
             "oracle_efficiency": ratio_rate(sub_mean, top, oracle),
+            "oracle_power": oracle_power(sub_mean, lam, oracle_thresholds),
             "calibration": calibration(sub_mean),
         }
     out["calibration"] = calibration([(t, r) for t, r in lib if t["family"] in mean_families])

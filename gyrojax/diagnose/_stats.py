@@ -133,21 +133,13 @@ def _tested_directions(j, jt):
     return vr @ evec[:, k], w[k]
 
 
-def _log_bf_g(lm, dof, lambda0):
-    """Score Bayes factor under a design-relative (Zellner g-) prior ``b ~ N(0, g I^-1)`` with
-    ``g = lambda0 / dof``: the prior expects noncentrality ``lambda0`` whatever the effect's
-    units, so over-flexible effects pay ``dof/2 log(1 + g)`` and no prior scale can tilt it."""
-    if dof == 0:
-        return 0.0
-    g = lambda0 / dof
-    return 0.5 * g / (1 + g) * lm - 0.5 * dof * math.log1p(g)
-
-
 def grid_log_bf(lms, dofs, lambda0) -> float:
-    """Design-prior Bayes factor of a grid effect: :func:`_log_bf_g` at each grid value
-    (score ``lms[g]`` on ``dofs[g]`` dof), averaged over the grid with equal weights."""
-    lbf = [_log_bf_g(float(lm), int(d), lambda0) for lm, d in zip(lms, dofs)]
-    return float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
+    """Design-prior Bayes factor (log) of a grid effect: the score Bayes factor under a
+    design-relative (Zellner g-) prior ``b ~ N(0, g I^-1)`` with ``g = lambda0 / dof`` at each
+    grid value (score ``lms[g]`` on ``dofs[g]`` dof; 0 dof: factor 1), averaged over the grid
+    with equal weights. The prior expects noncentrality ``lambda0`` whatever the effect's units,
+    so over-flexible effects pay ``dof/2 log(1 + g)`` and no prior scale can tilt it."""
+    return float(_grid_log_bf(np.asarray(lms, float)[:, None], dofs, lambda0)[0])
 
 
 def _log_bf(info, s):
@@ -269,6 +261,17 @@ def _grid_lm(design: SignatureDesign, e: np.ndarray) -> np.ndarray:
     """Score statistics ``(G, ...)`` at every grid value for residual(s) ``e`` (``m`` or
     ``m x B``)."""
     return np.stack([np.sum((b.T @ e) ** 2, axis=0) for b in design.bases])
+
+
+def _grid_log_bf(lms, dofs, lambda0):
+    """:func:`grid_log_bf` for many residuals: ``lms`` ``(G, B)``, ``dofs`` ``(G,)`` -> ``(B,)``;
+    ``log BF_g = g / (1 + g) LM_g / 2 - dof_g log(1 + g) / 2``."""
+    dofs = np.asarray(dofs, float)
+    g = lambda0 / np.maximum(dofs, 1.0)
+    lbf = 0.5 * (g / (1 + g))[:, None] * np.asarray(lms, float) - 0.5 * (
+        dofs * np.log1p(g))[:, None]
+    lbf = np.where(dofs[:, None] > 0, lbf, 0.0)
+    return np.logaddexp.reduce(lbf, axis=0) - math.log(lbf.shape[0])
 
 
 def _pvalue(design: SignatureDesign, lm, dof):

@@ -445,6 +445,25 @@ def oracle_choice(r, lam: float):
     return max(lbf, key=lbf.get)
 
 
+def oracle_detect_statistic(r, lam: float) -> float:
+    """The Bayes oracle's detection statistic for a case of noncentrality ``lam``: the log of
+    the mean over the catalogue of the design-prior Bayes factors expecting exactly ``lam``
+    (:func:`oracle_choice`'s prior), i.e. the likelihood ratio of the generator's alternative
+    against the null in the linearised model (Neyman-Pearson: the most powerful detector)."""
+    lbf = [grid_log_bf(sc, d, lam) for sc, d in r["scores"].values()]
+    return float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
+
+
+def oracle_power(pairs, lam: float, thresholds):
+    """Detection power of the Bayes oracle on ``pairs`` of noncentrality ``lam``: its statistic
+    above the level-alpha threshold ``thresholds[lam]`` (from
+    :func:`gyrojax.diagnose._harness.oracle_detection_thresholds`); ``None`` without one."""
+    if not thresholds or float(lam) not in thresholds:
+        return None
+    return _rate([(t, r) for t, r in pairs if r.get("scores")],
+                 lambda t, r: oracle_detect_statistic(r, lam) > thresholds[float(lam)])
+
+
 def calibration(pairs, n_bins: int = 10):
     """Spec §5.6 set calibration of the posteriors over in-library (truth, result) pairs, with
     each result's posteriors renormalised over the catalogue (an effect is present): expected
@@ -496,7 +515,7 @@ def ratio_rate(pairs, num, den):
     return {"rate": float(ratio), "se": se, "n": len(x)}
 
 
-def score(case_dir, results, separable=None) -> dict:
+def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
     """Unseal the manifest and compute the §5.6 metrics (rate, its Monte Carlo standard error,
     and the count behind it). ``separable``: the families whose largest projected canonical
     correlation with another is <= 0.9 on the design (for the separable top-1 of spec §6 G3;
@@ -530,6 +549,7 @@ def score(case_dir, results, separable=None) -> dict:
                                           lambda t, r: oracle_choice(r, lam) == t["family"]),
             "oracle_efficiency": ratio_rate(sub, lambda t, r: _top(r) == t["family"],
                                             lambda t, r: oracle_choice(r, lam) == t["family"]),
+            "oracle_power": oracle_power(sub, lam, oracle_thresholds),
             "set_coverage": rate([(t, r) for t, r in sub if r["ambiguity"]],
                                  lambda t, r: t["family"] in r["ambiguity"]),
             "mean_set_size": (float(np.mean([len(r["ambiguity"]) for t, r in sub

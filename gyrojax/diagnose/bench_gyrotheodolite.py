@@ -144,8 +144,9 @@ def run(case_dir, *, design: GyrotheodoliteDesign | None = None, progress=None) 
     return run_cases(case_dir, "gyrotheodolite", design.holdout, progress=progress)
 
 
-def score(case_dir, results, separable=None) -> dict:
+def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
     """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`); a hidden tape torque
     must stay unattributed (``structural_silent``)."""
     return score_cases(case_dir, results, MEAN_FAMILIES, (), OUT_OF_LIBRARY,
-                       structural=STRUCTURAL, separable=separable)
+                       structural=STRUCTURAL, separable=separable,
+                       oracle_thresholds=oracle_thresholds)

@@ -213,7 +213,8 @@ def _split_for(record, split):
     return split if len(amps) > 1 else "same-design"
 
 
-def score(case_dir, results, separable=None) -> dict:
+def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
     """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`)."""
     return score_cases(case_dir, results, MEAN_FAMILIES, (), OUT_OF_LIBRARY,
-                       structural=STRUCTURAL, separable=separable)
+                       structural=STRUCTURAL, separable=separable,
+                       oracle_thresholds=oracle_thresholds)

@@ -166,6 +166,7 @@ def run(case_dir, *, design: SchulerDesign | None = None, progress=None) -> list
     return run_cases(case_dir, "schuler", design.holdout, progress=progress)
 
 
-def score(case_dir, results, separable=None) -> dict:
+def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
     """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`)."""
-    return score_cases(case_dir, results, MEAN_FAMILIES, (), OUT_OF_LIBRARY, separable=separable)
+    return score_cases(case_dir, results, MEAN_FAMILIES, (), OUT_OF_LIBRARY, separable=separable,
+                       oracle_thresholds=oracle_thresholds)
