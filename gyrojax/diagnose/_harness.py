@@ -84,23 +84,14 @@ def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
     between the catalogue's effects, a design prior expecting exactly ``lambda``), so rejecting
     above the threshold is the most powerful level-``alpha`` test a diagnosis could run: the
     reference for spec §6 G2's detection power."""
-    from ._stats import _grid_log_bf, screen_designs
+    from ._stats import _grid_log_bf, score_draws, screen_designs
 
     jn, sigs = _train_jacobians(record, rig, sigma, split)
     _, designs = screen_designs(jn, sigs, n_boot=0)
-    bases = [b for des in designs for b in des.bases]
-    w = np.concatenate(bases, axis=1)
-    gram = w.T @ w
-    ev, evec = np.linalg.eigh((gram + gram.T) / 2)
-    t = (evec * np.sqrt(np.clip(ev, 0.0, None))) @ np.random.default_rng(seed).standard_normal(
-        (w.shape[1], n_draws))
-    lms, k = [], 0
-    for des in designs:
-        rows = []
-        for b in des.bases:
-            rows.append(np.sum(t[k:k + b.shape[1]] ** 2, axis=0))
-            k += b.shape[1]
-        lms.append((np.array(rows), [b.shape[1] for b in des.bases]))
+    blocks = iter(score_draws([b for des in designs for b in des.bases], n_draws,
+                              np.random.default_rng(seed)))
+    lms = [(np.array([np.sum(next(blocks) ** 2, axis=0) for _ in des.bases]),
+            [b.shape[1] for b in des.bases]) for des in designs]
     out = {}
     for lam in lambdas:
         stat = np.stack([_grid_log_bf(lm, d, lam) for lm, d in lms])

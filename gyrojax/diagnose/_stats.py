@@ -369,20 +369,26 @@ def _sup_null(bases, n_boot, rng):
     the stacked scores are ``N(0, W^T W)`` and are drawn in that small space (``sum_g dof_g``
     dimensions) instead of drawing ``m``-vectors: the same law at a fraction of the cost.
     """
-    w = np.concatenate(bases, axis=1)
-    if w.shape[1] == 0:
+    if sum(b.shape[1] for b in bases) == 0:
         return np.full(n_boot, 0.0)
+    sup = np.zeros(n_boot)
+    for tb in score_draws(bases, n_boot, rng):
+        sup = np.maximum(sup, np.sum(tb * tb, axis=0))
+    return np.sort(sup)
+
+
+def score_draws(bases, n: int, rng) -> list[np.ndarray]:
+    """``n`` joint null draws of the standardised scores ``W_g^T z`` (``z ~ N(0, I_m)``) of
+    every orthonormal basis in ``bases``, drawn in their own small space: the stacked scores are
+    ``N(0, W^T W)`` with ``W`` the bases side by side. Returns one ``(dof_g, n)`` block per
+    basis."""
+    w = np.concatenate(bases, axis=1)
     gram = w.T @ w
     ev, evec = np.linalg.eigh((gram + gram.T) / 2)
     root = evec * np.sqrt(np.clip(ev, 0.0, None))  # gram = root root^T
-    t = root @ rng.standard_normal((w.shape[1], n_boot))
-    sup = np.zeros(n_boot)
-    k = 0
-    for b in bases:
-        tb = t[k:k + b.shape[1]]
-        sup = np.maximum(sup, np.sum(tb * tb, axis=0))
-        k += b.shape[1]
-    return np.sort(sup)
+    t = root @ rng.standard_normal((w.shape[1], n))
+    edges = np.cumsum([0] + [b.shape[1] for b in bases])
+    return [t[a:b] for a, b in zip(edges[:-1], edges[1:])]
 
 
 def _sup_pvalue(bases, observed, n_boot, rng):
