@@ -8,12 +8,12 @@ fit. All run in this process on the same machine; throughput is measured after w
 compile time is reported separately. The scipy loop is timed on a subset of trials (its cost is
 linear in N) and reported as trials/s.
 
-The Monte Carlo runs on one JAX device, and at N = 10,000 also with every core as a device
-(``monte_carlo`` shards each chunk over ``jax.devices()``; on the CPU the cores become devices
-through ``XLA_FLAGS=--xla_force_host_platform_device_count``). That run is a subprocess with a
-time limit: batched LAPACK on several CPU devices can deadlock jaxlib 0.10.2 (docs/notes.md), and
-a hang is reported as such. The scipy loop runs in one process; the table also gives the ratio
-per core against an ideal one-process-per-core scipy pool.
+The Monte Carlo runs on one JAX device, and at N = 10,000 also on every core: one process per
+core, each pinned to its core and running its share of the trials on one device, timed from a
+barrier after their compiles to the last finish. (Sharding one process's chunks over the cores as
+host devices, ``XLA_FLAGS=--xla_force_host_platform_device_count``, can deadlock jaxlib 0.10.2's
+batched LAPACK: docs/notes.md.) The scipy loop runs in one process; the table also gives the
+ratio per core against an ideal one-process-per-core scipy pool.
 
 Run:  python benchmarks/esg_montecarlo.py [--quick] [--out benchmarks/RESULTS.md]
 """
@@ -25,6 +25,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 
 import jax
@@ -39,7 +40,7 @@ from gyrojax.analysis.montecarlo import monte_carlo, staged
 from gyrojax.estimate import fit_trajectory, integral_regression
 from gyrojax.models.esg import DRIFT_NAMES
 from gyrojax.record import BenchRecord
-from gyrojax.simulate import integrate
+from gyrojax.simulate import grid_steps, integrate
 
 sys.path.insert(0, os.path.dirname(__file__))
 from _results import machine_line, publish  # noqa: E402
@@ -158,19 +159,26 @@ def draws(n, seed=0, noise=True):
     return d
 
 
-def gyrojax_trial_fn(identify_batch=8):
+def nominal():
+    """(rig, nominal parameters, conditions, sample times) of every trial."""
+    rig = gj.ESGRig(base_param="rotvec")
+    base = rig.param_space.make({n: 0.01 for n in DRIFT_NAMES}, alpha20=30 * units.DEG)
+    return rig, base, gj.ESGConditions.from_scheme(SCHEME, LAT), jnp.asarray(TS)
+
+
+def gyrojax_trial_fn(identify_batch=8, fixed_grid=True):
     """A batch of trials (draws with a leading axis -> estimates) for
     ``monte_carlo(..., vectorized=True)``: ``staged`` vmaps the ODE solves over the whole batch
-    and runs the regressions in sub-batches of ``identify_batch``."""
-    rig = gj.ESGRig(base_param="rotvec")
-    cond = gj.ESGConditions.from_scheme(SCHEME, LAT)
-    base = rig.param_space.make({n: 0.01 for n in DRIFT_NAMES}, alpha20=30 * units.DEG)
-    ts = jnp.asarray(TS)
+    and runs the regressions in sub-batches of ``identify_batch``. ``fixed_grid``: the ODE on
+    the step grid ``grid_steps`` picks from the nominal trajectory (every step's error still
+    checked against rtol), else adaptive steps."""
+    rig, base, cond, ts = nominal()
+    steps = grid_steps(rig, base, cond, ts) if fixed_grid else None
 
     def measure(d):
         p = base | {"theta1": d["theta"][0], "theta2": d["theta"][1], "dchi1": d["dchi"][0],
                     "dchi2": d["dchi"][1], "dchi3": d["dchi"][2]}
-        y = integrate(rig, p, cond, ts)
+        y = integrate(rig, p, cond, ts, steps=steps)
         if "noise" in d:
             return y + d["noise"]
         return y + NOISE * jax.random.normal(jax.random.wrap_key_data(d["key"]), y.shape)
@@ -207,36 +215,66 @@ def bench_montecarlo(ns, scipy_trials):
         rate, compile_s = time_monte_carlo(one, n, devices=jax.devices()[:1])
         all_cores = all_cores_run(n) if n >= 10_000 else None
         rows.append((n, rate, compile_s, all_cores))
-    return rows, scipy_rate, agree, scipy_trials
+    adaptive = time_monte_carlo(gyrojax_trial_fn(fixed_grid=False), ns[-1],
+                                devices=jax.devices()[:1])
+    return rows, scipy_rate, agree, scipy_trials, adaptive
 
 
-def time_monte_carlo(one, n, devices=None):
-    """(trials/s, compile s) of ``n`` trials in chunks of 512 on ``devices`` (default: all)."""
+def time_monte_carlo(one, n, devices=None, before_timing=None):
+    """(trials/s, compile s) of ``n`` trials in chunks of 512 on ``devices`` (default: all);
+    ``before_timing`` is called between the compile and the timed run."""
     dn = draws(n, seed=2, noise=False)
     chunk = min(n, 512)
     t0 = time.perf_counter()
     monte_carlo(one, jax.tree.map(lambda x: x[:chunk], dn), chunk_size=chunk, devices=devices,
                 vectorized=True)  # compile
     compile_s = time.perf_counter() - t0
+    if before_timing:
+        before_timing()
     t0 = time.perf_counter()
     monte_carlo(one, dn, chunk_size=chunk, devices=devices, vectorized=True)
     return n / (time.perf_counter() - t0), compile_s
 
 
 def all_cores_run(n, limit_s=300):
-    """``time_monte_carlo`` in a subprocess with every core as a JAX device: a dict with the
-    rate, compile time and device count, or ``{"hung": limit_s}`` if it passed the limit."""
-    cores = os.cpu_count() or 1
-    env = dict(os.environ, XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " --xla_force_host_"
-                                      f"platform_device_count={cores}").strip())
-    try:
-        res = subprocess.run([sys.executable, __file__, "--all-cores-probe", str(n)], env=env,
-                             capture_output=True, text=True, timeout=limit_s)
-    except subprocess.TimeoutExpired:
-        return {"hung": limit_s}
-    if res.returncode:
-        raise RuntimeError(f"all-cores run failed:\n{res.stderr[-2000:]}")
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    """``n`` trials split over one process per core, each pinned to its core and running
+    ``time_monte_carlo`` on one device; the processes compile, meet at a barrier, and the rate is
+    ``n`` over the span from the first start to the last finish. A dict with the rate, the
+    compile time and the process count, or ``{"hung": limit_s}``."""
+    cores = len(os.sched_getaffinity(0))
+    with tempfile.TemporaryDirectory() as barrier:
+        procs = [subprocess.Popen(
+            [sys.executable, __file__, "--all-cores-probe", str(n // cores), "--barrier",
+             barrier, "--processes", str(cores)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            preexec_fn=lambda c=c: os.sched_setaffinity(0, {c}))
+            for c in sorted(os.sched_getaffinity(0))]
+        try:
+            outs = [p.communicate(timeout=limit_s) for p in procs]
+        except subprocess.TimeoutExpired:
+            for p in procs:
+                p.kill()
+            return {"hung": limit_s}
+    if any(p.returncode for p in procs):
+        raise RuntimeError("all-cores run failed:\n" + "\n".join(e[-2000:] for _, e in outs))
+    res = [json.loads(o.strip().splitlines()[-1]) for o, _ in outs]
+    span = max(r["end"] for r in res) - min(r["start"] for r in res)
+    return {"rate": (n // cores) * cores / span, "compile_s": max(r["compile_s"] for r in res),
+            "processes": cores}
+
+
+def _probe(n, barrier, processes):
+    """One process of ``all_cores_run``: one JSON line with its compile time and timed span."""
+    def wait_for_all():
+        open(os.path.join(barrier, str(os.getpid())), "w").close()
+        while len(os.listdir(barrier)) < processes:
+            time.sleep(0.01)
+        stamps["start"] = time.time()
+
+    stamps = {}
+    _, compile_s = time_monte_carlo(gyrojax_trial_fn(), n, devices=jax.devices()[:1],
+                                    before_timing=wait_for_all)
+    print(json.dumps({"compile_s": compile_s, "start": stamps["start"], "end": time.time()}))
 
 
 def bench_gauss_newton(n_fits):
@@ -298,13 +336,14 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
     ap.add_argument("--all-cores-probe", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--barrier", help=argparse.SUPPRESS)
+    ap.add_argument("--processes", type=int, default=1, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    if args.all_cores_probe:  # the subprocess of all_cores_run: one JSON line
-        rate, compile_s = time_monte_carlo(gyrojax_trial_fn(), args.all_cores_probe)
-        print(json.dumps({"rate": rate, "compile_s": compile_s, "devices": len(jax.devices())}))
+    if args.all_cores_probe:  # a subprocess of all_cores_run
+        _probe(args.all_cores_probe, args.barrier, args.processes)
         return
     ns = (1, 100) if args.quick else (1, 100, 10_000)
-    rows, srate, agree, nsc = bench_montecarlo(ns, scipy_trials=5 if args.quick else 30)
+    rows, srate, agree, nsc, adaptive = bench_montecarlo(ns, scipy_trials=5 if args.quick else 30)
     gn = bench_gauss_newton(4 if args.quick else 20)
     cores = os.cpu_count() or 1
     lines = [
@@ -314,8 +353,9 @@ def main(argv=None):
         "(Dopri8 / DOP853 at rtol 1e-10), 1 arcsec noise drawn in the graph, regression of 6 "
         "drifts + theta + dchi (11 columns). gyrojax: `monte_carlo(staged(simulate, identify), "
         "..., vectorized=True)`: the ODE solves vmapped over each 512-draw chunk, the regressions "
-        f"in sub-batches of 8 (`jax.lax.map`). 'All cores': {cores} host devices, in a subprocess "
-        "(see the note below the table).",
+        f"in sub-batches of 8 (`jax.lax.map`). 'All cores': {cores} processes, one pinned to each "
+        "core, each running its share of the trials on one device (see the note below the "
+        "table).",
         "",
         "| N trials | gyrojax 1 device, trials/s | gyrojax all cores, trials/s | scipy "
         "solve_ivp + numpy lstsq loop, trials/s | ratio, 1 device | ratio, all cores | ratio per "
@@ -334,10 +374,18 @@ def main(argv=None):
             lines.append(f"| {n:,} | {r1:,.0f} | {ra:,.0f} | {srate:,.1f} | {r1 / srate:,.0f}x | "
                          f"{ra / srate:,.0f}x | {ra / (srate * cores):,.0f}x | {c1:.1f} / "
                          f"{allc['compile_s']:.1f} |")
-    lines += ["", "All cores: jaxlib 0.10.2 can deadlock when several CPU devices run batched "
-              "LAPACK (here the regression's QR) at once (docs/notes.md); this configuration "
-              "(256 draws per device) has not hung in our runs, but the library's own Monte Carlo "
+    lines += ["", "All cores: timed from a barrier after every process has compiled to the last "
+              "finish. Processes, not one process with every core as a JAX host device: sharding "
+              "the chunks over host devices deadlocks jaxlib 0.10.2 when several devices run "
+              "batched LAPACK (the regression's QR) at once (docs/notes.md); it hung in this "
+              "benchmark once the ODE got faster. The library's own Monte Carlo "
               "(`mounting_error_budget`, the CLI) runs on one device."]
+    lines += ["", f"The ODE runs on a fixed grid of {grid_steps(*nominal())} Dopri8 steps "
+              "(`integrate(..., steps=)`, picked by `grid_steps` from the nominal trajectory; "
+              "every step's error estimate of every draw is checked against rtol 1e-10 and the "
+              "run raises if one fails). With "
+              f"diffrax's adaptive steps and its saving loop instead: {adaptive[0]:,.0f} trials/s "
+              f"at N = {ns[-1]:,} ({adaptive[0] / srate:.0f}x; compile {adaptive[1]:.1f} s)."]
     lines += ["", f"scipy loop timed on {nsc} trials; max difference of the drift estimates between "
               f"the two implementations on the same draws: {agree:.1e} deg/h.", "",
               "## ESG Gauss-Newton fit of the exact trajectory (8 parameters: alpha0 + 6 drifts)", "",
@@ -352,24 +400,28 @@ def main(argv=None):
     all_line = (f", all {cores} cores {big[3]['rate'] / srate:.0f}x"
                 if big[3] and "rate" in big[3] else "")
     lines += ["## Where the time goes (one device, measured separately on this machine)", "",
-              "- the exact-model ODE solves, vmapped over 512 draws (Dopri8, rtol 1e-10, 1441 "
-              "outputs, ~45 steps): ~135 us per trial, about half of it diffrax's dense-output "
-              "saving loop (a solve saving only the end point: ~70 us); the solve costs ~330 us per "
-              "trial at 32 draws (per-step overhead shared by fewer lanes);",
+              "- the exact-model ODE solves, vmapped over 512 draws (Dopri8, 1441 outputs): ~75 us "
+              "per trial on the fixed grid of 60 steps (~1.25 us per step: the 13 stages of the "
+              "vector field), ~155 us with adaptive steps (~45 steps plus diffrax's saving loop, "
+              "which evaluates the interpolant inside the step loop). Writing the exact model on "
+              "scalar components instead of batched 3-vectors and 3x3 rotations took the grid "
+              "solve from ~110 to ~75 us (XLA's CPU backend loops badly along a minor axis of "
+              "length 3);",
               "- 1441 x 2 normal deviates (threefry): ~25 us;",
-              "- the regression, in sub-batches of 8: ~170 us, of which the design ~95 us (stored "
-              "trigonometry, 24 block-integrated columns written in place), the two-level QR of "
-              "[A b] ~60-70 us and the SVD of the 11 x 11 R ~11 us. Built the old way (features "
-              "stacked by a concatenate, XLA re-evaluating the sines in every column's loop) the "
-              "design took ~430 us, and at 500-problem batches the QR ran out of cache (~160 us).",
+              "- the regression, in sub-batches of 8: ~190 us, of which the two-level QR of "
+              "[A b] (2880 x 12) ~90 us (~9 GFLOP/s: LAPACK's unblocked Householder on 12 "
+              "columns), the design ~80 us (stored trigonometry, 24 block-integrated columns "
+              "written in place) and the SVD of the 11 x 11 R with the rest ~20 us.",
               "",
               "Earlier results in this file (18x) timed the scipy loop with its first call, which "
               "imported scipy.integrate (~0.3 s over 30 trials): the loop is 2x faster than that. "
               f"The goal of 100x the scipy loop is not met: at N = {big[0]:,} one device runs "
               f"{big[1] / srate:.0f}x the loop (one trial ~{1e6 / big[1]:.0f} us against "
-              f"~{1e3 / srate:.1f} ms){all_line}. Two thirds of the "
-              "time is the ODE solve and the QR, both already at the library level (diffrax, "
-              "LAPACK).", ""]
+              f"~{1e3 / srate:.1f} ms){all_line}. The regression is now two thirds of a trial: "
+              f"with the ODE free, noise and regression alone (~215 us) would allow "
+              f"~{1e6 / 215 / srate:.0f}x per core, so 100x on two cores needs the 11-column "
+              "least squares itself about 2x faster than its LAPACK QR (a Gram/Cholesky "
+              "shortcut would be the normal equations the spec rules out).", ""]
     publish(args.out, "esg", lines)
 
 

@@ -76,3 +76,38 @@ def test_simulate_needs_key_for_noise():
     rig, cond, p = design("polar")
     with pytest.raises(ValueError, match="needs a PRNG key"):
         gj.simulate(rig, p, cond, TS_24H[:10], noise_std=1e-6)
+
+
+def test_fixed_step_grid_is_diffrax_constant_steps_and_checks_its_error():
+    """The fixed-grid path (``steps``) against diffrax's own constant-step solve on the same grid
+    (a second implementation of the same numbers), against a tight adaptive solve (accuracy), and
+    its error check: a grid too coarse for rtol raises or gives NaN; nonuniform samples raise."""
+    import diffrax
+
+    from gyrojax.simulate import grid_steps, trajectory
+
+    rig, cond, p = design("vertical", alpha0_deg=(0, 30))
+    p = p | {"theta1": jnp.asarray(3e-3), "dchi2": jnp.asarray(-2e-4)}
+    ts = TS_24H
+    steps = grid_steps(rig, p, cond, ts)
+    assert steps is not None and 1440 % steps == 0 and 40 <= steps <= 120
+    grid = trajectory(rig, p, cond, ts, steps=steps)
+    tau = ts * rig.time_scale
+    const = diffrax.diffeqsolve(
+        diffrax.ODETerm(lambda t, y, a: rig.vector_field(t, y, p, cond)), diffrax.Dopri8(),
+        tau[0], tau[-1], tau[1440 // steps] - tau[0], rig.initial_state(p, cond),
+        saveat=diffrax.SaveAt(ts=tau), stepsize_controller=diffrax.ConstantStepSize()).ys
+    assert float(jnp.max(jnp.abs(grid - const))) < 1e-13
+    tight = trajectory(rig, p, cond, ts, rtol=1e-13, atol=1e-15)
+    adaptive = trajectory(rig, p, cond, ts)
+    # at least as accurate as the adaptive solve at the same rtol (both well under 1e-9 rad)
+    err_grid = float(jnp.max(jnp.abs(grid - tight)))
+    assert err_grid < 1e-9 and err_grid <= float(jnp.max(jnp.abs(adaptive - tight)))
+    with pytest.raises(Exception, match="too coarse"):
+        trajectory(rig, p, cond, ts, steps=8)
+    assert bool(jnp.all(jnp.isnan(trajectory(rig, p, cond, ts, steps=8, throw=False))))
+    bent = ts.at[5].add(7.0)
+    with pytest.raises(Exception, match="not uniform"):
+        trajectory(rig, p, cond, bent, steps=steps)
+    with pytest.raises(ValueError, match="must divide the 1440"):
+        trajectory(rig, p, cond, ts, steps=7)

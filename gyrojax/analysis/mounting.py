@@ -24,7 +24,7 @@ from ..estimate._linalg import scaled_lstsq
 from ..estimate.regression import integral_regression, regression_design
 from ..models.esg import DRIFT_NAMES, SCHEMES, ESGConditions, ESGRig
 from ..record import BenchRecord
-from ..simulate import integrate
+from ..simulate import grid_steps, integrate
 from .montecarlo import monte_carlo, staged
 
 __all__ = ["mounting_error_tables", "mounting_error_budget", "MountingTables", "MountingBudget",
@@ -181,13 +181,17 @@ def mounting_error_budget(key, n_draws: int, latitude_deg: float = 55.75, *, sch
     masks = jnp.stack([jnp.array([n in DRIFT_NAMES for n in joint_names]),
                        jnp.ones(len(joint_names), bool)])
     noise = noise_arcsec * units.ARCSEC
+    # one fixed step grid for every draw (each step's error is still checked against the
+    # tolerance): about 3x faster than adaptive steps in a batch
+    counts = [grid_steps(rig, base, jax.tree.map(lambda x: x[i], conds), ts) for i in range(ns)]
+    steps = None if None in counts else max(counts)
 
     def simulate(draw):
         i, dc, th, kd = draw
         c = jax.tree.map(lambda x: x[i], conds)
         p = base | {"theta1": th[0], "theta2": th[1], "dchi1": dc[0], "dchi2": dc[1],
                     "dchi3": dc[2]}
-        y = integrate(rig, p, c, ts)
+        y = integrate(rig, p, c, ts, steps=steps)
         return y + noise * jax.random.normal(jax.random.wrap_key_data(kd), y.shape)
 
     def identify(draw, y):
