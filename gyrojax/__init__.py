@@ -16,6 +16,7 @@ from .models.esg import ESGRig as ESGRig
 from .params import Param as Param  # noqa: E402
 from .params import ParameterSpace as ParameterSpace
 from .record import BenchRecord as BenchRecord  # noqa: E402
+from .simulate import grid_steps as grid_steps  # noqa: E402
 from .simulate import integrate as integrate  # noqa: E402
 from .simulate import simulate as simulate
 
