@@ -29,6 +29,7 @@ def ramp_report(tmp_path_factory):
     return _run(tmp_path_factory.mktemp("schuler_gap"), "ramp", [f"nudot2={RAMP}"], seed=5)
 
 
+@pytest.mark.slow  # ~50 s: the first Schuler diagnosis compiles every refit
 def test_hidden_drift_ramp_is_attributed_measured_and_closed(ramp_report):
     r = ramp_report
     v = r["verdict"]
@@ -45,6 +46,7 @@ def test_hidden_drift_ramp_is_attributed_measured_and_closed(ramp_report):
     assert refit["reduction"] > 0.99 and refit["closure"]
 
 
+@pytest.mark.slow  # ~50 s: the first Schuler diagnosis compiles every refit
 def test_accelerometer_tilt_is_absorbed_by_the_bias_with_the_analytic_alias(ramp_report):
     """An input axis tilted by mu towards the vertical senses mu * f3 = mu * g cos(a1) cos(a2):
     a bias of g per radian up to the tilts' squares (~3e-4 here)."""
