@@ -177,6 +177,22 @@ def blind_suite(harness, work, n_cases: int, *, seed: int, design, desc: str,
     return paths, harness.score(work, results), t_gen, t_run
 
 
+def null_run(harness, work, n_nulls: int, *, seed: int, design, out: str, key: str, title: str,
+             label: str) -> dict:
+    """A separate run of ``n_nulls`` sealed nulls of a rig's harness (spec §6 G1 asks for the
+    false-alarm rate over >= 1000 nulls per design), published as section ``key`` of ``out``.
+    ``label`` names the design and what each case draws. Returns the score."""
+    _, s, t_gen, t_run = blind_suite(harness, work, n_nulls, seed=seed, design=design,
+                                     desc="nulls", null_fraction=1.0)
+    lines = [f"## {title}", "", machine_line(), "",
+             f"{n_nulls} sealed nulls on {label} (seed {seed}), generated in {t_gen:.0f} s, "
+             f"diagnosed in {t_run:.0f} s (median {s['median_diagnose_s']:.2f} s per case): "
+             "verdict not no-gap at alpha 0.05 (weighted BH over map + library): "
+             f"{far_text(s)}; spec §6 G1: [0.03, 0.06]."]
+    publish(out, key, lines)
+    return s
+
+
 def diagnose_suite(harness, work, design, desc: str, name: str = "results.json"):
     """Diagnose the sealed cases in ``work`` under ``design`` (a progress bar), keep the
     results as ``name``; returns ``(results, seconds)``."""

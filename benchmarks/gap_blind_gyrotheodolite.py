@@ -9,6 +9,7 @@ each effect with another one). Writes the section ``gap_blind_gyrotheodolite`` o
 
     python benchmarks/gap_blind_gyrotheodolite.py              # 96 cases (~8 min on 2 cores)
     python benchmarks/gap_blind_gyrotheodolite.py --cases 12   # quick look
+    python benchmarks/gap_blind_gyrotheodolite.py --cases 0 --nulls 1000   # G1 null run (~35 min)
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from _results import (  # noqa: E402
     blind_suite,
     far_text,
     machine_line,
+    null_run,
     publish,
     rescore,
     suite_lines,
@@ -49,9 +51,23 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
     ap.add_argument("--keep", help="directory to keep the cases and results in")
+    ap.add_argument("--nulls", type=int, default=0,
+                    help="a separate run of N sealed nulls (spec §6 G1: >= 1000 per design)")
     args = ap.parse_args(argv)
     work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-gyrotheodolite-")
     design = bg.GyrotheodoliteDesign()
+    if args.cases > 0:
+        suite(args, work, design)
+    if args.nulls > 0:
+        null_run(bg, os.path.join(work, "nulls"), args.nulls, seed=args.seed + 1,
+                 design=design, out=args.out, key="gap_blind_gyrotheodolite_nulls",
+                 title=("Gap diagnosis, gyrotheodolite null run "
+                        "(`benchmarks/gap_blind_gyrotheodolite.py --nulls`)"),
+                 label=("the 40-min north-seeking design (index offset, initial azimuth, kappa "
+                        "and F_KC drawn per case)"))
+
+
+def suite(args, work, design):
     paths, s, t_gen, t_run = blind_suite(bg, work, args.cases, seed=args.seed, design=design,
                                          desc="gyrotheodolite")
     sep = separability(load_record(paths[0]), "gyrotheodolite", [units.ARCSEC])

@@ -7,6 +7,7 @@ and the out-of-library effects. Writes the section ``gap_blind_imu`` of RESULTS.
 
     python benchmarks/gap_blind_imu.py              # 3 x 60 + 2 x 40 cases (~25 min)
     python benchmarks/gap_blind_imu.py --cases 12   # quick look
+    python benchmarks/gap_blind_imu.py --cases 0 --nulls 1000 --null-suite static   # G1, one design
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from _results import (  # noqa: E402
     ORACLE_LAMBDAS,
     ORACLE_NOTE,
     machine_line,
+    null_run,
     publish,
     suite_lines,
 )
@@ -54,8 +56,24 @@ def main(argv=None):
     ap.add_argument("--keep", help="directory to keep the cases and results in")
     ap.add_argument("--ool-cases", type=int, default=40,
                     help="extra out-of-library cases per multi-position suite (spec §6 G9)")
+    ap.add_argument("--nulls", type=int, default=0,
+                    help="a separate run of N sealed nulls (spec §6 G1: >= 1000 per design)")
+    ap.add_argument("--null-suite", action="append", choices=list(SUITES),
+                    help="the design(s) of the null run (repeatable; default: every suite)")
     args = ap.parse_args(argv)
     work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-imu-")
+    if args.cases > 0:
+        suites(args, work)
+    for label in (args.null_suite or list(SUITES)) if args.nulls > 0 else ():
+        k = list(SUITES).index(label)
+        null_run(bench_imu, os.path.join(work, f"nulls{k}"), args.nulls, seed=args.seed + 20 + k,
+                 design=SUITES[label], out=args.out, key=f"gap_blind_imu_nulls_{k}",
+                 title=f"Gap diagnosis, IMU null run: {label} (`benchmarks/gap_blind_imu.py "
+                       "--nulls`)",
+                 label=f"the {label} design (the IMU's nominal errors drawn per case)")
+
+
+def suites(args, work):
     scores, meta = {}, {}
     for k, (label, design) in enumerate(SUITES.items()):
         d = os.path.join(work, f"suite{k}")

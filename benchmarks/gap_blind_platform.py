@@ -39,6 +39,7 @@ from _results import (  # noqa: E402
     diagnose_suite,
     far_text,
     machine_line,
+    null_run,
     publish,
     suite_lines,
 )
@@ -72,16 +73,11 @@ def main(argv=None):
 
 
 def nulls(args, work, design):
-    _, s, t_gen, t_run = blind_suite(bp, work, args.nulls, seed=args.seed + 1, design=design,
-                                     desc="nulls", null_fraction=1.0)
-    lines = ["## Gap diagnosis, platform D2 null run (`benchmarks/gap_blind_platform.py --nulls`)",
-             "", machine_line(), "",
-             f"{args.nulls} sealed nulls on design D2 (seed {args.seed + 1}; the 27 nominal "
-             f"coefficients drawn per case), generated in {t_gen:.0f} s, diagnosed in "
-             f"{t_run:.0f} s (median {s['median_diagnose_s']:.2f} s per case): verdict not "
-             f"no-gap at alpha 0.05 (weighted BH over map + library): {far_text(s)}; spec §6 G1: "
-             "[0.03, 0.06]."]
-    publish(args.out, "gap_blind_platform_nulls", lines)
+    null_run(bp, work, args.nulls, seed=args.seed + 1, design=design, out=args.out,
+             key="gap_blind_platform_nulls",
+             title="Gap diagnosis, platform D2 null run (`benchmarks/gap_blind_platform.py "
+                   "--nulls`)",
+             label="design D2 (the 27 nominal coefficients drawn per case)")
 
 
 def both_splits(work, design, separable, desc, thresholds=None):

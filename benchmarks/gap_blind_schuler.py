@@ -8,6 +8,7 @@ correlation of each effect with another one, spec §5.6 "separable": <= 0.9). Wr
 
     python benchmarks/gap_blind_schuler.py              # 60 cases (~10 min on 2 cores)
     python benchmarks/gap_blind_schuler.py --cases 12   # quick look
+    python benchmarks/gap_blind_schuler.py --cases 0 --nulls 1000   # G1 null run (~25 min)
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from _results import (  # noqa: E402
     blind_suite,
     far_text,
     machine_line,
+    null_run,
     publish,
     rescore,
     suite_lines,
@@ -46,9 +48,22 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
     ap.add_argument("--keep", help="directory to keep the cases and results in")
+    ap.add_argument("--nulls", type=int, default=0,
+                    help="a separate run of N sealed nulls (spec §6 G1: >= 1000 per design)")
     args = ap.parse_args(argv)
     work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-schuler-")
     design = bench_schuler.SchulerDesign()
+    if args.cases > 0:
+        suite(args, work, design)
+    if args.nulls > 0:
+        null_run(bench_schuler, os.path.join(work, "nulls"), args.nulls, seed=args.seed + 1,
+                 design=design, out=args.out, key="gap_blind_schuler_nulls",
+                 title=("Gap diagnosis, Schuler-test D5 null run "
+                        "(`benchmarks/gap_blind_schuler.py --nulls`)"),
+                 label="design D5 (the 12 nominal errors drawn from the prior per case)")
+
+
+def suite(args, work, design):
     paths, s, t_gen, t_run = blind_suite(bench_schuler, work, args.cases, seed=args.seed,
                                          design=design, desc="schuler")
     # separability of the catalogue on this design (any record of it: the Jacobians barely
