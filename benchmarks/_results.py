@@ -161,31 +161,57 @@ def rescore(harness, work, **score_kw):
         return harness.score(work, json.load(fh), **score_kw)
 
 
+def reusable_cases(work, n_cases: int, seed: int, design) -> list | None:
+    """The sealed cases already in ``work`` when its manifest is of this design, seed and
+    number of cases (``None`` otherwise): a rerun of the diagnosis on the same records."""
+    import dataclasses
+    import json
+    from pathlib import Path
+
+    man = Path(work) / "sealed" / "manifest.json"
+    if not man.exists():
+        return None
+    m = json.loads(man.read_text())
+    paths = sorted(Path(work).glob("case_*.nc"))
+    if (m.get("design") != json.loads(json.dumps(dataclasses.asdict(design)))
+            or m.get("seed") != seed or len(m["cases"]) != n_cases or len(paths) != n_cases):
+        return None
+    return paths
+
+
 def blind_suite(harness, work, n_cases: int, *, seed: int, design, desc: str,
-                null_fraction: float = 0.3, **generate_kw):
+                null_fraction: float = 0.3, reuse: bool = False, **generate_kw):
     """Generate ``n_cases`` sealed cases of a rig's harness module (``generate``/``run``/
     ``score``) into ``work``, diagnose them with a progress bar, keep ``results.json`` and score.
-    ``generate_kw``: more arguments of ``generate`` (``lambdas``, ``families``).
+    ``generate_kw``: more arguments of ``generate`` (``lambdas``, ``families``). ``reuse``:
+    diagnose the cases already in ``work`` when its manifest has this design, seed and size
+    (:func:`reusable_cases`; then ``t_generate_s`` is ``None``).
     Returns ``(paths, score, t_generate_s, t_diagnose_s)``."""
     import time
 
-    t0 = time.perf_counter()
-    paths = harness.generate(work, n_cases, seed=seed, design=design,
-                             null_fraction=null_fraction, **generate_kw)
-    t_gen = time.perf_counter() - t0
+    paths = reusable_cases(work, n_cases, seed, design) if reuse else None
+    t_gen = None
+    if paths is None:
+        t0 = time.perf_counter()
+        paths = harness.generate(work, n_cases, seed=seed, design=design,
+                                 null_fraction=null_fraction, **generate_kw)
+        t_gen = time.perf_counter() - t0
     results, t_run = diagnose_suite(harness, work, design, desc)
     return paths, harness.score(work, results), t_gen, t_run
 
 
 def null_run(harness, work, n_nulls: int, *, seed: int, design, out: str, key: str, title: str,
-             label: str) -> dict:
+             label: str, reuse: bool = False) -> dict:
     """A separate run of ``n_nulls`` sealed nulls of a rig's harness (spec §6 G1 asks for the
     false-alarm rate over >= 1000 nulls per design), published as section ``key`` of ``out``.
-    ``label`` names the design and what each case draws. Returns the score."""
+    ``label`` names the design and what each case draws; ``reuse``: see :func:`blind_suite`.
+    Returns the score."""
     _, s, t_gen, t_run = blind_suite(harness, work, n_nulls, seed=seed, design=design,
-                                     desc="nulls", null_fraction=1.0)
+                                     desc="nulls", null_fraction=1.0, reuse=reuse)
+    gen = (f"generated in {t_gen:.0f} s" if t_gen is not None
+           else "the cases of an earlier run with this seed, kept and reused")
     lines = [f"## {title}", "", machine_line(), "",
-             f"{n_nulls} sealed nulls on {label} (seed {seed}), generated in {t_gen:.0f} s, "
+             f"{n_nulls} sealed nulls on {label} (seed {seed}), {gen}, "
              f"diagnosed in {t_run:.0f} s (median {s['median_diagnose_s']:.2f} s per case): "
              "verdict not no-gap at alpha 0.05 (weighted BH over map + library): "
              f"{far_text(s)}; spec §6 G1: [0.03, 0.06]."]

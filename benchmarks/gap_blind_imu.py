@@ -60,6 +60,9 @@ def main(argv=None):
                     help="a separate run of N sealed nulls (spec §6 G1: >= 1000 per design)")
     ap.add_argument("--null-suite", action="append", choices=list(SUITES),
                     help="the design(s) of the null run (repeatable; default: every suite)")
+    ap.add_argument("--reuse-cases", action="store_true",
+                    help="null run: diagnose the sealed nulls already in --keep DIR when their "
+                         "manifest has the same design, seed and number (no regeneration)")
     args = ap.parse_args(argv)
     work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-imu-")
     if args.cases > 0:
@@ -70,7 +73,8 @@ def main(argv=None):
                  design=SUITES[label], out=args.out, key=f"gap_blind_imu_nulls_{k}",
                  title=f"Gap diagnosis, IMU null run: {label} (`benchmarks/gap_blind_imu.py "
                        "--nulls`)",
-                 label=f"the {label} design (the IMU's nominal errors drawn per case)")
+                 label=f"the {label} design (the IMU's nominal errors drawn per case)",
+                 reuse=args.reuse_cases)
 
 
 def suites(args, work):

@@ -650,7 +650,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--null-draws", type=int, default=499,
                    help="residuals drawn from the linearised null to calibrate the BH level to "
                         "a false-alarm rate of exactly --alpha (default 499; 0: plain weighted "
-                        "BH at --alpha; rigs with their own noise model use the plain level)")
+                        "BH at --alpha)")
     p.add_argument("--plot", metavar="PNG", help="gap map, residuals before/after, ranking")
     p.set_defaults(func=cmd_diagnose)
 

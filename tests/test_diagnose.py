@@ -238,8 +238,21 @@ def test_calibrated_level_gives_alpha_on_fresh_nulls_by_the_per_residual_code():
     method: fresh null residuals scored one at a time by ``screen`` and ``gap_map_cells``, whose
     smallest weighted-BH q falls below the level in a fraction alpha of them; plain BH at alpha
     is conservative on these correlated tests."""
-    from gyrojax.diagnose._diagnose import _bh_weights, _calibrated_level, _null_sampler
-    from gyrojax.diagnose._stats import gap_map_cells, map_design, nominal_basis, screen_designs
+    from scipy import stats
+
+    from gyrojax.diagnose._diagnose import (
+        _bh_weights,
+        _calibrated_level,
+        _null_sampler,
+        _outside_pvalues,
+    )
+    from gyrojax.diagnose._stats import (
+        _f_sf,
+        gap_map_cells,
+        map_design,
+        nominal_basis,
+        screen_designs,
+    )
 
     rng = np.random.default_rng(11)
     n, c = 200, 2
@@ -260,9 +273,23 @@ def test_calibrated_level_gives_alpha_on_fresh_nulls_by_the_per_residual_code():
     md = map_design(t, ("a", "b"), n_params=3, noise_dof=noise_dof, lines=lines, jn=jn)
     w = _bh_weights(md.n_cells, 2, 0.5)
     u = nominal_basis(jn)
-    draw = _null_sampler(object(), [], [], u, n, c, True)
+    draw = _null_sampler(object(), u, n, c, True)
     level, _ = _calibrated_level(designs, md, w, 0.05, 9999, draw, seed=3)
-    minq = []
+    # with tests outside the map and the library: a held-out cell (F) and a noise-model row
+    # (Bonferroni minimum over the two channels), computed here from their own statistics
+    extra_cells = [dict(axis="time")] * md.n_cells + [dict(axis="heldout")]
+    noise_rows = [dict(name="random_walk", p=1.0, fitted={"a": 0, "b": 0}, testable=True),
+                  dict(name="bias_instability", p=1.0, fitted={}, testable=False)]
+    w_out = _bh_weights(len(extra_cells), 2 + len(noise_rows), 0.5)
+    out = _outside_pvalues(extra_cells, noise_rows, md.n_cells)
+    level_out, _ = _calibrated_level(designs, md, w_out, 0.05, 9999, draw, seed=3, outside=out)
+    pc, pn = out(np.random.default_rng(1), 200_000)
+    for x in (0.01, 0.05, 0.2):  # the Bonferroni minimum's law, analytic: 1 - (1 - x / 2)^2
+        assert abs(np.mean(pn[:, 0] <= x) - (1 - (1 - x / 2) ** 2)) < 0.003
+        assert abs(np.mean(pc[:, 0] <= x) - x) < 0.003
+    assert np.all(pn[:, 1] == 1.0)
+    minq, minq_out = [], []
+    m_ho = 50
     for _ in range(1000):
         z = rng.standard_normal(n * c)
         z -= u @ (u.T @ z)
@@ -273,10 +300,17 @@ def test_calibrated_level_gives_alpha_on_fresh_nulls_by_the_per_residual_code():
         rows = screen(z.reshape(-1), jn, sigs, designs=designs)
         p = np.array([x["p"] for x in cells] + [r.p for r in rows])
         minq.append(bh_qvalues(p, w).min())
-    minq = np.array(minq)
+        p_ho = _f_sf(np.sum(rng.standard_normal(m_ho) ** 2) / m_ho, m_ho, np.inf)
+        p_rw = min(1.0, 2 * stats.norm.sf(rng.standard_normal(2)).min())
+        p = np.array([x["p"] for x in cells] + [p_ho] + [r.p for r in rows] + [p_rw, 1.0])
+        minq_out.append(bh_qvalues(p, w_out).min())
+    minq, minq_out = np.array(minq), np.array(minq_out)
     far = np.mean(minq < level)  # 0.05 +- 0.007 (n = 1000), the level's own scatter +- 0.003
     assert 0.025 <= far <= 0.08, (far, level)
     assert level > 0.05 and np.mean(minq < 0.05) < far  # plain BH: conservative here
+    far_out = np.mean(minq_out < level_out)
+    assert 0.025 <= far_out <= 0.08, (far_out, level_out)
+    assert level_out > 0.05 and np.mean(minq_out < 0.05) < far_out
 
 
 # -- the ESG pipeline ------------------------------------------------------------------------

@@ -91,6 +91,9 @@ def test_imu_diagnosis_null_and_hidden_scale_factor(tmp_path, capsys):
     100 ppm and closes the held-out gap (within the refitted model's null band)."""
     rep = diagnose(_record({}), rig="imu", design_advice=False)
     assert rep.kind == "no-gap"
+    # the BH level is calibrated on the whitened residual, the noise-model rows drawn beside it
+    assert rep.multiplicity["null_draws"] == 499 and "calibrated" in rep.multiplicity["method"]
+    assert rep.multiplicity["global_p"] > 0.05
     path = save_record(_record(dict(sax=3e-3, say=-2e-3, saz=1e-3)), tmp_path / "imu.csv")
     out = tmp_path / "gap.json"
     assert main(["diagnose", str(path), "--rig", "imu", "--latitude", "45", "--json",

@@ -17,11 +17,14 @@ Calibrated level: the map's dyadic windows are nested and the library's signatur
 collinear, so weighted BH (a weighted Simes test of the global null) is conservative on these
 positively dependent tests: the ESG rig's false-alarm rate was 0.02 at alpha 0.05. Where the
 residual's null law is the linearised Gaussian one (white noise per channel, its level given or
-estimated from first differences: the ESG, Schuler and gyrotheodolite problems; the platform's
-same-design split supplies its own draws, centred per dwell with the level from second
-differences), ``null_draws`` residuals are drawn from it (projected off the nominal
+estimated from first differences: the ESG, Schuler and gyrotheodolite problems; the IMU's
+AR-prewhitened residual; the platform supplies its own draws, centred per dwell with the level
+from second differences), ``null_draws`` residuals are drawn from it (projected off the nominal
 span, the noise level re-estimated per draw as on the data) and every map cell and library test
-is evaluated on each; the BH level is lowered or raised to the ``alpha`` quantile of the draws'
+is evaluated on each; tests outside the map and the library (the IMU's noise-model rows, a
+design-shift split's held-out cell) enter each draw as independent p-values from their own null
+law (uniform; a row that is the Bonferroni minimum over k channels as ``min(1, k min U)``). The
+BH level is lowered or raised to the ``alpha`` quantile of the draws'
 smallest weighted-BH q-value. The global test "some q below that level" is then a Monte Carlo
 test of exact size ``alpha`` (``(B + 1) alpha`` an integer) under the linearised null
 (spec §7: sup-statistics and the map's multiplicity need a bootstrap). The draws are seeded
@@ -247,9 +250,9 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
       join ``refits`` with ``"screened": False`` and do not change the verdict.
     - `null_draws`: residuals drawn from the linearised null to calibrate the BH level to a
       global false-alarm rate of exactly ``alpha`` (module docstring); 0 keeps the plain
-      weighted-BH level ``alpha``. The IMU (its own prewhitening and noise-model tests) and the
-      platform's design-shift split (a held-out cell in the family) use the plain level.
-      ``(null_draws + 1) * alpha`` should be an integer.
+      weighted-BH level ``alpha``. Tests outside the map and the library (the IMU's
+      noise-model rows, the platform's design-shift held-out cell) enter the draws as
+      independent p-values. ``(null_draws + 1) * alpha`` should be an integer.
 
     **Returns:** a :class:`GapReport` (``.to_json()``, ``.markdown()``).
     """
@@ -311,11 +314,13 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     weights = _bh_weights(len(cells), len(rows) + len(noise_rows), library_share)
     q_all = bh_qvalues(p_all, weights)
     multiplicity = {"method": "weighted BH", "level": alpha, "null_draws": 0}
-    draw = _null_sampler(prob, noise_rows, cells, designs[0], n, c, np.isfinite(noise_dof))
+    draw = _null_sampler(prob, designs[0], n, c, np.isfinite(noise_dof))
     if null_draws and draw is not None:
         t_cal = time.perf_counter()
+        n_map = len(cells) - sum(x["axis"] == "heldout" for x in cells)
         level, null_minq = _calibrated_level(designs, mdesign, weights, alpha, null_draws, draw,
-                                             seed=zlib.crc32(np.ascontiguousarray(prob.y)))
+                                             seed=zlib.crc32(np.ascontiguousarray(prob.y)),
+                                             outside=_outside_pvalues(cells, noise_rows, n_map))
         multiplicity = {"method": "weighted BH, level calibrated by Monte Carlo under the "
                                   "linearised null", "level": level, "null_draws": null_draws,
                         "global_p": float((1 + np.sum(null_minq <= q_all.min()))
@@ -457,22 +462,19 @@ def _bh_weights(n_map: int, n_library: int, library_share):
                            np.full(n_library, library_share / n_library)])
 
 
-def _null_sampler(prob, noise_rows, cells, u, n, c, estimated):
+def _null_sampler(prob, u, n, c, estimated):
     """``draw(rng, b) -> (b, n, c)`` whitened null residuals for the calibrated level, or
     ``None`` where the simulation would not describe the problem.
 
     A problem with nuisance terms outside the Jacobian or its own noise estimator supplies
     ``null_residuals(rng, b, u)`` (the platform: offsets per dwell, second differences); the
     generic one draws white noise per channel, takes it off the nominal span ``u`` and, when the
-    data's level was estimated, re-estimates it from first differences. Problems with tests
-    outside the map and the library (noise-model rows, a design-shift held-out cell) or their
-    own whitening (the IMU's AR prewhitening) keep the plain level."""
-    if noise_rows or any(x["axis"] == "heldout" for x in cells):
-        return None
+    data's level was estimated, re-estimates it from first differences. On the IMU that is the
+    law of the AR-prewhitened residual to first order (exact when the fitted AR order is 0, the
+    white noise of the bench models; the nominal fit is unweighted by the AR filter)."""
     if hasattr(prob, "null_residuals"):
         return lambda rng, b: prob.null_residuals(rng, b, u)
-    if any(hasattr(prob, a) for a in ("noise_level", "standardize", "noise_screen")) or getattr(
-            prob, "nuisance_dof", 0):
+    if getattr(prob, "nuisance_dof", 0):
         return None
 
     def draw(rng, b):
@@ -485,13 +487,32 @@ def _null_sampler(prob, noise_rows, cells, u, n, c, estimated):
     return draw
 
 
-def _calibrated_level(designs, mdesign, weights, alpha, n_draws, draw, *, seed):
+def _outside_pvalues(cells, noise_rows, n_map):
+    """``(rng, b) -> (p_cells, p_noise)``: null p-values of the tests outside the map and the
+    library, drawn independently of the residual: the cells past the map's ``n_map`` (a
+    design-shift held-out cell: uniform) and the noise-model rows (Bonferroni minimum over the
+    channels they tested: ``min(1, k min(U_1..U_k))``; 1 where not testable)."""
+    n_extra = len(cells) - n_map
+    ks = [len(x.get("fitted") or {}) if x.get("testable", True) else 0 for x in noise_rows]
+
+    def draw(rng, b):
+        p_cells = rng.uniform(size=(b, n_extra))
+        p_noise = np.ones((b, len(ks)))
+        for i, k in enumerate(ks):
+            if k:
+                p_noise[:, i] = np.minimum(1.0, k * rng.uniform(size=(b, k)).min(axis=1))
+        return p_cells, p_noise
+    return draw
+
+
+def _calibrated_level(designs, mdesign, weights, alpha, n_draws, draw, *, seed, outside=None):
     """The BH level whose global false-alarm rate is ``alpha`` under the linearised null, and
     the draws' smallest q-values (see the module docstring).
 
     ``draw(rng, b)`` gives ``b`` whitened null residuals (``b x n x c``, :func:`_null_sampler`);
     the map (:func:`map_statistics`) and the library (:func:`library_pvalues`) are evaluated
-    on every draw. The level is the ``k``-th smallest of the draws' smallest q-values,
+    on every draw; ``outside(rng, b)`` (:func:`_outside_pvalues`) adds the null p-values of
+    the tests outside them. The level is the ``k``-th smallest of the draws' smallest q-values,
     ``k = floor(alpha (B + 1))``: rejecting when the data's smallest q is below it is the Monte
     Carlo test with p-value ``(1 + #{minq_b <= minq}) / (B + 1)``.
     """
@@ -509,7 +530,10 @@ def _calibrated_level(designs, mdesign, weights, alpha, n_draws, draw, *, seed):
         z = draw(rng, b)
         _, p_map, _ = map_statistics(mdesign, z)
         p_lib = library_pvalues(sig_designs, z.reshape(b, n * c).T).T
-        minq.append(bh_qvalues(np.concatenate([p_map, p_lib], axis=1), weights).min(axis=1))
+        p_cells, p_noise = outside(rng, b) if outside is not None else (
+            np.zeros((b, 0)), np.zeros((b, 0)))
+        p = np.concatenate([p_map, p_cells, p_lib, p_noise], axis=1)
+        minq.append(bh_qvalues(p, weights).min(axis=1))
     minq = np.sort(np.concatenate(minq))
     return float(minq[k - 1]), minq
 

@@ -230,6 +230,7 @@ class _Sealer:
         self.out = Path(out_dir)
         (self.out / "sealed").mkdir(parents=True, exist_ok=True)
         self.manifest, self.paths = {}, []
+        self.seed = seed
         self.rng = np.random.default_rng(seed)
 
     def draw(self, i: int, families, lambdas, null_fraction: float):
@@ -245,7 +246,8 @@ class _Sealer:
         self.paths.append(path)
 
     def close(self, design) -> list[Path]:
-        write_json({"design": dataclasses.asdict(design), "cases": self.manifest},
+        write_json({"design": dataclasses.asdict(design), "seed": self.seed,
+                    "cases": self.manifest},
                    self.out / "sealed" / "manifest.json")
         return self.paths
 
