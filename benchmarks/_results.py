@@ -161,6 +161,36 @@ def rescore(harness, work, **score_kw):
         return harness.score(work, json.load(fh), **score_kw)
 
 
+def blind_parser(doc: str, *, cases: int):
+    """The blind scripts' shared arguments: ``--cases``, ``--seed``, ``--out``, ``--keep`` and
+    ``--nulls``; the caller adds its own and parses."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("--cases", type=int, default=cases, help="sealed cases (per suite)")
+    ap.add_argument("--seed", type=int, default=2026)
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
+    ap.add_argument("--keep", help="directory to keep the cases and results in")
+    ap.add_argument("--nulls", type=int, default=0,
+                    help="a separate run of N sealed nulls (spec §6 G1: >= 1000 per design)")
+    return ap
+
+
+def one_design_main(args, harness, design, suite, *, name: str, title: str, label: str):
+    """A one-design blind script's run: the suite (``suite(args, work, design)``) when
+    ``--cases`` > 0, then ``--nulls`` sealed nulls (seed + 1) as section
+    ``gap_blind_<name>_nulls``, in ``--keep`` or a temporary directory."""
+    import tempfile
+
+    work = args.keep or tempfile.mkdtemp(prefix=f"gyrojax-blind-{name}-")
+    if args.cases > 0:
+        suite(args, work, design)
+    if args.nulls > 0:
+        null_run(harness, os.path.join(work, "nulls"), args.nulls, seed=args.seed + 1,
+                 design=design, out=args.out, key=f"gap_blind_{name}_nulls",
+                 title=f"{title} (`benchmarks/gap_blind_{name}.py --nulls`)", label=label)
+
+
 def reusable_cases(work, n_cases: int, seed: int, design) -> list | None:
     """The sealed cases already in ``work`` when its manifest is of this design, seed and
     number of cases (``None`` otherwise): a rerun of the diagnosis on the same records."""

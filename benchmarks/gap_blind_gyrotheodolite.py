@@ -14,22 +14,21 @@ each effect with another one). Writes the section ``gap_blind_gyrotheodolite`` o
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import os
 import sys
-import tempfile
 
 sys.path.insert(0, os.path.dirname(__file__))
 
 from _results import (  # noqa: E402
     ORACLE_LAMBDAS,
     ORACLE_NOTE,
+    blind_parser,
     blind_suite,
     far_text,
     machine_line,
-    null_run,
+    one_design_main,
     publish,
     rescore,
     suite_lines,
@@ -46,25 +45,11 @@ from gyrojax.io import load_record  # noqa: E402
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=96)
-    ap.add_argument("--seed", type=int, default=2026)
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
-    ap.add_argument("--keep", help="directory to keep the cases and results in")
-    ap.add_argument("--nulls", type=int, default=0,
-                    help="a separate run of N sealed nulls (spec §6 G1: >= 1000 per design)")
-    args = ap.parse_args(argv)
-    work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-gyrotheodolite-")
-    design = bg.GyrotheodoliteDesign()
-    if args.cases > 0:
-        suite(args, work, design)
-    if args.nulls > 0:
-        null_run(bg, os.path.join(work, "nulls"), args.nulls, seed=args.seed + 1,
-                 design=design, out=args.out, key="gap_blind_gyrotheodolite_nulls",
-                 title=("Gap diagnosis, gyrotheodolite null run "
-                        "(`benchmarks/gap_blind_gyrotheodolite.py --nulls`)"),
-                 label=("the 40-min north-seeking design (index offset, initial azimuth, kappa "
-                        "and F_KC drawn per case)"))
+    ap = blind_parser(__doc__, cases=96)
+    one_design_main(ap.parse_args(argv), bg, bg.GyrotheodoliteDesign(), suite,
+                    name="gyrotheodolite", title="Gap diagnosis, gyrotheodolite null run",
+                    label=("the 40-min north-seeking design (index offset, initial azimuth, "
+                           "kappa and F_KC drawn per case)"))
 
 
 def suite(args, work, design):

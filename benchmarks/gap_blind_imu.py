@@ -12,7 +12,6 @@ and the out-of-library effects. Writes the section ``gap_blind_imu`` of RESULTS.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import os
@@ -26,6 +25,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from _results import (  # noqa: E402
     ORACLE_LAMBDAS,
     ORACLE_NOTE,
+    blind_parser,
     machine_line,
     null_run,
     publish,
@@ -49,15 +49,9 @@ SUITES = {
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=60, help="cases per suite")
-    ap.add_argument("--seed", type=int, default=2026)
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
-    ap.add_argument("--keep", help="directory to keep the cases and results in")
+    ap = blind_parser(__doc__, cases=60)
     ap.add_argument("--ool-cases", type=int, default=40,
                     help="extra out-of-library cases per multi-position suite (spec §6 G9)")
-    ap.add_argument("--nulls", type=int, default=0,
-                    help="a separate run of N sealed nulls (spec §6 G1: >= 1000 per design)")
     ap.add_argument("--null-suite", action="append", choices=list(SUITES),
                     help="the design(s) of the null run (repeatable; default: every suite)")
     ap.add_argument("--reuse-cases", action="store_true",

@@ -22,7 +22,6 @@ of N sealed nulls (spec §6 G1 asks for >= 1000 per design) as the section
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import os
@@ -35,6 +34,7 @@ import numpy as np  # noqa: E402
 from _results import (  # noqa: E402
     ORACLE_LAMBDAS,
     ORACLE_NOTE,
+    blind_parser,
     blind_suite,
     diagnose_suite,
     far_text,
@@ -55,14 +55,9 @@ from gyrojax.io import load_record  # noqa: E402
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=400)
-    ap.add_argument("--nulls", type=int, default=0, help="a separate run of sealed nulls (G1)")
+    ap = blind_parser(__doc__, cases=400)
     ap.add_argument("--g7-cases", type=int, default=120,
                     help="cases at lambda 256 and 1024 for the held-out comparison (G7)")
-    ap.add_argument("--seed", type=int, default=2026)
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
-    ap.add_argument("--keep", help="directory to keep the cases and results in")
     args = ap.parse_args(argv)
     work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-platform-")
     design = bp.PlatformDesign()

@@ -13,22 +13,21 @@ correlation of each effect with another one, spec §5.6 "separable": <= 0.9). Wr
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import os
 import sys
-import tempfile
 
 sys.path.insert(0, os.path.dirname(__file__))
 
 from _results import (  # noqa: E402
     ORACLE_LAMBDAS,
     ORACLE_NOTE,
+    blind_parser,
     blind_suite,
     far_text,
     machine_line,
-    null_run,
+    one_design_main,
     publish,
     rescore,
     suite_lines,
@@ -43,24 +42,10 @@ from gyrojax.io import load_record  # noqa: E402
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=60)
-    ap.add_argument("--seed", type=int, default=2026)
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
-    ap.add_argument("--keep", help="directory to keep the cases and results in")
-    ap.add_argument("--nulls", type=int, default=0,
-                    help="a separate run of N sealed nulls (spec §6 G1: >= 1000 per design)")
-    args = ap.parse_args(argv)
-    work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-schuler-")
-    design = bench_schuler.SchulerDesign()
-    if args.cases > 0:
-        suite(args, work, design)
-    if args.nulls > 0:
-        null_run(bench_schuler, os.path.join(work, "nulls"), args.nulls, seed=args.seed + 1,
-                 design=design, out=args.out, key="gap_blind_schuler_nulls",
-                 title=("Gap diagnosis, Schuler-test D5 null run "
-                        "(`benchmarks/gap_blind_schuler.py --nulls`)"),
-                 label="design D5 (the 12 nominal errors drawn from the prior per case)")
+    ap = blind_parser(__doc__, cases=60)
+    one_design_main(ap.parse_args(argv), bench_schuler, bench_schuler.SchulerDesign(), suite,
+                    name="schuler", title="Gap diagnosis, Schuler-test D5 null run",
+                    label="design D5 (the 12 nominal errors drawn from the prior per case)")
 
 
 def suite(args, work, design):
