@@ -317,10 +317,10 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     draw = _null_sampler(prob, designs[0], n, c, np.isfinite(noise_dof))
     if null_draws and draw is not None:
         t_cal = time.perf_counter()
-        n_map = len(cells) - sum(x["axis"] == "heldout" for x in cells)
+        outside = _outside_pvalues(cells, noise_rows, mdesign.n_cells)
         level, null_minq = _calibrated_level(designs, mdesign, weights, alpha, null_draws, draw,
                                              seed=zlib.crc32(np.ascontiguousarray(prob.y)),
-                                             outside=_outside_pvalues(cells, noise_rows, n_map))
+                                             outside=outside)
         multiplicity = {"method": "weighted BH, level calibrated by Monte Carlo under the "
                                   "linearised null", "level": level, "null_draws": null_draws,
                         "global_p": float((1 + np.sum(null_minq <= q_all.min()))
