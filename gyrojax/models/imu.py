@@ -217,6 +217,9 @@ def _turn(u0, u1):
     return np.arctan2(s, c) * axis / s
 
 
+_rotvecs_to_matrices = jax.jit(jax.vmap(rotvec_to_matrix))
+
+
 def simulate_imu(params, poses, *, rate_hz: float = 100.0, turn_s: float = 2.0,
                  latitude_deg: float = float("nan"), gravity: float = units.G0,
                  arw=0.0, vrw=0.0, key=None, noise=None) -> BenchRecord:
@@ -249,8 +252,7 @@ def simulate_imu(params, poses, *, rate_hz: float = 100.0, turn_s: float = 2.0,
             w = rv / (n_t * dt)
             # attitude during the turn: u(t) = R(-w t) u  (up vector in the turning body frame)
             tt = (np.arange(n_t) + 0.5) * dt
-            ups.append(np.stack([np.asarray(rotvec_to_matrix(jnp.asarray(-w * s))) @ u
-                                 for s in tt]))
+            ups.append(np.asarray(_rotvecs_to_matrices(jnp.asarray(-w * tt[:, None]))) @ u)
             rates.append(np.tile(w, (n_t, 1)))
             t_now += n_t * dt
     up = np.concatenate(ups)
