@@ -17,6 +17,8 @@ of N sealed nulls (spec §6 G1 asks for >= 1000 per design) as the section
 
     python benchmarks/gap_blind_platform.py                      # 400 + 120 cases (~20 min)
     python benchmarks/gap_blind_platform.py --cases 0 --g7-cases 0 --nulls 1000  # G1 (~20 min)
+    python benchmarks/gap_blind_platform.py --cases 0 --g7-cases 0 --nulls 1000 \
+        --null-split design-shift                                  # G1 on the other split
     python benchmarks/gap_blind_platform.py --cases 24 --g7-cases 12   # quick look
 """
 
@@ -58,21 +60,32 @@ def main(argv=None):
     ap = blind_parser(__doc__, cases=400)
     ap.add_argument("--g7-cases", type=int, default=120,
                     help="cases at lambda 256 and 1024 for the held-out comparison (G7)")
+    ap.add_argument("--null-split", choices=("same-design", "design-shift"),
+                    default="same-design",
+                    help="the held-out split of the null run (design-shift: the 7 g run held "
+                         "out; its own section gap_blind_platform_nulls_shift)")
     args = ap.parse_args(argv)
     work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-platform-")
     design = bp.PlatformDesign()
     if args.cases > 0:
         suite(args, work, design)
     if args.nulls > 0:
-        nulls(args, os.path.join(work, "nulls"), design)
+        shift = args.null_split == "design-shift"
+        nulls(args, os.path.join(work, "nulls_shift" if shift else "nulls"),
+              dataclasses.replace(design, split=args.null_split))
 
 
 def nulls(args, work, design):
+    shift = design.split == "design-shift"
     null_run(bp, work, args.nulls, seed=args.seed + 1, design=design, out=args.out,
-             key="gap_blind_platform_nulls",
-             title="Gap diagnosis, platform D2 null run (`benchmarks/gap_blind_platform.py "
-                   "--nulls`)",
-             label="design D2 (the 27 nominal coefficients drawn per case)")
+             key="gap_blind_platform_nulls" + ("_shift" if shift else ""),
+             title="Gap diagnosis, platform D2 null run"
+                   + (", design-shift split" if shift else "")
+                   + " (`benchmarks/gap_blind_platform.py --nulls"
+                   + (" --null-split design-shift" if shift else "") + "`)",
+             label="design D2 (the 27 nominal coefficients drawn per case"
+                   + ("; trained on the 0 and 9 g runs, the 7 g run held out)" if shift
+                      else ")"))
 
 
 def both_splits(work, design, separable, desc, thresholds=None):
