@@ -25,6 +25,7 @@ from _results import (  # noqa: E402
     ORACLE_LAMBDAS,
     ORACLE_NOTE,
     calibration_line,
+    g9_text,
     machine_line,
     publish,
 )
@@ -99,7 +100,8 @@ def main(argv=None):
             meta["ool"] = {"n": args.ool_cases, "t_s": time.perf_counter() - t0} | {
                 k: os_[k] for k in ("ool_strong_not_confident",
                                     "ool_strong_unexplained_or_ambiguous",
-                                    "ool_confident_misattribution", "out_of_library_honest")}
+                                    "ool_confident_misattribution", "out_of_library_honest",
+                                    "ool_confident_remainder_max")}
         with open(os.path.join(work, "results.json"), "w") as fh:
             json.dump(results, fh)
         with open(os.path.join(work, "run_meta.json"), "w") as fh:
@@ -171,13 +173,8 @@ def main(argv=None):
               f"effects named or in the set: {_fmt(s['two_effects_both_named'])}.",
               *([f"- Out-of-library run ({meta['ool']['n']} more sealed heater_cycle / "
                  f"hvac_line cases at lambda 32/64/128, seed {meta['seed'] + 2}, "
-                 f"{meta['ool']['t_s']:.0f} s): G9, remainder noncentrality after the best "
-                 "library fit (one effect or a pair, truth side, on the diagnosis' grids) "
-                 ">= 32: not confidently attributed "
-                 f"{_fmt(meta['ool']['ool_strong_not_confident'])}, unexplained or ambiguous "
-                 f"{_fmt(meta['ool']['ool_strong_unexplained_or_ambiguous'])}; confident "
-                 "misattribution over every out-of-library case "
-                 f"{_fmt(meta['ool']['ool_confident_misattribution'])} (G9: >= 0.80, <= 0.10); "
+                 f"{meta['ool']['t_s']:.0f} s): G9, on the diagnosis' grids, "
+                 f"{g9_text(meta['ool'])}; "
                  f"not attributed at all {_fmt(meta['ool']['out_of_library_honest'])}."]
                 if meta.get("ool") else []),
               f"- Cost per case (median): whole diagnosis {c['median_diagnose_s']:.2f} s; "

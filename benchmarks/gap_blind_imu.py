@@ -26,6 +26,7 @@ from _results import (  # noqa: E402
     ORACLE_LAMBDAS,
     ORACLE_NOTE,
     blind_parser,
+    g9_text,
     machine_line,
     null_run,
     publish,
@@ -124,13 +125,7 @@ def suites(args, work):
         if o is not None:
             lines += [f"- Out-of-library run ({args.ool_cases} more sealed pose_step / "
                       f"thermal_cycle cases, seed {args.seed + 10 + list(SUITES).index(label)}, "
-                      f"{meta[label + ' ool']:.0f} s): G9, remainder noncentrality after the "
-                      "best catalogue fit (one effect or a pair, truth side) >= 32: not "
-                      f"confidently attributed {_fmt(o['ool_strong_not_confident'])}, "
-                      "unexplained or ambiguous "
-                      f"{_fmt(o['ool_strong_unexplained_or_ambiguous'])}; confident "
-                      "misattribution over every out-of-library case "
-                      f"{_fmt(o['ool_confident_misattribution'])} (G9: >= 0.80, <= 0.10); "
+                      f"{meta[label + ' ool']:.0f} s): G9, {g9_text(o)}; "
                       f"not attributed at all {_fmt(o['out_of_library_honest'])}.", ""]
     publish(args.out, "gap_blind_imu", lines)
 

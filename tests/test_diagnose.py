@@ -113,7 +113,7 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     from scipy import stats as st
 
     from gyrojax.diagnose._stats import _project, grid_log_bf, nominal_basis
-    from gyrojax.diagnose.bench import calibration, oracle_choice, ratio_rate
+    from gyrojax.diagnose.bench import calibration, ool_scores, oracle_choice, ratio_rate
 
     rng = np.random.default_rng(3)
     m, lam = 60, 24.0
@@ -165,6 +165,18 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
              for c in conf]
     cal = calibration(pairs)
     assert cal["ece"] < cal["ece_calibrated_95"] and cal["ece_calibrated_median"] < 0.06
+    # spec §6 G9 by hand: four out-of-library cases, two strong (remainder >= 32), one of them
+    # confidently attributed (posterior 0.95 > 0.9), one weak one confidently attributed too
+    att = {"verdict": "attributed", "effects": ["x"]}
+    ool = [({"remainder_lambda": 40.0, "lambda": 64.0}, att | {"posterior": {"x": 0.95}}),
+           ({"remainder_lambda": 50.0, "lambda": 64.0}, {"verdict": "unexplained", "effects": []}),
+           ({"remainder_lambda": 3.0, "lambda": 64.0}, att | {"posterior": {"x": 0.99}}),
+           ({"remainder_lambda": 9.0, "lambda": 64.0}, att | {"posterior": {"x": 0.6}})]
+    g9 = ool_scores(ool)
+    assert g9["ool_strong_not_confident"]["rate"] == 0.5
+    assert g9["ool_strong_unexplained_or_ambiguous"]["rate"] == 0.5
+    assert g9["ool_confident_misattribution"]["rate"] == 0.5
+    assert g9["ool_confident_remainder_max"] == 40.0
 
 
 def test_oracle_detection_threshold_by_residual_draws():

@@ -424,6 +424,12 @@ def ool_scores(ool) -> dict:
         "ool_strong_unexplained_or_ambiguous": _rate(
             strong, lambda t, r: r["verdict"] in ("unexplained", "ambiguous")),
         "ool_confident_misattribution": _rate(ool, lambda t, r: confident(r)),
+        # how far outside the catalogue's span the confidently misattributed cases reached: a
+        # remainder near zero means the library mimics the effect on this record (no test on it
+        # can tell them apart; only a design shift can)
+        "ool_confident_remainder_max": max(
+            (t["remainder_lambda"] for t, r in ool if confident(r) and "remainder_lambda" in t),
+            default=None),
         "ool_remainder_from_truth": bool(ool) and all("remainder_lambda" in t for t, _ in ool),
     }
 
