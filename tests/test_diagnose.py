@@ -113,7 +113,13 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     from scipy import stats as st
 
     from gyrojax.diagnose._stats import _project, grid_log_bf, nominal_basis
-    from gyrojax.diagnose.bench import calibration, ool_scores, oracle_choice, ratio_rate
+    from gyrojax.diagnose.bench import (
+        calibration,
+        localisation_scores,
+        ool_scores,
+        oracle_choice,
+        ratio_rate,
+    )
 
     rng = np.random.default_rng(3)
     m, lam = 60, 24.0
@@ -177,6 +183,22 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     assert g9["ool_strong_unexplained_or_ambiguous"]["rate"] == 0.5
     assert g9["ool_confident_misattribution"]["rate"] == 0.5
     assert g9["ool_confident_remainder_max"] == 40.0
+    # spec §6 G8 by hand on a 24 h record (tolerance 1.2 h; decay grid step ratio 1.43)
+    res = {"record_hours": 24.0, "top_line": "sidereal day (23.93 h)"}
+    lib = [({"family": "drift_step", "lambda": 32.0, "onset_h": 9.0},
+            res | {"grid_best": {"drift_step": 10.0}}),
+           ({"family": "drift_step", "lambda": 64.0, "onset_h": 9.0},
+            res | {"grid_best": {"drift_step": 12.0}}),
+           ({"family": "drift_step", "lambda": 16.0, "onset_h": 9.0},  # below lambda 32
+            res | {"grid_best": {"drift_step": 20.0}}),
+           ({"family": "drift_transient", "lambda": 32.0, "decay_time_h": 1.0},
+            res | {"grid_best": {"drift_transient": 1.4}}),
+           ({"family": "diurnal_line", "lambda": 32.0},
+            res | {"grid_best": {}, "top_line": "half sidereal day (11.97 h)"})]
+    g8 = localisation_scores(lib)
+    assert g8["g8_step_onset"]["rate"] == 0.5 and g8["g8_step_onset"]["n"] == 2
+    assert g8["g8_transient_decay"]["rate"] == 1.0 and g8["g8_line"]["rate"] == 0.0
+    assert g8["g8_line_other_families"]["rate"] == 1.0
 
 
 def test_oracle_detection_threshold_by_residual_draws():
