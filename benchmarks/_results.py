@@ -71,10 +71,12 @@ def first_and_best(fn, repeat: int = 3):
 
 
 def fmt_rate(r) -> str:
-    """``rate ± se (n=...)`` of a blind-suite metric, or ``-``."""
+    """``rate ± se (n=...)`` of a blind-suite metric, or ``-``; three decimals from n = 500 on,
+    where the standard error is below 0.01 (G1's edges 0.03 and 0.06 need the third digit)."""
     if r is None:
         return "-"
-    return f"{r['rate']:.2f} ± {r['se']:.2f} (n={r['n']})"
+    d = 3 if r["n"] >= 500 else 2
+    return f"{r['rate']:.{d}f} ± {r['se']:.{d}f} (n={r['n']})"
 
 
 def far_text(s) -> str:
