@@ -8,6 +8,7 @@ and the out-of-library effects. Writes the section ``gap_blind_imu`` of RESULTS.
     python benchmarks/gap_blind_imu.py              # 3 x 60 + 2 x 40 cases (~25 min)
     python benchmarks/gap_blind_imu.py --cases 12   # quick look
     python benchmarks/gap_blind_imu.py --cases 0 --nulls 1000 --null-suite static   # G1, one design
+    python benchmarks/gap_blind_imu.py --cases 0 --calibration-cases 100   # G4 on the static design
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from _results import (  # noqa: E402
     ORACLE_LAMBDAS,
     ORACLE_NOTE,
     blind_parser,
+    calibration_line,
     g9_text,
     machine_line,
     null_run,
@@ -55,6 +57,9 @@ def main(argv=None):
                     help="extra out-of-library cases per multi-position suite (spec §6 G9)")
     ap.add_argument("--null-suite", action="append", choices=list(SUITES),
                     help="the design(s) of the null run (repeatable; default: every suite)")
+    ap.add_argument("--calibration-cases", type=int, default=0,
+                    help="a separate run of N static-design time_drift / warmup_transient "
+                         "cases at lambda 8-64 for the posteriors' calibration (spec §6 G4)")
     ap.add_argument("--reuse-cases", action="store_true",
                     help="null run: diagnose the sealed nulls already in --keep DIR when their "
                          "manifest has the same design, seed and number (no regeneration)")
@@ -62,6 +67,8 @@ def main(argv=None):
     work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-imu-")
     if args.cases > 0:
         suites(args, work)
+    if args.calibration_cases > 0:
+        static_calibration(args, os.path.join(work, "calibration"))
     for label in (args.null_suite or list(SUITES)) if args.nulls > 0 else ():
         k = list(SUITES).index(label)
         null_run(bench_imu, os.path.join(work, f"nulls{k}"), args.nulls, seed=args.seed + 20 + k,
@@ -70,6 +77,28 @@ def main(argv=None):
                        "--nulls`)",
                  label=f"the {label} design (the IMU's nominal errors drawn per case)",
                  reuse=args.reuse_cases)
+
+
+def static_calibration(args, work):
+    """Spec §6 G4 on the static design with enough in-library cases to read the ECE: the two
+    mean effects it can see (time_drift, warmup_transient) at every lambda, no nulls."""
+    design = SUITES["static"]
+    t0 = time.perf_counter()
+    bench_imu.generate(work, args.calibration_cases, seed=args.seed + 30, design=design,
+                       null_fraction=0.0, families=("time_drift", "warmup_transient"))
+    bar = tqdm(total=args.calibration_cases, desc="calibration", unit="case")
+    results = bench_imu.run(work, design=design, progress=lambda i, n: bar.update(1))
+    bar.close()
+    s = bench_imu.score(work, results)
+    top1 = ", ".join(f"lambda {k} {_fmt(b['top1'])}" for k, b in s["by_lambda"].items())
+    lines = ["## Gap diagnosis, IMU static design: posterior calibration "
+             "(`benchmarks/gap_blind_imu.py --calibration-cases`)", "", machine_line(), "",
+             f"{args.calibration_cases} sealed time_drift / warmup_transient cases on the static "
+             f"design (seed {args.seed + 30}, lambda 8/16/32/64, "
+             f"{time.perf_counter() - t0:.0f} s); top-1: {top1}.", "",
+             calibration_line(s["calibration"],
+                              {k: b["calibration"] for k, b in s["by_lambda"].items()})]
+    publish(args.out, "gap_blind_imu_static_calibration", lines)
 
 
 def suites(args, work):
