@@ -70,14 +70,13 @@ def main(argv=None):
     if args.cases > 0:
         suite(args, work, design)
     if args.nulls > 0:
-        shift = args.null_split == "design-shift"
-        nulls(args, os.path.join(work, "nulls_shift" if shift else "nulls"),
-              dataclasses.replace(design, split=args.null_split))
+        nulls(args, work, dataclasses.replace(design, split=args.null_split))
 
 
 def nulls(args, work, design):
     shift = design.split == "design-shift"
-    null_run(bp, work, args.nulls, seed=args.seed + 1, design=design, out=args.out,
+    null_run(bp, os.path.join(work, "nulls_shift" if shift else "nulls"), args.nulls,
+             seed=args.seed + 1, design=design, out=args.out,
              key="gap_blind_platform_nulls" + ("_shift" if shift else ""),
              title="Gap diagnosis, platform D2 null run"
                    + (", design-shift split" if shift else "")
