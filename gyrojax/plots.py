@@ -100,11 +100,13 @@ def plot_frequency_study(study, path=None):
 
 def plot_gap_report(report, path=None):
     """One figure of a gap diagnosis: the time x channel gap map (-log10 q per dyadic window),
-    the whitened residuals before and after the verdict's refit (train | held-out), and the
-    candidate ranking (posterior, score test -log10 p)."""
+    the whitened residuals before and after the verdict's refit (train | held-out), the
+    candidate ranking (posterior, score test -log10 p), the tau band (Allan variance of the
+    residual over its null prediction, 95 % EDF intervals) and the position / condition cells
+    (-log10 q)."""
     plt = _plt()
-    fig = plt.figure(figsize=(11, 8))
-    gs = fig.add_gridspec(3, 2, height_ratios=[1.1, 1.0, 1.0])
+    fig = plt.figure(figsize=(11, 10.5))
+    gs = fig.add_gridspec(4, 2, height_ratios=[1.1, 1.0, 1.0, 1.0])
     ax_map = fig.add_subplot(gs[0, :])
     cells = [x for x in report.where if x["axis"] == "time"]
     chans = list(report.channels)
@@ -143,7 +145,7 @@ def plot_gap_report(report, path=None):
         ax.set_ylabel("residual / noise")
         ax.set_title(f"whitened residual, {title} (train | held-out)", fontsize=9)
         ax.legend(fontsize=7)
-    ax_rank = fig.add_subplot(gs[1:, 1])
+    ax_rank = fig.add_subplot(gs[1:3, 1])
     names = [r["name"] for r in report.ranking][::-1]
     post = [r["posterior"] for r in report.ranking][::-1]
     logp = [min(-np.log10(max(r["p"], 1e-300)), 50.0) for r in report.ranking][::-1]
@@ -157,10 +159,61 @@ def plot_gap_report(report, path=None):
     ax_rank.set_xlabel("posterior")
     ax2.set_xlabel("-log10 p of the score test (capped at 50)")
     ax_rank.set_xlim(0, 1)
+    _plot_tau_band(fig.add_subplot(gs[3, 0]), report.where, chans)
+    _plot_positions(fig.add_subplot(gs[3, 1]), report.where, chans)
     fig.tight_layout()
     if path:
         _save(fig, path)
     return fig
+
+
+def _plot_tau_band(ax, where, chans):
+    cells = [x for x in where if x["axis"] == "tau"]
+    if not cells:
+        ax.text(0.5, 0.5, "no tau band (record too short)", ha="center", transform=ax.transAxes)
+        return
+    for j, c in enumerate(chans):
+        xs = [x for x in cells if x["channel"] == c]
+        tau = np.array([x["tau_s"] for x in xs]) * (1 + 0.04 * (j - (len(chans) - 1) / 2))
+        r = np.array([x["statistic"] for x in xs])
+        ci = np.array([x["ci95"] for x in xs]).T
+        line = ax.errorbar(tau, r, yerr=[r - ci[0], ci[1] - r], fmt="o-", ms=4, lw=0.8,
+                           capsize=2, label=c)
+        sig = [x.get("significant", False) for x in xs]
+        ax.scatter(tau[sig], r[sig], s=60, facecolors="none",
+                   edgecolors=line[0].get_color(), lw=1.4)
+    ax.axhline(1.0, color="k", lw=0.8, ls=":")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("tau [s]")
+    ax.set_ylabel("AVAR ratio")
+    ax.set_title("tau band: Allan variance of the residual / null (ringed: significant)",
+                 fontsize=9)
+    ax.legend(fontsize=7)
+
+
+def _plot_positions(ax, where, chans):
+    cells = [x for x in where if x["axis"] in ("position", "condition")]
+    if not cells:
+        ax.text(0.5, 0.5, "no test positions in this record", ha="center",
+                transform=ax.transAxes)
+        ax.set_axis_off()
+        return
+    def label(x):
+        return x["cell"] if x["axis"] == "position" else f"all at {x['cell']}"
+    labels = list(dict.fromkeys(label(x) for x in cells))
+    width = 0.8 / len(chans)
+    for j, c in enumerate(chans):
+        xs = {label(x): x for x in cells if x["channel"] == c}
+        val = [min(-np.log10(max(xs[k]["q"], 1e-300)), 10.0) if k in xs else 0.0
+               for k in labels]
+        ax.bar(np.arange(len(labels)) + (j - (len(chans) - 1) / 2) * width, val, width,
+               label=c)
+    ax.set_xticks(range(len(labels)))
+    ax.set_xticklabels(labels, rotation=90, fontsize=5 if len(labels) > 20 else 7)
+    ax.set_ylabel("-log10 q (capped at 10)")
+    ax.set_title("position / condition cells", fontsize=9)
+    ax.legend(fontsize=7, ncol=min(len(chans), 6))
 
 
 def plot_allan(ad, fits=None, *, unit="deg/h", title="", path=None, ax=None):

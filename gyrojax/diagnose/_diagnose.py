@@ -52,6 +52,7 @@ from ._stats import (
     bh_qvalues,
     canonical_correlation,
     gap_map_cells,
+    lag_cells,
     library_pvalues,
     map_design,
     map_statistics,
@@ -298,11 +299,16 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     designs = screen_designs(jn, sigs)
     rows = screen(e, jn, sigs, prior=prior, designs=designs)
     nuisance = getattr(prob, "nuisance_dof", 0)  # train dof of terms outside the Jacobian
-    mdesign = map_design(prob.t[:n], prob.channels, n_params=jn.shape[1] + nuisance,
-                         noise_dof=noise_dof, lines=prob.lines, jn=jn)
+    # the test positions' offset signatures and the columns fitted outside the Jacobian
+    map_kw = dict(noise_dof=noise_dof, lines=prob.lines,
+                  segments=prob.position_signatures(sigma)
+                  if hasattr(prob, "position_signatures") else None,
+                  nuisance=prob.nuisance_columns(sigma)
+                  if hasattr(prob, "nuisance_columns") else None)
+    mdesign = map_design(prob.t[:n], prob.channels, n_params=jn.shape[1] + nuisance, jn=jn,
+                         **map_kw)
     cells = gap_map_cells(e.reshape(n, c), prob.t[:n], prob.channels,
-                          n_params=jn.shape[1] + nuisance, noise_dof=noise_dof, lines=prob.lines,
-                          jn=jn, design=mdesign)
+                          n_params=jn.shape[1] + nuisance, jn=jn, design=mdesign, **map_kw)
     noise_rows = prob.noise_screen(params0) if hasattr(prob, "noise_screen") else []
     n_ho = len(e_all) - n * c
     extra = getattr(prob, "heldout_extra", 0.0)
@@ -336,6 +342,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         x["q"] = float(q)
         x["significant"] = bool(q < level)
     q_mean = q_all[: len(cells) + len(rows)]
+    cells += lag_cells(e.reshape(n, c), prob.channels)  # reported, not decided on
     # excess energy of the whole-record windows (level 0), all channels
     excess = sum(max(0.0, x["excess"]) for x in cells if x["axis"] == "time" and x["level"] == 0)
     detected = bool(np.any(q_mean < level))
@@ -366,7 +373,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         band_aug = _null_band(span_all, n * c, n_ho, extra, noise_dof * c)
         post_cells = gap_map_cells(ea[:n], prob.t[:n], prob.channels,
                                    n_params=jn.shape[1] + nuisance + sum(r.dof for r in combo),
-                                   noise_dof=noise_dof, lines=prob.lines, jn=span)
+                                   jn=span, **map_kw)
         qq = bh_qvalues(np.array([x["p"] for x in post_cells]))
         remaining = [dict(x, q=float(q)) for x, q in zip(post_cells, qq) if q < alpha]
         resid_after[tuple(r.sig.name for r in combo)] = ea

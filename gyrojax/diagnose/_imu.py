@@ -311,6 +311,21 @@ class IMUProblem:
                 out[idx, c] = ys
         return out
 
+    def position_signatures(self, sigma):
+        """Per pose with train rows, the whitened (AR-filtered, scaled) signature of an offset
+        on that pose alone: the gap map's position axis (one condition: no condition axis)."""
+        n = self.n_train
+        out = []
+        for k in np.unique(self.seg[:n]):
+            rows = self.seg[:n] == k
+            if rows.sum() < 2:
+                continue
+            ind = np.repeat(rows.astype(float)[:, None], len(self.channels), axis=1)
+            t = self.t[:n][rows]
+            out.append((f"pose {int(k)} ({t[0]:.0f}-{t[-1]:.0f} s)", "static",
+                        self.whiten(ind) / np.asarray(sigma)[None, :]))
+        return out
+
     def noise_level(self, resid):
         if self.noise_std is not None:
             s = np.broadcast_to(np.asarray(self.noise_std, float), (len(self.channels),)).copy()

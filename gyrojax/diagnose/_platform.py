@@ -279,6 +279,38 @@ class PlatformProblem:
         _, _, self._cols = self._design(self.angles, self.conds, self.amps, self._theta(params))
         return params
 
+    # -- the gap map's position axis -----------------------------------------------------------
+    def _train_dwells(self):
+        """``(run, position)`` of every train dwell, in the train rows' order."""
+        n_pos = len(self.schedule["positions_deg"])
+        return [(a, p) for a in range(len(self.amps)) if a not in self.held_runs
+                for p in range(n_pos)]
+
+    def position_signatures(self, sigma):
+        """Per train dwell, the whitened signature of a drift-rate offset at that position: the
+        block times' ramp, centred like the data (an angle offset is the dwell's nuisance).
+        Condition: the run's table amplitude."""
+        k_tr = self.n_blocks - self.k_ho
+        amps_g = self.schedule["table_amplitudes_g"]
+        out = []
+        for d, (a, p) in enumerate(self._train_dwells()):
+            rows = slice(d * k_tr, (d + 1) * k_tr)
+            w = np.zeros((self.n_train, 3))
+            ramp = self.t[rows] - self.t[rows].mean()
+            w[rows] = ramp[:, None] / np.asarray(sigma)[None, :]
+            out.append((f"position {p + 1} at {amps_g[a]:g} g", f"{amps_g[a]:g} g", w))
+        return out
+
+    def nuisance_columns(self, sigma):
+        """The angle offsets per train dwell and channel (the data are centred by them),
+        whitened: ``(n_train 3, 3 dwells)``."""
+        k_tr = self.n_blocks - self.k_ho
+        n_dw = self.n_train // k_tr
+        ind = np.repeat(np.eye(n_dw), k_tr, axis=0)  # (n_train, dwells)
+        cols = ind[:, None, :, None] * np.eye(3)[None, :, None, :] / np.asarray(
+            sigma)[None, :, None, None]
+        return cols.reshape(self.n_train * 3, n_dw * 3)
+
     def noise_level(self, resid):
         """Per-channel angle noise (block-mean level) from second differences *within* dwells:
         a nominal misfit jumps between dwells (centred separately) and is a ramp inside one

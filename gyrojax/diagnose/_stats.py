@@ -480,18 +480,56 @@ class MapDesign:
     channels: tuple
     noise_dof: float
     windows: list  # (level, k, a, b, channel, expected)
-    line_cells: list  # (name, period, channel, basis J~ (n c, 2), cov (2, 2), dof)
+    score_cells: list  # (axis, label, channel, basis J~ (n c, k), cov (k, k), dof, info dict)
+    tau_cells: list  # (m, clusters, channel, mean, scale g, edf h)
     fisher: bool
 
     @property
     def n_cells(self) -> int:
-        return len(self.windows) + len(self.line_cells) + (self.c if self.fisher else 0)
+        return (len(self.windows) + len(self.score_cells) + len(self.tau_cells)
+                + (self.c if self.fisher else 0))
+
+
+def _score_cell(u, cols, *, min_visible=VISIBLE_MIN):
+    """Projected basis, pseudo-inverse information and dof of a score cell with raw columns
+    ``cols`` (``n c x k``): directions whose visible fraction after projecting out ``u`` is
+    below ``min_visible`` are absorbed (not tested)."""
+    jt = _project(u, cols)
+    _, dof, _, cov, _, _ = _lm(jt, np.zeros(len(cols)),
+                               float(np.max(np.sum(cols ** 2, 0))) * min_visible / 1e-10)
+    return jt, cov, dof
+
+
+def _channel_columns(w, ch, c):
+    """Columns ``w`` (``n x k``) placed on channel ``ch`` of ``n x c`` rows, flattened."""
+    cols = np.zeros((w.shape[0], c, w.shape[1]))
+    cols[:, ch, :] = w
+    return cols.reshape(-1, w.shape[1])
+
+
+def tau_band_moments(u, n: int, c: int, ch: int, m: int):
+    """Null mean and variance of the Allan quadratic form ``Q = sum_k (S_k+1 - S_k)^2 / (2 m)``
+    (``S_k``: sums of ``K = n // m`` consecutive clusters of ``m`` samples of channel ``ch``) of
+    a unit white residual with the span ``u`` (orthonormal, ``n c`` rows) projected out:
+    ``Q = z' (I - P) M' M (I - P) z``, so ``E Q = tr T`` and ``var Q = 2 tr T^2`` with
+    ``T = M (I - P) M' = M M' - (M u)(M u)'`` and ``M M'`` the tridiagonal (1, -1/2)."""
+    k = n // m
+    uc = u.reshape(n, c, -1)[: k * m, ch, :]
+    mu = np.diff(uc.reshape(k, m, -1).sum(1), axis=0) / np.sqrt(2 * m)  # (K-1, p)
+    tmat = (np.eye(k - 1) - 0.5 * (np.eye(k - 1, k=1) + np.eye(k - 1, k=-1))) - mu @ mu.T
+    return float(np.trace(tmat)), float(2 * np.sum(tmat * tmat))
 
 
 def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise_dof: float,
                lines: dict[str, float], jn: np.ndarray, min_window: int = 16,
-               levels: int = 5) -> MapDesign:
-    """The cells of :func:`gap_map_cells` for ``n = len(t)`` samples of ``channels``."""
+               levels: int = 5, segments=None, nuisance=None, min_clusters: int = 9
+               ) -> MapDesign:
+    """The cells of :func:`gap_map_cells` for ``n = len(t)`` samples of ``channels``.
+
+    ``segments``: the record's test positions, ``[(label, condition, w)]`` with ``w``
+    (``n x c``) the whitened per-channel signature of a position offset on the train rows (zero
+    off the position); ``nuisance``: whitened columns (``n c x k``) fitted outside ``jn`` (the
+    platform's dwell offsets), projected out with it."""
     n, c = len(t), len(channels)
     frac = 1.0 - n_params / max(n * c, 1)
     windows = []
@@ -503,19 +541,51 @@ def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise
             a, b = k * nw, (k + 1) * nw if k < (1 << lev) - 1 else n
             for ch in range(c):
                 windows.append((lev, k, a, b, ch, (b - a) * frac))
-    u = nominal_basis(jn)
-    line_cells = []
+    u = nominal_basis(jn if nuisance is None else np.concatenate([jn, nuisance], axis=1))
+    score_cells = []
     for name, period in lines.items():
         w = 2 * np.pi / period
         for ch in range(c):
-            cols = np.zeros((n, c, 2))
-            cols[:, ch, 0], cols[:, ch, 1] = np.sin(w * t), np.cos(w * t)
-            cols = cols.reshape(n * c, 2)
-            jt = _project(u, cols)
-            _, dof, _, cov, _, _ = _lm(jt, np.zeros(n * c), float(np.max(np.sum(cols ** 2, 0))))
-            line_cells.append((name, period, ch, jt, cov, dof))
-    return MapDesign(n, c, np.asarray(t, float), tuple(channels), noise_dof, windows, line_cells,
-                     n >= 16)
+            cols = _channel_columns(np.stack([np.sin(w * t), np.cos(w * t)], 1), ch, c)
+            jt, cov, dof = _score_cell(u, cols, min_visible=1e-10)
+            score_cells.append(("frequency", f"{name} ({period / 3600:.4g} h)", ch, jt, cov,
+                                dof, {"period_s": float(period)}))
+    segments = list(segments or [])
+    for label, cond, w in segments:
+        for ch in range(c):
+            jt, cov, dof = _score_cell(u, _channel_columns(w[:, ch:ch + 1], ch, c))
+            if dof:
+                score_cells.append(("position", str(label), ch, jt, cov, dof,
+                                    {"condition": cond}))
+    conds = list(dict.fromkeys(cond for _, cond, _ in segments))
+    if len(conds) > 1:
+        for cond in conds:
+            ws = [w for _, cd, w in segments if cd == cond]
+            for ch in range(c):
+                jt, cov, dof = _score_cell(u, _channel_columns(
+                    np.stack([w[:, ch] for w in ws], 1), ch, c))
+                if dof:
+                    score_cells.append(("condition", str(cond), ch, jt, cov, dof,
+                                        {"positions": len(ws)}))
+    tau_cells = []
+    m = 2
+    while n // m >= min_clusters:
+        for ch in range(c):
+            mean, var = tau_band_moments(u, n, c, ch, m)
+            if mean > 0 and var > 0:
+                tau_cells.append((m, n // m, ch, mean, var / (2 * mean), 2 * mean ** 2 / var))
+        m *= 2
+    return MapDesign(n, c, np.asarray(t, float), tuple(channels), noise_dof, windows,
+                     score_cells, tau_cells, n >= 16)
+
+
+def allan_form(e: np.ndarray, m: int) -> np.ndarray:
+    """``Q = sum_k (S_k+1 - S_k)^2 / (2 m)`` over the cluster sums ``S_k`` of ``m`` samples of
+    ``e`` (``B x n x c``): ``(B, c)``; ``Q / (K - 1)`` is the non-overlapping Allan variance at
+    ``tau = m tau_0`` over its white-noise value ``1 / m`` (unit noise)."""
+    k = e.shape[1] // m
+    s = e[:, : k * m].reshape(e.shape[0], k, m, -1).sum(2)
+    return np.sum(np.diff(s, axis=1) ** 2, axis=1) / (2 * m)
 
 
 def map_statistics(design: MapDesign, e: np.ndarray):
@@ -530,12 +600,24 @@ def map_statistics(design: MapDesign, e: np.ndarray):
         stat += list(x.T)
         pv += list(np.reshape(_f_sf(x / e0, e0, design.noise_dof), x.shape).T)
         extra += [np.zeros(bsz)] * x.shape[1]
-    flat = e.reshape(bsz, n * c)
-    for _, _, _, jt, cov, dof in design.line_cells:
-        sc = flat @ jt  # (B, 2)
-        lm = np.sum(sc * (sc @ cov), axis=1)
-        stat.append(lm)
-        pv.append(stats.chi2.sf(lm, dof) if dof else np.ones(bsz))
+    if design.score_cells:
+        flat = e.reshape(bsz, n * c)
+        sc_all = flat @ np.concatenate([x[3] for x in design.score_cells], axis=1)
+        i = 0
+        for _, _, _, jt, cov, dof, _ in design.score_cells:
+            sc = sc_all[:, i:i + jt.shape[1]]
+            i += jt.shape[1]
+            lm = np.sum(sc * (sc @ cov), axis=1)
+            stat.append(lm)
+            pv.append(stats.chi2.sf(lm, dof) if dof else np.ones(bsz))
+            extra.append(np.zeros(bsz))
+    forms = {}
+    for m, _, ch, mean, g, h in design.tau_cells:
+        if m not in forms:
+            forms[m] = allan_form(e, m)
+        q = forms[m][:, ch]
+        stat.append(q / mean)
+        pv.append(np.reshape(_f_sf(q / (g * h), h, design.noise_dof), q.shape))
         extra.append(np.zeros(bsz))
     if design.fisher:
         x = e - e.mean(axis=1, keepdims=True)
@@ -550,24 +632,38 @@ def map_statistics(design: MapDesign, e: np.ndarray):
     return np.array(stat).T, np.array(pv).T, np.array(extra).T
 
 
+def _duration(s: float) -> str:
+    return f"{s:.3g} s" if s < 120 else f"{s / 60:.3g} min" if s < 7200 else f"{s / 3600:.3g} h"
+
+
 def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_params: int,
                   noise_dof: float, lines: dict[str, float], jn: np.ndarray,
-                  min_window: int = 16, levels: int = 5, design: MapDesign | None = None
-                  ) -> list[dict]:
+                  min_window: int = 16, levels: int = 5, design: MapDesign | None = None,
+                  segments=None, nuisance=None) -> list[dict]:
     """The Stage-1 map of a whitened residual ``e`` (``n x c``).
 
     - time x channel: windowed sums of squares over dyadic windows, against
       ``E0 = n_w (1 - p/n)`` with an F reference when the noise level was estimated with
       ``noise_dof`` degrees of freedom (``inf``: known);
     - frequency: 2-dof score tests at the known ``lines`` (name -> period in s) per channel with
-      the nominal span projected out, and Fisher's g for the largest unlisted line.
+      the nominal span projected out, and Fisher's g for the largest unlisted line;
+    - position x channel: 1-dof score test of each test position's offset signature (``segments``,
+      see :func:`map_design`) with the nominal span projected out (the per-position mean in the
+      Wald form that accounts for the fitted parameters); condition x channel: the joint test of
+      one condition's positions, where the record has more than one condition;
+    - tau band x channel: the non-overlapping Allan variance of the residual at
+      ``tau = m tau_0`` (``m = 2, 4, ...`` while at least 9 clusters) over its null prediction,
+      with the exact null mean and variance of the quadratic form after the projection and a
+      scaled chi-square (Satterthwaite; F when the level was estimated) upper tail; ``ci95``:
+      its equivalent-dof confidence interval.
     Cells: dicts with axis, cell, channel, statistic, dof, expected, p. ``design``: the
     :func:`map_design` of these arguments (computed here when not given).
     """
     n, c = e.shape
     if design is None:
         design = map_design(t, channels, n_params=n_params, noise_dof=noise_dof, lines=lines,
-                            jn=jn, min_window=min_window, levels=levels)
+                            jn=jn, min_window=min_window, levels=levels, segments=segments,
+                            nuisance=nuisance)
     stat, pv, extra = (x[0] for x in map_statistics(design, e[None]))
     cells = []
     i = 0
@@ -577,10 +673,18 @@ def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_
                           excess=float(stat[i]) - e0, p=float(pv[i]), t0=float(t[a]),
                           t1=float(t[b - 1]), level=lev))
         i += 1
-    for name, period, ch, _, _, dof in design.line_cells:
-        cells.append(dict(axis="frequency", cell=f"{name} ({period / 3600:.4g} h)",
-                          channel=channels[ch], statistic=float(stat[i]), dof=dof, expected=dof,
-                          excess=float(stat[i]) - dof, p=float(pv[i])))
+    for axis, label, ch, _, _, dof, info in design.score_cells:
+        cells.append(dict(axis=axis, cell=label, channel=channels[ch], statistic=float(stat[i]),
+                          dof=dof, expected=dof, excess=float(stat[i]) - dof, p=float(pv[i]),
+                          **info))
+        i += 1
+    tau0 = float(np.median(np.diff(t))) if n > 1 else 0.0
+    for m, k, ch, mean, g, h in design.tau_cells:
+        r = float(stat[i])
+        cells.append(dict(axis="tau", cell=f"tau {_duration(m * tau0)}", channel=channels[ch],
+                          statistic=r, dof=h, expected=1.0, excess=(r - 1.0) * mean,
+                          p=float(pv[i]), tau_s=m * tau0, clusters=k,
+                          ci95=[r * h / stats.chi2.ppf(0.975, h), r * h / stats.chi2.ppf(0.025, h)]))
         i += 1
     if design.fisher:
         q = (n - 1) // 2
@@ -592,6 +696,30 @@ def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_
                               expected=1.0 / q, excess=0.0, p=float(pv[i]), period_s=period))
             i += 1
     return cells
+
+
+def ljung_box(x: np.ndarray, lags: int):
+    """Ljung-Box portmanteau of a series ``x``: ``(Q, p, acf)`` with ``p`` from chi2(lags)."""
+    x = x - x.mean()
+    n = len(x)
+    acf = np.array([np.sum(x[k:] * x[:-k]) for k in range(1, lags + 1)]) / max(
+        float(np.sum(x * x)), 1e-300)
+    q = float(n * (n + 2) * np.sum(acf ** 2 / (n - np.arange(1, lags + 1))))
+    return q, float(stats.chi2.sf(q, lags)), acf
+
+
+def lag_cells(e: np.ndarray, channels: tuple[str, ...], lags: int = 20) -> list[dict]:
+    """Ljung-Box whiteness per channel of a whitened residual ``e`` (``n x c``), the ``resid``-
+    style lag axis: reported for compatibility, never a decision statistic (no q-value)."""
+    lags = max(1, min(lags, e.shape[0] // 5))
+    out = []
+    for ch, name in enumerate(channels):
+        q, p, acf = ljung_box(e[:, ch], lags)
+        out.append(dict(axis="lag", cell=f"lags 1-{lags} (Ljung-Box)", channel=name,
+                        statistic=q, dof=lags, expected=float(lags), excess=q - lags, p=p,
+                        acf=[float(a) for a in acf[:5]], q=None, significant=False,
+                        decision=False))
+    return out
 
 
 def _f_sf(ratio, d1, d2):

@@ -33,7 +33,7 @@ from ..io import load_record, save_record, write_json
 from ..models.esg import ESGConditions, ESGRig
 from ..record import BenchRecord
 from ._esg import TRANSIENT_TIMES_H
-from ._stats import grid_log_bf
+from ._stats import grid_log_bf, ljung_box
 
 __all__ = ["generate", "run", "score", "LIBRARY_FAMILIES", "OUT_OF_LIBRARY"]
 
@@ -251,16 +251,6 @@ class _Sealer:
         return self.paths
 
 
-def _ljung_box_p(e, lags=20):
-    from scipy import stats
-
-    e = e - e.mean()
-    n = len(e)
-    acf = np.array([np.sum(e[k:] * e[:-k]) for k in range(1, lags + 1)]) / np.sum(e * e)
-    q = n * (n + 2) * np.sum(acf**2 / (n - np.arange(1, lags + 1)))
-    return float(stats.chi2.sf(q, lags))
-
-
 def run(case_dir, *, design: Design | None = None, baselines: bool = True,
         refit_all: bool = True, progress=None) -> list:
     """Diagnose every record in ``case_dir`` (never reading ``sealed/``); returns one result dict
@@ -303,7 +293,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
         }
         if baselines:
             e = np.asarray(rep.residual_all)[: rep.n_train]
-            lb = [_ljung_box_p(e[:, ch]) for ch in range(e.shape[1])]
+            lb = [ljung_box(e[:, ch], 20)[1] for ch in range(e.shape[1])]
             res["b1_detect"] = bool(min(lb) * len(lb) < 0.05)
         if baselines and refit_all:
             prob = ESGProblem(rec, holdout=design.holdout)
@@ -388,8 +378,8 @@ def localisation_scores(lib, *, lam_min: float = 32.0) -> dict:
 def multiplicity_fields(rep) -> dict:
     """What a blind result keeps of the multiplicity decision: the smallest weighted-BH q over
     the map and the library, and the level it was held to (calibrated or ``alpha``)."""
-    return {"min_q": min([x["q"] for x in rep.where] + [r["q"] for r in rep.ranking],
-                         default=1.0),
+    qs = [x["q"] for x in rep.where if x.get("q") is not None] + [r["q"] for r in rep.ranking]
+    return {"min_q": min(qs, default=1.0),
             "level": rep.multiplicity.get("level", rep.alpha)}
 
 

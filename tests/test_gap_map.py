@@ -1,0 +1,163 @@
+"""The gap map's position, condition, tau-band and lag axes against independent truths: Monte
+Carlo moments of the Allan quadratic form, null p-value rates, the noncentrality of a planted
+position offset, a random walk in the long-tau band, and the axes in the diagnosis reports."""
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from gyrojax.diagnose._diagnose import first_difference_level
+from gyrojax.diagnose._stats import (
+    allan_form,
+    gap_map_cells,
+    lag_cells,
+    ljung_box,
+    map_design,
+    map_statistics,
+    nominal_basis,
+    tau_band_moments,
+)
+
+N, C = 600, 2
+T = np.arange(N) * 60.0
+
+
+def _nominal():
+    """A bias and a ramp per channel (the nominal span)."""
+    jn = np.zeros((N, C, 2 * C))
+    for ch in range(C):
+        jn[:, ch, 2 * ch] = 1.0
+        jn[:, ch, 2 * ch + 1] = T / T[-1]
+    return jn.reshape(N * C, 2 * C)
+
+
+def _segments():
+    """Six positions of 100 samples, the first three at condition "a", the rest at "b"."""
+    out = []
+    for k in range(6):
+        w = np.zeros((N, C))
+        w[k * 100:(k + 1) * 100] = 1.0
+        out.append((f"p{k}", "a" if k < 3 else "b", w))
+    return out
+
+
+def _null(b, seed):
+    u = nominal_basis(_nominal())
+    z = np.random.default_rng(seed).standard_normal((b, N * C))
+    z -= (z @ u) @ u.T
+    return z.reshape(b, N, C)
+
+
+def _slices(d):
+    nw, ns, nt = len(d.windows), len(d.score_cells), len(d.tau_cells)
+    return {"time": slice(0, nw), "score": slice(nw, nw + ns), "tau": slice(nw + ns, nw + ns + nt)}
+
+
+def test_allan_form_null_moments_match_monte_carlo():
+    """E Q = tr T and var Q = 2 tr T^2 after the projection, against 20,000 draws (the MC
+    standard errors are 0.2 % and 1 %)."""
+    u = nominal_basis(_nominal())
+    z = _null(20000, 0)
+    for m in (2, 8, 32):
+        q = allan_form(z, m)[:, 1]
+        mean, var = tau_band_moments(u, N, C, 1, m)
+        assert q.mean() == pytest.approx(mean, rel=0.01)
+        assert q.var() == pytest.approx(var, rel=0.05)
+        # without the projection: K - 1 and the tridiagonal's 2 tr = 2 (K-1) + (K-2)
+        k = N // m
+        m0, v0 = tau_band_moments(np.zeros((N * C, 0)), N, C, 1, m)
+        assert (m0, v0) == pytest.approx((k - 1, 2 * (k - 1) + (k - 2)))
+
+
+def test_position_condition_tau_cells_hold_their_null_rates():
+    """Known noise: every position, condition and tau cell rejects 5 % of 8,000 null draws
+    (binomial s.e. 0.24 %, pooled over the axis' cells); the condition cells test the three
+    positions of a condition jointly (3 dof); no cell where the nominal absorbs it."""
+    d = map_design(T, ("x", "y"), n_params=4, noise_dof=np.inf, lines={}, jn=_nominal(),
+                   segments=_segments())
+    axes = [x[0] for x in d.score_cells]
+    assert axes.count("position") == 12 and axes.count("condition") == 4
+    assert {x[5] for x in d.score_cells if x[0] == "condition"} == {3}
+    assert [x[0] for x in d.tau_cells] == [2, 2, 4, 4, 8, 8, 16, 16, 32, 32, 64, 64]
+    _, p, _ = map_statistics(d, _null(8000, 1))
+    sl = _slices(d)
+    for axis in ("score", "tau"):
+        rate = float(np.mean(p[:, sl[axis]] < 0.05))
+        assert rate == pytest.approx(0.05, abs=0.006), (axis, rate)
+        rate1 = float(np.mean(p[:, sl[axis]] < 0.01))
+        assert rate1 == pytest.approx(0.01, abs=0.003), (axis, rate1)
+    # the same map with the level estimated from first differences (F reference): no cell is
+    # liberal (the short-tau cells share the estimate's information: conservative)
+    d2 = map_design(T, ("x", "y"), n_params=4, noise_dof=2 * (N - 1) / 3, lines={},
+                    jn=_nominal(), segments=_segments())
+    z = _null(8000, 2)
+    _, p2, _ = map_statistics(d2, z / first_difference_level(z)[:, None, :])
+    assert np.all(np.mean(p2[:, _slices(d2)["tau"]] < 0.05, axis=0) < 0.058)
+    assert np.all(np.mean(p2[:, _slices(d2)["score"]] < 0.05, axis=0) < 0.058)
+
+
+def test_planted_position_offset_is_found_with_its_noncentrality():
+    """An offset of 0.6 sigma on position 3, channel y: its position cell's mean statistic is
+    1 + lambda with lambda = delta^2 |(I - P) w|^2 (the noncentral chi-square, 2,000 draws),
+    it is the smallest-p cell of the map in >= 95 % of draws, and the cells of the other
+    positions keep their null rate."""
+    segs = _segments()
+    d = map_design(T, ("x", "y"), n_params=4, noise_dof=np.inf, lines={}, jn=_nominal(),
+                   segments=segs)
+    delta = 0.6
+    w = np.zeros((N, C))
+    w[300:400, 1] = 1.0
+    u = nominal_basis(_nominal())
+    wf = w.reshape(-1)
+    lam = delta ** 2 * float(np.sum((wf - u @ (u.T @ wf)) ** 2))
+    z = _null(2000, 3) + delta * (w - (u @ (u.T @ wf)).reshape(N, C))[None]
+    st, p, _ = map_statistics(d, z)
+    cells = [(x[0], x[1], x[2]) for x in d.score_cells]
+    i = len(d.windows) + cells.index(("position", "p3", 1))
+    assert st[:, i].mean() == pytest.approx(1 + lam, rel=0.06)
+    # the smallest p of the map is the position's own cell or its condition's
+    j = len(d.windows) + cells.index(("condition", "b", 1))
+    assert np.mean(np.isin(np.argmin(p, axis=1), [i, j])) >= 0.95
+    pos = [len(d.windows) + k for k, c in enumerate(cells) if c[0] == "position"]
+    assert np.mean(np.argmin(p[:, pos], axis=1) == pos.index(i)) >= 0.95
+    others = [len(d.windows) + k for k, c in enumerate(cells) if c[0] == "position"
+              and c[1] not in ("p3",) and c[2] == 0]
+    assert float(np.mean(p[:, others] < 0.05)) == pytest.approx(0.05, abs=0.015)
+    # the condition cell of the planted position's condition sees it too
+    assert np.median(p[:, j]) < 1e-3
+
+
+def test_random_walk_shows_in_the_long_tau_band():
+    """White noise plus a random walk (step s.d. q = 0.06 sigma): the AVAR ratio grows with tau
+    as 1 + q^2 (2 m^2 + 1) / 6 (the discrete random walk's Allan variance over white's, 1 / m),
+    so the longest-tau cell is significant, holds that ratio in its 95 % EDF interval, and the
+    shortest is not significant."""
+    rng = np.random.default_rng(4)
+    q = 0.06
+    e = rng.standard_normal((N, C)) + np.cumsum(q * rng.standard_normal((N, C)), axis=0)
+    e -= e.mean(0)
+    cells = gap_map_cells(e, T, ("x", "y"), n_params=2, noise_dof=np.inf, lines={},
+                          jn=np.repeat(np.eye(C)[None], N, 0).reshape(N * C, C))
+    tau = [x for x in cells if x["axis"] == "tau" and x["channel"] == "x"]
+    assert [x["tau_s"] for x in tau] == [120.0 * 2 ** k for k in range(len(tau))]
+    assert tau[-1]["p"] < 1e-3 and tau[0]["p"] > 0.01
+    m = tau[-1]["tau_s"] / 60.0
+    expected = 1 + q ** 2 * (2 * m * m + 1) / 6
+    lo, hi = tau[-1]["ci95"]
+    assert lo < expected < hi
+
+
+def test_lag_axis_is_ljung_box_and_reported_only():
+    rng = np.random.default_rng(5)
+    e = rng.standard_normal((500, 2))
+    e[:, 1] = np.convolve(rng.standard_normal(501), [1.0, 0.8], "valid")  # MA(1)
+    cells = lag_cells(e, ("x", "y"))
+    assert [x["axis"] for x in cells] == ["lag", "lag"]
+    assert all(x["q"] is None and not x["significant"] and not x["decision"] for x in cells)
+    assert cells[0]["p"] > 0.01 and cells[1]["p"] < 1e-10
+    # the statistic by hand: n (n + 2) sum acf_k^2 / (n - k)
+    x = e[:, 0] - e[:, 0].mean()
+    acf = [np.sum(x[k:] * x[:-k]) / np.sum(x * x) for k in range(1, 21)]
+    q = 500 * 502 * sum(a * a / (500 - k) for k, a in enumerate(acf, 1))
+    assert cells[0]["statistic"] == pytest.approx(q, rel=1e-12)
+    assert ljung_box(e[:, 0], 20)[1] == pytest.approx(stats.chi2.sf(q, 20), rel=1e-12)
