@@ -82,6 +82,38 @@ def test_two_amplitudes_attribute_d_oo_and_null(records):
     assert null.verdict["heldout_gap_before"] < null.verdict["heldout_null_band"][1]
 
 
+def test_position_axis_finds_a_drift_offset_at_one_dwell(records):
+    """A drift-rate offset of 0.02 deg/h on alpha during one dwell (position 5 of the 9 g run),
+    outside the catalogue, added to the null record: the map's position axis flags that dwell
+    and channel (the smallest p of the 28 x 3 position cells, significant, positive Wald z) and
+    its 9 g condition cell; the null record itself flags no position or condition cell; no
+    tau cell of the null is significant either."""
+    from gyrojax.models.platform_schedule import dwell_times, load_schedule
+    from gyrojax.record import BenchRecord
+
+    rec = load_record(records["null"])
+    sched = load_schedule(json.loads(rec.conditions["schedule_json"]))
+    assert sched["table_amplitudes_g"] == [9.0, 7.0] and len(sched["positions_deg"]) == 14
+    n_dw = len(dwell_times(sched))
+    k = 4  # run 0 (9 g), position 5
+    y = np.array(rec.y)
+    t = np.asarray(rec.t)
+    rows = slice(k * n_dw, (k + 1) * n_dw)
+    y[rows, 0] += 0.02 * units.DEG / units.HOUR * (t[rows] - t[rows][0])
+    rep = diagnose(BenchRecord(rec.t, y, rec.channels, rec.attrs), rig="platform",
+                   design_advice=False)
+    pos = [x for x in rep.where if x["axis"] == "position"]
+    assert len(pos) == 28 * 3
+    best = min(pos, key=lambda x: x["p"])
+    assert (best["cell"], best["channel"]) == ("position 5 at 9 g", "alpha")
+    assert best["significant"] and best["z"] > 0
+    cond = {(x["cell"], x["channel"]): x for x in rep.where if x["axis"] == "condition"}
+    assert cond[("9 g", "alpha")]["significant"]
+    null = diagnose(rec, rig="platform", design_advice=False)
+    assert not any(x["significant"] for x in null.where
+                   if x["axis"] in ("position", "condition", "tau"))
+
+
 def test_null_draws_of_the_calibrated_level_follow_the_data_residual(records):
     """The platform's null residuals for the calibrated BH level: centred per train dwell like
     the data (the offsets), orthogonal to the nominal span, and with the noise given their mean

@@ -2,7 +2,9 @@
 
 Stage 0 fits the nominal model on the train split and whitens its residual by the noise level
 (given, or estimated from first differences of the residual, which a smooth gap barely touches).
-Stage 1 maps the gap (time x channel, known lines, the largest unlisted line). Stage 2 screens the
+Stage 1 maps the gap (time x channel, known lines, the largest unlisted line, test position and
+condition x channel where the rig has positions, Allan tau band x channel; the Ljung-Box lag axis
+is reported and never decided on). Stage 2 screens the
 library by efficient score tests with posteriors and an ambiguity set, with one greedy forward
 step for a second effect. Stage 3 reports confounding (visible fraction, no-signature directions,
 aliases by name) and design advice. Stage 4 refits the candidates and measures the held-out gap

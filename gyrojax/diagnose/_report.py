@@ -37,7 +37,10 @@ class GapReport:
       whitening level and where it came from.
     - `gap`: normalised gap ``G = mean(e^2) - 1`` of the whitened residual on train and held-out
       data (0 when model and data agree) with the held-out null band, and residual RMS (SI).
-    - `where`: gap-map cells (axis, cell, channel, statistic, dof, p, q, significant).
+    - `where`: gap-map cells (axis, cell, channel, statistic, dof, p, q, significant); axes
+      ``time``, ``frequency``, ``position`` and ``condition`` (with the signed Wald ``z`` of a
+      1-dof cell), ``tau`` (AVAR ratio with ``tau_s`` and its 95 % EDF interval ``ci95``),
+      ``heldout`` (a design-shift split), and ``lag`` (Ljung-Box; reported only: ``q`` None).
     - `ranking`: one row per catalogued effect (score, p, q, posterior, one-step estimate,
       visible fraction and flag, no-signature directions, aliases by name, MDE / prior scale).
     - `ambiguity`: the 90 %-posterior set and the canonical correlations of effect pairs.

@@ -610,7 +610,8 @@ def map_statistics(design: MapDesign, e: np.ndarray):
             lm = np.sum(sc * (sc @ cov), axis=1)
             stat.append(lm)
             pv.append(stats.chi2.sf(lm, dof) if dof else np.ones(bsz))
-            extra.append(np.zeros(bsz))
+            # one tested direction: the signed Wald z (its square is the statistic)
+            extra.append(sc[:, 0] * np.sqrt(cov[0, 0]) if jt.shape[1] == 1 else np.zeros(bsz))
     forms = {}
     for m, _, ch, mean, g, h in design.tau_cells:
         if m not in forms:
@@ -673,10 +674,10 @@ def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_
                           excess=float(stat[i]) - e0, p=float(pv[i]), t0=float(t[a]),
                           t1=float(t[b - 1]), level=lev))
         i += 1
-    for axis, label, ch, _, _, dof, info in design.score_cells:
+    for axis, label, ch, jt, _, dof, info in design.score_cells:
         cells.append(dict(axis=axis, cell=label, channel=channels[ch], statistic=float(stat[i]),
                           dof=dof, expected=dof, excess=float(stat[i]) - dof, p=float(pv[i]),
-                          **info))
+                          **info, **({"z": float(extra[i])} if jt.shape[1] == 1 else {})))
         i += 1
     tau0 = float(np.median(np.diff(t))) if n > 1 else 0.0
     for m, k, ch, mean, g, h in design.tau_cells:

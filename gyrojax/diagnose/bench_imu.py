@@ -283,3 +283,68 @@ def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
     return score_cases(case_dir, results, MEAN_FAMILIES, NOISE_FAMILIES, OUT_OF_LIBRARY,
                        separable=separable,
                        oracle_thresholds=oracle_thresholds)
+
+
+# -- spec §6 G8 on the IMU: the position and tau axes of the gap map ------------------------
+def expected_position_z(record, truth) -> dict:
+    """Truth side of the per-position signature (G8) of a ``pose_step`` case: the expected Wald
+    z of every position cell of the diagnosis's map (cell label, channel) -> E z, up to the
+    step's (positive) amplitude, from the diagnosis's own design on this record (nominal fit,
+    AR whitening, nominal span projected out): ``J~_p' (I - P) d / |J~_p|`` with ``d`` the
+    whitened step (the stepped accelerometer channel, every pose from ``truth["pose"]`` on).
+    Empty when the record's static segments are not the design's poses one to one."""
+    from ._diagnose import _noise_level, _problem
+    from ._stats import VISIBLE_MIN, _project, nominal_basis
+
+    prob = _problem(record, "imu", 0.25, None, None, "exact", None)
+    params0 = prob.fit_nominal()
+    n, c = prob.n_train, len(prob.channels)
+    sigma = _noise_level(prob, (prob.y - prob.predict(params0))[:n])[0]
+    jn, _ = prob.jacobians(params0, sigma)
+    u = nominal_basis(jn[: n * c])
+    d = np.zeros((n, c))
+    d[prob.seg[:n] >= truth["pose"], prob.channels.index("a" + truth["axis"])] = 1.0
+    dt = _project(u, (prob.whiten(d) / sigma).reshape(-1))
+    out = {}
+    for label, _, w in prob.position_signatures(sigma):
+        for j, name in enumerate(prob.channels):
+            col = np.zeros((n, c))
+            col[:, j] = w[:, j]
+            col = col.reshape(-1)
+            jt = _project(u[:, :], col[:, None])[:, 0]
+            if jt @ jt >= VISIBLE_MIN * (col @ col):
+                out[(label, name)] = float(jt @ dt / np.linalg.norm(jt))
+    return out
+
+
+def position_correlation(where, expected) -> float:
+    """Cosine between the map's per-position Wald z (``where``: the report's cells) and their
+    expectation (:func:`expected_position_z`), over the cells both have."""
+    obs = {(x["cell"], x["channel"]): x["z"] for x in where
+           if x["axis"] == "position" and "z" in x}
+    keys = [k for k in expected if k in obs]
+    if not keys:
+        return float("nan")
+    a = np.array([obs[k] for k in keys])
+    b = np.array([expected[k] for k in keys])
+    return float(a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-300))
+
+
+# the tau band a noise term lifts most over white noise on the rows' Allan variance: its
+# AVAR over the white one grows as tau^2 (rate random walk), tau (bias instability) or falls
+# as 1/tau (quantization)
+NOISE_BAND = {"rate_random_walk": "longest", "bias_instability": "longest",
+              "quantization": "shortest"}
+
+
+def tau_band_hit(where, family, level) -> dict:
+    """G8's tau band for a noise-model case: whether a gyro tau cell is significant, and
+    whether the smallest-p one sits at the band the term lifts most (:data:`NOISE_BAND`)."""
+    cells = [x for x in where if x["axis"] == "tau" and x["channel"].startswith("g")]
+    if not cells or family not in NOISE_BAND:
+        return {"significant": False, "hit": False}
+    taus = sorted({x["tau_s"] for x in cells})
+    want = taus[-1] if NOISE_BAND[family] == "longest" else taus[0]
+    best = min(cells, key=lambda x: x["p"])
+    return {"significant": bool(best.get("q", 1.0) < level), "hit": best["tau_s"] == want,
+            "tau_s": best["tau_s"]}
