@@ -579,12 +579,15 @@ def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise
                      score_cells, tau_cells, n >= 16)
 
 
-def allan_form(e: np.ndarray, m: int) -> np.ndarray:
+def allan_form(e: np.ndarray, m: int, csum: np.ndarray | None = None) -> np.ndarray:
     """``Q = sum_k (S_k+1 - S_k)^2 / (2 m)`` over the cluster sums ``S_k`` of ``m`` samples of
     ``e`` (``B x n x c``): ``(B, c)``; ``Q / (K - 1)`` is the non-overlapping Allan variance at
-    ``tau = m tau_0`` over its white-noise value ``1 / m`` (unit noise)."""
-    k = e.shape[1] // m
-    s = e[:, : k * m].reshape(e.shape[0], k, m, -1).sum(2)
+    ``tau = m tau_0`` over its white-noise value ``1 / m`` (unit noise). ``csum``: the running
+    sums of ``e`` with a leading zero (``B x n+1 x c``), shared between cluster sizes."""
+    if csum is None:
+        csum = np.concatenate([np.zeros_like(e[:, :1]), np.cumsum(e, axis=1)], axis=1)
+    edges = np.arange(e.shape[1] // m + 1) * m
+    s = np.diff(csum[:, edges], axis=1)
     return np.sum(np.diff(s, axis=1) ** 2, axis=1) / (2 * m)
 
 
@@ -613,9 +616,11 @@ def map_statistics(design: MapDesign, e: np.ndarray):
             # one tested direction: the signed Wald z (its square is the statistic)
             extra.append(sc[:, 0] * np.sqrt(cov[0, 0]) if jt.shape[1] == 1 else np.zeros(bsz))
     forms = {}
+    csum = np.concatenate([np.zeros((bsz, 1, c)), np.cumsum(e, axis=1)], axis=1) \
+        if design.tau_cells else None
     for m, _, ch, mean, g, h in design.tau_cells:
         if m not in forms:
-            forms[m] = allan_form(e, m)
+            forms[m] = allan_form(e, m, csum)
         q = forms[m][:, ch]
         stat.append(q / mean)
         pv.append(np.reshape(_f_sf(q / (g * h), h, design.noise_dof), q.shape))
