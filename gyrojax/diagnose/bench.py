@@ -204,6 +204,8 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = No
             p, out2, t2 = _hidden(rng, pa[1], p, cond, design, lam)
             out_term, truth = out1 + out2, {"family": "two_effects", "effects": [t1, t2],
                                             "lambda": lam}
+        elif family == "angle_random_walk":
+            out_term, truth = _angle_random_walk(rng, design, lam)
         else:
             p, out_term, truth = _hidden(rng, family, p, cond, design, lam)
         key, sub = jax.random.split(key)
@@ -215,6 +217,25 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = No
         rec = BenchRecord(rec.t, rec.y + jnp.asarray(out_term), rec.channels, rec.attrs)
         sealer.add(rec, truth)
     return sealer.close(design)
+
+
+def _angle_random_walk(rng, design, z):
+    """A noise-model effect outside the white-noise nominal model: a random walk on both gimbal
+    angles (a gyro angle random walk), its step set so that the longest tau band of the gap map
+    (cluster size ``m``, ``K`` clusters of the train rows) expects an Allan excess of ``z`` null
+    standard deviations: ``(K - 1) q^2 (2 m^2 + 1) / 6 = z sd0`` with ``q`` the step over the
+    white level and ``sd0^2 = 2 (K - 1) + (K - 2)`` (the projection ignored)."""
+    n_train = len(design.ts) - int(round(design.holdout * len(design.ts)))
+    m = 2
+    while n_train // (2 * m) >= 9:
+        m *= 2
+    k = n_train // m
+    q = math.sqrt(6 * z * math.sqrt(3 * k - 4) / ((k - 1) * (2 * m * m + 1)))
+    sigma = design.noise_arcsec * units.ARCSEC
+    walk = np.cumsum(rng.standard_normal((len(design.ts), 2)), axis=0) * q * sigma
+    dt = float(design.ts[1] - design.ts[0])
+    return walk, {"family": "angle_random_walk", "lambda": float(z),
+                  "step_arcsec": q * design.noise_arcsec, "band_s": m * dt}
 
 
 def _sha(path) -> str:
@@ -341,10 +362,27 @@ def localisation_fields(rep) -> dict:
     record's length in hours."""
     lines = [x for x in rep.where if x["axis"] == "frequency"]
     top = min(lines, key=lambda x: x["p"]) if lines else None
+    taus = [x for x in rep.where if x["axis"] == "tau"]
+    top_tau = min(taus, key=lambda x: x["p"]) if taus else None
     t = np.asarray(rep.t)
     return {"grid_best": {r["name"]: r["grid"]["best"] for r in rep.ranking if r.get("grid")},
             "top_line": top["cell"] if top else None, "top_line_p": top["p"] if top else None,
+            "top_tau_s": top_tau["tau_s"] if top_tau else None,
+            "top_tau_significant": bool(top_tau and top_tau["significant"]),
+            "longest_tau_s": max(x["tau_s"] for x in taus) if taus else None,
             "record_hours": float((t[-1] - t[0]) / 3600)}
+
+
+def tau_band_scores(pairs) -> dict:
+    """Spec §6 G8 for noise-model effects over (truth, result) pairs of ``angle_random_walk``
+    cases: the share whose tau axis has a significant cell, and of those the share whose
+    smallest-p tau cell is the longest band (where a random walk's Allan excess over white
+    noise, growing as tau^2, is largest)."""
+    rw = [(t, r) for t, r in pairs if t["family"] == "angle_random_walk"]
+    sig = [(t, r) for t, r in rw if r.get("top_tau_significant")]
+    return {"g8_tau_detected": _rate(rw, lambda t, r: r.get("top_tau_significant")),
+            "g8_tau_band": _rate(sig, lambda t, r: r["top_tau_s"] == r["longest_tau_s"]),
+            "g8_tau_not_attributed": _rate(rw, lambda t, r: r["verdict"] != "attributed")}
 
 
 def localisation_scores(lib, *, lam_min: float = 32.0) -> dict:
@@ -611,6 +649,7 @@ def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
                                         or max(r["posterior"].values()) <= 0.9)
     out |= ool_scores(ool)  # spec §6 G9
     out |= localisation_scores(lib)  # spec §6 G8
+    out |= tau_band_scores(rows)
     out["two_effects_both_named"] = rate(two, lambda t, r: {e["family"] for e in t["effects"]}
                                          <= set(r["effects"]) | set(r["ambiguity"]))
     diag = [r["time_diagnose_s"] for _, r in rows]
