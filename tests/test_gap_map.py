@@ -161,3 +161,22 @@ def test_lag_axis_is_ljung_box_and_reported_only():
     q = 500 * 502 * sum(a * a / (500 - k) for k, a in enumerate(acf, 1))
     assert cells[0]["statistic"] == pytest.approx(q, rel=1e-12)
     assert ljung_box(e[:, 0], 20)[1] == pytest.approx(stats.chi2.sf(q, 20), rel=1e-12)
+
+
+def test_angle_random_walk_generator_sets_the_longest_band_excess():
+    """The ESG harness' noise-model case: its random-walk step gives the longest tau band an
+    expected Allan excess of z null standard deviations (no projection), by 4,000 draws."""
+    from gyrojax.diagnose import bench
+
+    design = bench.Design()
+    rng = np.random.default_rng(6)
+    walk, truth = bench._angle_random_walk(rng, design, 3.0)
+    n = len(design.ts) - int(round(design.holdout * len(design.ts)))
+    m = int(round(truth["band_s"] / (design.ts[1] - design.ts[0])))
+    k = n // m
+    assert k >= 9 and n // (2 * m) < 9  # the map's longest band
+    q = truth["step_arcsec"] / design.noise_arcsec
+    z = rng.standard_normal((4000, n, 1)) + np.cumsum(q * rng.standard_normal((4000, n, 1)), 1)
+    excess = allan_form(z, m)[:, 0].mean() - (k - 1)
+    sd0 = np.sqrt(2 * (k - 1) + (k - 2))
+    assert excess / sd0 == pytest.approx(3.0, rel=0.08)
