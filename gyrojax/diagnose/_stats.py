@@ -87,12 +87,13 @@ def canonical_correlation(a: np.ndarray, b: np.ndarray) -> float:
     return float(min(1.0, np.linalg.svd(qa.T @ qb, compute_uv=False)[0]))
 
 
-def _lm(jt, e, raw_scale):
-    """Score statistic, its dof, the one-step estimate and its covariance (pseudo-inverse)."""
+def _lm(jt, e, raw_scale, rtol=1e-10):
+    """Score statistic, its dof, the one-step estimate and its covariance (pseudo-inverse over
+    the information's eigenvalues above ``rtol * raw_scale``)."""
     info = jt.T @ jt
     s = jt.T @ e
     w, v = np.linalg.eigh(info)
-    keep = w > 1e-10 * max(raw_scale, 1e-300)
+    keep = w > rtol * max(raw_scale, 1e-300)
     winv = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
     cov = (v * winv) @ v.T
     return float(s @ cov @ s), int(keep.sum()), cov @ s, cov, info, s
@@ -495,8 +496,8 @@ def _score_cell(u, cols, *, min_visible=VISIBLE_MIN):
     ``cols`` (``n c x k``): directions whose visible fraction after projecting out ``u`` is
     below ``min_visible`` are absorbed (not tested)."""
     jt = _project(u, cols)
-    _, dof, _, cov, _, _ = _lm(jt, np.zeros(len(cols)),
-                               float(np.max(np.sum(cols ** 2, 0))) * min_visible / 1e-10)
+    _, dof, _, cov, _, _ = _lm(jt, np.zeros(len(cols)), float(np.max(np.sum(cols ** 2, 0))),
+                               rtol=min_visible)
     return jt, cov, dof
 
 

@@ -311,7 +311,7 @@ def expected_position_z(record, truth) -> dict:
             col = np.zeros((n, c))
             col[:, j] = w[:, j]
             col = col.reshape(-1)
-            jt = _project(u[:, :], col[:, None])[:, 0]
+            jt = _project(u, col[:, None])[:, 0]
             if jt @ jt >= VISIBLE_MIN * (col @ col):
                 out[(label, name)] = float(jt @ dt / np.linalg.norm(jt))
     return out
