@@ -102,7 +102,7 @@ def plot_gap_report(report, path=None):
     """One figure of a gap diagnosis: the time x channel gap map (-log10 q per dyadic window),
     the whitened residuals before and after the verdict's refit (train | held-out), the
     candidate ranking (posterior, score test -log10 p), the tau band (Allan variance of the
-    residual over its null prediction, 95 % EDF intervals) and the position / condition cells
+    residual over its null prediction, 95 % EDF intervals) and the position / condition / aux cells
     (-log10 q)."""
     plt = _plt()
     fig = plt.figure(figsize=(11, 10.5))
@@ -193,14 +193,15 @@ def _plot_tau_band(ax, where, chans):
 
 
 def _plot_positions(ax, where, chans):
-    cells = [x for x in where if x["axis"] in ("position", "condition")]
+    cells = [x for x in where if x["axis"] in ("position", "condition", "aux")]
     if not cells:
-        ax.text(0.5, 0.5, "no test positions in this record", ha="center",
-                transform=ax.transAxes)
+        ax.text(0.5, 0.5, "no test positions or auxiliary channels in this record",
+                ha="center", transform=ax.transAxes)
         ax.set_axis_off()
         return
+
     def label(x):
-        return x["cell"] if x["axis"] == "position" else f"all at {x['cell']}"
+        return f"all at {x['cell']}" if x["axis"] == "condition" else x["cell"]
     labels = list(dict.fromkeys(label(x) for x in cells))
     width = 0.8 / len(chans)
     for j, c in enumerate(chans):
@@ -212,7 +213,7 @@ def _plot_positions(ax, where, chans):
     ax.set_xticks(range(len(labels)))
     ax.set_xticklabels(labels, rotation=90, fontsize=5 if len(labels) > 20 else 7)
     ax.set_ylabel("-log10 q (capped at 10)")
-    ax.set_title("position / condition cells", fontsize=9)
+    ax.set_title("position / condition / auxiliary-channel cells", fontsize=9)
     ax.legend(fontsize=7, ncol=min(len(chans), 6))
 
 

@@ -9,6 +9,7 @@ from scipy import stats
 from gyrojax.diagnose._diagnose import first_difference_level
 from gyrojax.diagnose._stats import (
     allan_form,
+    cross_correlation,
     gap_map_cells,
     lag_cells,
     ljung_box,
@@ -41,6 +42,15 @@ def _segments():
     return out
 
 
+def _aux():
+    """Four bins of a temperature cycle's train values (quantiles), as the IMU's aux axis."""
+    temp = np.sin(2 * np.pi * T / 9000.0)
+    k = np.clip(np.searchsorted(np.quantile(temp, [0, 0.25, 0.5, 0.75, 1]), temp, "right") - 1,
+                0, 3)
+    return [(f"temp bin {b}", "temp", np.repeat((k == b).astype(float)[:, None], C, 1))
+            for b in range(4)]
+
+
 def _null(b, seed):
     u = nominal_basis(_nominal())
     z = np.random.default_rng(seed).standard_normal((b, N * C))
@@ -70,14 +80,17 @@ def test_allan_form_null_moments_match_monte_carlo():
 
 
 def test_position_condition_tau_cells_hold_their_null_rates():
-    """Known noise: every position, condition and tau cell rejects 5 % of 8,000 null draws
+    """Known noise: every position, condition, aux and tau cell rejects 5 % of 8,000 null draws
     (binomial s.e. 0.24 %, pooled over the axis' cells); the condition cells test the three
-    positions of a condition jointly (3 dof); no cell where the nominal absorbs it."""
+    positions of a condition jointly (3 dof), the aux joint cell the four temperature bins less
+    the direction the bias absorbs (3 dof); no cell where the nominal absorbs it."""
     d = map_design(T, ("x", "y"), n_params=4, noise_dof=np.inf, lines={}, jn=_nominal(),
-                   segments=_segments())
+                   segments=_segments(), aux=_aux())
     axes = [x[0] for x in d.score_cells]
     assert axes.count("position") == 12 and axes.count("condition") == 4
     assert {x[5] for x in d.score_cells if x[0] == "condition"} == {3}
+    assert axes.count("aux") == 8 + 2
+    assert [x[5] for x in d.score_cells if x[1] == "temp (all bins)"] == [3, 3]
     assert [x[0] for x in d.tau_cells] == [2, 2, 4, 4, 8, 8, 16, 16, 32, 32, 64, 64]
     _, p, _ = map_statistics(d, _null(8000, 1))
     sl = _slices(d)
@@ -89,7 +102,7 @@ def test_position_condition_tau_cells_hold_their_null_rates():
     # the same map with the level estimated from first differences (F reference): no cell is
     # liberal (the short-tau cells share the estimate's information: conservative)
     d2 = map_design(T, ("x", "y"), n_params=4, noise_dof=2 * (N - 1) / 3, lines={},
-                    jn=_nominal(), segments=_segments())
+                    jn=_nominal(), segments=_segments(), aux=_aux())
     z = _null(8000, 2)
     _, p2, _ = map_statistics(d2, z / first_difference_level(z)[:, None, :])
     assert np.all(np.mean(p2[:, _slices(d2)["tau"]] < 0.05, axis=0) < 0.058)
@@ -161,6 +174,16 @@ def test_lag_axis_is_ljung_box_and_reported_only():
     q = 500 * 502 * sum(a * a / (500 - k) for k, a in enumerate(acf, 1))
     assert cells[0]["statistic"] == pytest.approx(q, rel=1e-12)
     assert ljung_box(e[:, 0], 20)[1] == pytest.approx(stats.chi2.sf(q, 20), rel=1e-12)
+    # the CCF with an auxiliary channel's increments: y follows them two rows late
+    temp = np.cumsum(rng.standard_normal(500))
+    e[1:, 1] += 0.5 * np.roll(np.diff(temp), 2)
+    ccf = lag_cells(e, ("x", "y"), aux={"temp": temp})[2:]
+    assert [x["cell"] for x in ccf] == ["CCF with dtemp (lags -20..20)"] * 2
+    assert all(x["q"] is None and not x["decision"] for x in ccf)
+    assert ccf[1]["lag"] == 2 and ccf[1]["p"] < 1e-6 and ccf[0]["p"] > 0.01
+    r, k = cross_correlation(e[1:, 1], np.diff(temp), 3)
+    a, b = e[1:, 1] - e[1:, 1].mean(), np.diff(temp) - np.diff(temp).mean()
+    assert r[k == 2][0] == pytest.approx(np.sum(a[2:] * b[:-2]) / 499 / a.std() / b.std())
 
 
 def test_angle_random_walk_generator_sets_the_longest_band_excess():

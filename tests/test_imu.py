@@ -151,3 +151,50 @@ def test_simulated_bias_instability_has_the_allan_floor():
     x = np.asarray(imu_noise(jax.random.PRNGKey(5), SPACE.make(q_g=q), 100_000, 100.0))[:, 0]
     ad = allan_deviation(x, 100.0, m=np.array([1, 4, 16]))
     np.testing.assert_allclose(ad.adev, np.sqrt(3) * q / ad.tau, rtol=0.05)
+
+
+def _with_temperature(rec, k_gz_deg_s_per_c, period_s=120.0):
+    """``rec`` with a ``temp`` channel (deg C, a 3 deg C thermal cycle) and, with ``k`` != 0, a z
+    gyro bias that follows it (an effect the catalogue lacks)."""
+    from gyrojax.record import BenchRecord
+
+    t = np.asarray(rec.t)
+    temp = 25.0 + 3.0 * np.sin(2 * np.pi * t / period_s)
+    y = np.asarray(rec.y).copy()
+    y[:, rec.channels.index("wz")] += k_gz_deg_s_per_c * units.DEG * (temp - 25.0)
+    return BenchRecord(rec.t, np.concatenate([y, temp[:, None]], axis=1),
+                       rec.channels + ("temp",), rec.attrs)
+
+
+def test_aux_axis_localises_a_temperature_bias():
+    """A gyro bias following the record's temperature channel (0.002 deg/s per deg C on wz, out
+    of the catalogue) lights the aux axis: the joint cell of the temperature bins on wz is the
+    smallest-p aux cell and significant, the hottest bin's offset positive and the coldest
+    negative, no other channel's aux cell significant; the CCF with the temperature increments is
+    reported (never decided on). The same record without the bias flags no aux cell. A channel
+    that is neither an IMU nor an auxiliary channel is refused by name."""
+    rep = diagnose(_with_temperature(_record({}, seed=4), 2e-3), rig="imu", design_advice=False)
+    aux = [c for c in rep.where if c["axis"] == "aux"]
+    assert len(aux) == 6 * 6  # 5 bins + the joint cell, per channel
+    top = min(aux, key=lambda c: c["p"])
+    assert top["cell"] == "temp (all bins)" and top["channel"] == "wz" and top["significant"]
+    assert rep.kind != "no-gap"
+    bins = sorted((c for c in aux if c["channel"] == "wz" and "all bins" not in c["cell"]),
+                  key=lambda c: float(c["cell"].split()[1].split("-")[0]))
+    assert bins[0]["z"] < -3 and bins[-1]["z"] > 3
+    assert np.all(np.diff([c["z"] for c in bins]) > 0)  # a linear sensitivity: monotone
+    assert not any(c["significant"] for c in aux if c["channel"] != "wz")
+    ccf = next(c for c in rep.where if c["axis"] == "lag" and c["cell"].startswith("CCF with "
+                                                                                  "dtemp")
+               and c["channel"] == "wz")
+    assert ccf["q"] is None and not ccf["decision"]
+    null = diagnose(_with_temperature(_record({}, seed=4), 0.0), rig="imu", design_advice=False)
+    assert not any(c["significant"] for c in null.where if c["axis"] == "aux")
+    assert null.kind == "no-gap"
+    from gyrojax.record import BenchRecord
+
+    rec = _record({}, seed=4)
+    bad = BenchRecord(rec.t, np.concatenate([np.asarray(rec.y), np.asarray(rec.y)[:, :1]], 1),
+                      rec.channels + ("pressure",), rec.attrs)
+    with pytest.raises(ValueError, match=r"\['pressure'\] are neither IMU channels .* temp"):
+        diagnose(bad, rig="imu")

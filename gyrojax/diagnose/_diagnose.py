@@ -306,7 +306,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
                   segments=prob.position_signatures(sigma)
                   if hasattr(prob, "position_signatures") else None,
                   nuisance=prob.nuisance_columns(sigma)
-                  if hasattr(prob, "nuisance_columns") else None)
+                  if hasattr(prob, "nuisance_columns") else None,
+                  aux=prob.aux_signatures(sigma) if hasattr(prob, "aux_signatures") else None)
     mdesign = map_design(prob.t[:n], prob.channels, n_params=jn.shape[1] + nuisance, jn=jn,
                          **map_kw)
     cells = gap_map_cells(e.reshape(n, c), prob.t[:n], prob.channels,
@@ -344,7 +345,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         x["q"] = float(q)
         x["significant"] = bool(q < level)
     q_mean = q_all[: len(cells) + len(rows)]
-    cells += lag_cells(e.reshape(n, c), prob.channels)  # reported, not decided on
+    cells += lag_cells(e.reshape(n, c), prob.channels,  # reported, not decided on
+                       aux=getattr(prob, "aux_rows", None))
     # excess energy of the whole-record windows (level 0), all channels
     excess = sum(max(0.0, x["excess"]) for x in cells if x["axis"] == "time" and x["level"] == 0)
     detected = bool(np.any(q_mean < level))

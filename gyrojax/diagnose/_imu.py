@@ -15,6 +15,10 @@ the Whittle fit (:func:`gyrojax.analysis.spectral.fit_noise_likelihood`); ``outl
 kurtosis of non-overlapping first differences (one-sided). Each effect's p-value is the smallest
 over channels, Bonferroni-corrected.
 
+Auxiliary channels (``temp*``, ``tilt*``, ``supply*``, ``aux*``) ride along block by block and are
+never fitted: the gap map's aux axis bins them (:meth:`IMUProblem.aux_signatures`) and the lag
+axis reports their cross-correlation with the residual.
+
 Held-out split: time-ordered (the last ``holdout`` of the static rows). Poses that lie wholly in
 the held-out part get their two pose terms fitted there with everything else fixed (the
 calibration is what is being checked; the held-out gap is corrected for those dofs).
@@ -51,8 +55,16 @@ IMU_LIBRARY = {
     "outliers": ("noise", None),
 }
 _PRIOR_BY_UNIT = {"deg/h/h": 10.0, "mg/h": 1.0, "deg/h": 100.0, "mg": 5.0}
+AUX_PREFIXES = ("temp", "tilt", "supply", "aux")  # auxiliary channels: not modelled, mapped
+AUX_BINS = 5
 POSE_SCALE = 1e-2  # rad, scale of the pose terms (conditioning only)
 MIN_NOISE_PIECE_S = 100.0  # s, shortest static piece that tests bias instability / RRW
+
+
+def is_aux(channel: str) -> bool:
+    """Whether a record channel is auxiliary (temperature, tilt, supply, ``aux*``): carried
+    along block by block for the gap map's aux axis, never fitted."""
+    return channel.lower().startswith(AUX_PREFIXES)
 
 
 class IMUProblem:
@@ -62,9 +74,20 @@ class IMUProblem:
 
     def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
                  effects=None, order=None, block_s: float | None = None, max_rows: int = 1500):
-        bad = [c for c in record.channels if c not in IMU_CHANNELS]
+        bad = [c for c in record.channels if c not in IMU_CHANNELS and not is_aux(c)]
         if bad:
-            raise ValueError(f"channels {bad} are not IMU channels; use {IMU_CHANNELS}")
+            raise ValueError(f"channels {bad} are neither IMU channels {IMU_CHANNELS} nor "
+                             f"auxiliary channels (names starting with {', '.join(AUX_PREFIXES)})")
+        sensors = [c for c in record.channels if c in IMU_CHANNELS]
+        if not sensors:
+            raise ValueError(f"the record has no IMU channel; give one or more of {IMU_CHANNELS}")
+        y_rec = np.asarray(record.y, float)
+        self.aux_names = tuple(c for c in record.channels if is_aux(c))
+        self._aux_raw = y_rec[:, [record.channels.index(c) for c in self.aux_names]]
+        if self.aux_names:
+            record = BenchRecord(record.t, jnp.asarray(
+                y_rec[:, [record.channels.index(c) for c in sensors]]), tuple(sensors),
+                record.attrs)
         self.record = record
         self.cond = IMUConditions.from_record(record)
         self.rig = IMURig()
@@ -120,7 +143,7 @@ class IMUProblem:
         m = max(1, int(np.ceil(total / max_rows))) if block_s is None else \
             max(1, int(round(block_s / dt)))
         self.block = m
-        ts, ys, seg = [], [], []
+        ts, ys, seg, aux = [], [], [], []
         for k, s in enumerate(self.segments):
             keep = ~bad[s.i0:s.i1]
             tk, yk = t[s.i0:s.i1][keep], y[s.i0:s.i1][keep]
@@ -129,10 +152,13 @@ class IMUProblem:
                 continue
             ts.append(tk[: nb * m].reshape(nb, m).mean(1))
             ys.append(yk[: nb * m].reshape(nb, m, -1).mean(1))
+            ak = self._aux_raw[s.i0:s.i1][keep]
+            aux.append(ak[: nb * m].reshape(nb, m, -1).mean(1))
             seg.append(np.full(nb, k))
         self.t = np.concatenate(ts)
         self.y = np.concatenate(ys)
         self.seg = np.concatenate(seg)
+        self.aux = np.concatenate(aux)  # (rows, auxiliary channels), block means
         self.n_pose = len(self.segments)
         # first guess of each pose's up vector: the accelerometer mean (or z up)
         u0 = np.tile([0.0, 0.0, 1.0], (self.n_pose, 1))
@@ -324,6 +350,29 @@ class IMUProblem:
             t = self.t[:n][rows]
             out.append((f"pose {int(k)} ({t[0]:.0f}-{t[-1]:.0f} s)", "static",
                         self.whiten(ind) / np.asarray(sigma)[None, :]))
+        return out
+
+    @property
+    def aux_rows(self) -> dict:
+        """The auxiliary channels' block means on the train rows (name -> values)."""
+        return {a: self.aux[: self.n_train, i] for i, a in enumerate(self.aux_names)}
+
+    def aux_signatures(self, sigma, bins: int = AUX_BINS):
+        """Per auxiliary channel, ``bins`` ranges of equal train-row count (quantiles), each
+        with the whitened signature of an offset on its rows: the gap map's aux axis (a bias
+        that follows the temperature lights the hot and cold bins). A channel that is constant
+        on the train rows has no bins."""
+        out = []
+        for name, a in self.aux_rows.items():
+            edges = np.quantile(a, np.linspace(0, 1, bins + 1))
+            if not edges[-1] > edges[0]:
+                continue
+            k = np.clip(np.searchsorted(edges, a, side="right") - 1, 0, bins - 1)
+            for b in np.unique(k):
+                rows = k == b
+                ind = np.repeat(rows.astype(float)[:, None], len(self.channels), axis=1)
+                out.append((f"{name} {edges[b]:.4g}-{edges[b + 1]:.4g}", name,
+                            self.whiten(ind) / np.asarray(sigma)[None, :]))
         return out
 
     def noise_level(self, resid):

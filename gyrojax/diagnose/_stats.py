@@ -523,14 +523,17 @@ def tau_band_moments(u, n: int, c: int, ch: int, m: int):
 
 def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise_dof: float,
                lines: dict[str, float], jn: np.ndarray, min_window: int = 16,
-               levels: int = 5, segments=None, nuisance=None, min_clusters: int = 9
-               ) -> MapDesign:
+               levels: int = 5, segments=None, nuisance=None, min_clusters: int = 9,
+               aux=None) -> MapDesign:
     """The cells of :func:`gap_map_cells` for ``n = len(t)`` samples of ``channels``.
 
     ``segments``: the record's test positions, ``[(label, condition, w)]`` with ``w``
     (``n x c``) the whitened per-channel signature of a position offset on the train rows (zero
     off the position); ``nuisance``: whitened columns (``n c x k``) fitted outside ``jn`` (the
-    platform's dwell offsets), projected out with it."""
+    platform's dwell offsets), projected out with it; ``aux``: bins of the record's auxiliary
+    channels, ``[(label, aux channel, w)]`` with ``w`` the whitened signature of an offset on the
+    rows of one bin (e.g. a temperature range): one 1-dof cell per bin and channel and the joint
+    test of one auxiliary channel's bins per channel (axis ``aux``)."""
     n, c = len(t), len(channels)
     frac = 1.0 - n_params / max(n * c, 1)
     windows = []
@@ -560,14 +563,16 @@ def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise
                                     {"condition": cond}))
     conds = list(dict.fromkeys(cond for _, cond, _ in segments))
     if len(conds) > 1:
-        for cond in conds:
-            ws = [w for _, cd, w in segments if cd == cond]
-            for ch in range(c):
-                jt, cov, dof = _score_cell(u, _channel_columns(
-                    np.stack([w[:, ch] for w in ws], 1), ch, c))
-                if dof:
-                    score_cells.append(("condition", str(cond), ch, jt, cov, dof,
-                                        {"positions": len(ws)}))
+        score_cells += _group_cells(u, segments, c, "condition", "positions")
+    aux = list(aux or [])
+    for label, name, w in aux:
+        for ch in range(c):
+            jt, cov, dof = _score_cell(u, _channel_columns(w[:, ch:ch + 1], ch, c))
+            if dof:
+                score_cells.append(("aux", str(label), ch, jt, cov, dof, {"aux": name}))
+    score_cells += [(ax, f"{label} (all bins)", ch, jt, cov, dof, {"aux": label, **info})
+                    for ax, label, ch, jt, cov, dof, info
+                    in _group_cells(u, aux, c, "aux", "bins")]
     tau_cells = []
     m = 2
     while n // m >= min_clusters:
@@ -578,6 +583,20 @@ def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise
         m *= 2
     return MapDesign(n, c, np.asarray(t, float), tuple(channels), noise_dof, windows,
                      score_cells, tau_cells, n >= 16)
+
+
+def _group_cells(u, members, c, axis, count):
+    """Joint score cells of the members ``[(label, group, w)]`` that share a group, per
+    channel: ``(axis, group, channel, J~, cov, dof, {count: members})``."""
+    out = []
+    for group in dict.fromkeys(g for _, g, _ in members):
+        ws = [w for _, g, w in members if g == group]
+        for ch in range(c):
+            jt, cov, dof = _score_cell(u, _channel_columns(
+                np.stack([w[:, ch] for w in ws], 1), ch, c))
+            if dof:
+                out.append((axis, str(group), ch, jt, cov, dof, {count: len(ws)}))
+    return out
 
 
 def allan_form(e: np.ndarray, m: int, csum: np.ndarray | None = None) -> np.ndarray:
@@ -646,7 +665,7 @@ def _duration(s: float) -> str:
 def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_params: int,
                   noise_dof: float, lines: dict[str, float], jn: np.ndarray,
                   min_window: int = 16, levels: int = 5, design: MapDesign | None = None,
-                  segments=None, nuisance=None) -> list[dict]:
+                  segments=None, nuisance=None, aux=None) -> list[dict]:
     """The Stage-1 map of a whitened residual ``e`` (``n x c``).
 
     - time x channel: windowed sums of squares over dyadic windows, against
@@ -658,6 +677,8 @@ def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_
       see :func:`map_design`) with the nominal span projected out (the per-position mean in the
       Wald form that accounts for the fitted parameters); condition x channel: the joint test of
       one condition's positions, where the record has more than one condition;
+    - aux x channel: the same for the bins of an auxiliary channel (``aux``), one cell per bin and
+      the joint test of its bins;
     - tau band x channel: the non-overlapping Allan variance of the residual at
       ``tau = m tau_0`` (``m = 2, 4, ...`` while at least 9 clusters) over its null prediction,
       with the exact null mean and variance of the quadratic form after the projection and a
@@ -670,7 +691,7 @@ def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_
     if design is None:
         design = map_design(t, channels, n_params=n_params, noise_dof=noise_dof, lines=lines,
                             jn=jn, min_window=min_window, levels=levels, segments=segments,
-                            nuisance=nuisance)
+                            nuisance=nuisance, aux=aux)
     stat, pv, extra = (x[0] for x in map_statistics(design, e[None]))
     cells = []
     i = 0
@@ -715,10 +736,15 @@ def ljung_box(x: np.ndarray, lags: int):
     return q, float(stats.chi2.sf(q, lags)), acf
 
 
-def lag_cells(e: np.ndarray, channels: tuple[str, ...], lags: int = 20) -> list[dict]:
+def lag_cells(e: np.ndarray, channels: tuple[str, ...], lags: int = 20,
+              aux: dict | None = None) -> list[dict]:
     """Ljung-Box whiteness per channel of a whitened residual ``e`` (``n x c``), the ``resid``-
-    style lag axis: reported for compatibility, never a decision statistic (no q-value)."""
-    lags = max(1, min(lags, e.shape[0] // 5))
+    style lag axis, and with ``aux`` (name -> ``n`` values of an auxiliary channel on the same
+    rows) the cross-correlation of each channel with the auxiliary channel's increments at lags
+    ``-L..L`` (largest ``|r| sqrt(n)``, Bonferroni over the lags against N(0, 1)): reported for
+    compatibility, never a decision statistic (no q-value)."""
+    n = e.shape[0]
+    lags = max(1, min(lags, n // 5))
     out = []
     for ch, name in enumerate(channels):
         q, p, acf = ljung_box(e[:, ch], lags)
@@ -726,7 +752,31 @@ def lag_cells(e: np.ndarray, channels: tuple[str, ...], lags: int = 20) -> list[
                         statistic=q, dof=lags, expected=float(lags), excess=q - lags, p=p,
                         acf=[float(a) for a in acf[:5]], q=None, significant=False,
                         decision=False))
+    for aname, a in (aux or {}).items():
+        da = np.diff(np.asarray(a, float)[:n])
+        if da.size < 3 or not np.any(da != da[0]):
+            continue
+        for ch, name in enumerate(channels):
+            r, lag = cross_correlation(e[1:, ch], da, lags)
+            z = float(np.max(np.abs(r)) * np.sqrt(da.size))
+            p = float(min(1.0, len(r) * 2 * stats.norm.sf(z)))
+            out.append(dict(axis="lag", cell=f"CCF with d{aname} (lags -{lags}..{lags})",
+                            channel=name, statistic=z, dof=len(r), expected=1.0, excess=0.0,
+                            p=p, lag=int(lag[np.argmax(np.abs(r))]), q=None,
+                            significant=False, decision=False))
     return out
+
+
+def cross_correlation(x: np.ndarray, y: np.ndarray, lags: int):
+    """Sample cross-correlation ``r_k = corr(x_t, y_{t-k})`` of two equal-length series at
+    ``k = -lags..lags``: ``(r, k)``."""
+    x = (x - x.mean()) / max(float(np.std(x)), 1e-300)
+    y = (y - y.mean()) / max(float(np.std(y)), 1e-300)
+    n = len(x)
+    ks = np.arange(-lags, lags + 1)
+    r = np.array([np.sum(x[k:] * y[:n - k]) if k >= 0 else np.sum(x[:n + k] * y[-k:])
+                  for k in ks]) / n
+    return r, ks
 
 
 def _f_sf(ratio, d1, d2):

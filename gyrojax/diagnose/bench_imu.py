@@ -7,7 +7,9 @@ keyed by each file's SHA-256, :func:`run` diagnoses the records without reading 
 - ``multi``: 12 poses (the six axis-up poses and six tilted ones) of 20 s joined by 2-s turns, for
   the mean effects (earth_rate, scale_factor, misalignment, g_sensitivity, time_drift,
   warmup_transient), the out-of-library ``pose_step`` (an accelerometer bias that jumps at one pose
-  change) and ``thermal_cycle`` (a 300-s sinusoidal gyro and accelerometer bias);
+  change) and ``thermal_cycle`` (a 300-s sinusoidal gyro and accelerometer bias); with
+  ``temperature=True`` every record carries a ``temp`` channel (a thermal cycle) and the
+  out-of-library ``thermal_bias`` makes one channel's bias follow it (the aux axis' check);
 - ``static``: one pose, 40 min at 50 Hz, for the noise-model effects (rate_random_walk,
   bias_instability, outliers, quantization) and time_drift / warmup_transient.
 
@@ -34,7 +36,15 @@ import numpy as np
 
 from .. import units
 from ..analysis.spectral import term_spectra
-from ..models.imu import IMUConditions, IMURig, Pose, cube_poses, imu_measure, simulate_imu
+from ..models.imu import (
+    IMU_CHANNELS,
+    IMUConditions,
+    IMURig,
+    Pose,
+    cube_poses,
+    imu_measure,
+    simulate_imu,
+)
 from ..record import BenchRecord
 from ._harness import run_cases, score_cases
 from .bench import _basis, _Sealer, remainder_after_library
@@ -222,7 +232,7 @@ def _hidden(rng, family, p, design, lam):
     elif family == "outliers":
         p["eps_out"] = float(lam) * 1e-5
         truth["eps_out"] = p["eps_out"]
-    elif family not in ("null",) + OUT_OF_LIBRARY:
+    elif family not in ("null", "thermal_bias") + OUT_OF_LIBRARY:
         raise ValueError(f"unknown case family {family!r}")
     return p, truth
 
@@ -245,10 +255,36 @@ def _ool_term(rng, family, rec, design, lam):
     return out, {"period_s": period}
 
 
+def _temperature(rng, t):
+    """A thermal cycle on the stand (deg C): 25 + A sin(2 pi t / P + phi), A in [1, 3], the
+    period a third to a whole of the record, plus 0.01 deg C sensor noise."""
+    span = float(t[-1] - t[0])
+    a, per = rng.uniform(1.0, 3.0), rng.uniform(span / 3, span)
+    return 25.0 + a * np.sin(2 * np.pi * t / per + rng.uniform(0, 2 * np.pi)) \
+        + 0.01 * rng.standard_normal(t.size), {"temp_amplitude_c": a, "temp_period_s": per}
+
+
+def _thermal_bias(rng, p, temp, design, lam):
+    """Out-of-library bias following the record's temperature on one random channel, scaled so
+    that the nominal model leaves it noncentrality ``lam`` on the train samples."""
+    ch = int(rng.integers(6))
+    unit = np.zeros((temp.size, 6))
+    unit[:, ch] = (temp - temp.mean()) * design.sigma[ch // 3]
+    r = _remainder_lambda(p, design, unit)  # quadratic in the term: scaled below
+    k2 = lam / r["nominal_lambda"]
+    return math.sqrt(k2) * unit, {
+        "channel": IMU_CHANNELS[ch], "k_per_c": float(math.sqrt(k2) * design.sigma[ch // 3]),
+        "k_unit": "rad/s per deg C" if ch < 3 else "m/s^2 per deg C",
+        **{a: (v * k2 if a.endswith("lambda") else v) for a, v in r.items()}}
+
+
 def generate(out_dir, n_cases: int, *, seed: int = 0, design: IMUDesign | None = None,
              lambdas=(8.0, 16.0, 32.0, 64.0), null_fraction: float = 0.25,
-             families=None) -> list[Path]:
-    """Write ``n_cases`` blind IMU records into ``out_dir`` and the sealed manifest beside them."""
+             families=None, temperature: bool = False) -> list[Path]:
+    """Write ``n_cases`` blind IMU records into ``out_dir`` and the sealed manifest beside them.
+    ``temperature``: every record carries a ``temp`` channel (a thermal cycle,
+    :func:`_temperature`), which the ``thermal_bias`` family (out of the catalogue) makes one
+    channel's bias follow."""
     design = design or IMUDesign()
     sealer = _Sealer(out_dir, seed)
     rng = sealer.rng
@@ -262,12 +298,22 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: IMUDesign | None =
         rec = simulate_imu(p, design.all_poses, rate_hz=design.rate_hz, turn_s=design.turn_s,
                            latitude_deg=design.latitude_deg, arw=design.arw * units.DEG / 60,
                            vrw=design.vrw / 60, key=sub)
-        if family in OUT_OF_LIBRARY:
-            term, extra = _ool_term(rng, family, rec, design, lam)
+        temp = None
+        if temperature:
+            temp, extra = _temperature(rng, np.asarray(rec.t))
+            truth |= extra
+        if family in OUT_OF_LIBRARY or family == "thermal_bias":
+            term, extra = (_thermal_bias(rng, p, temp, design, lam)
+                           if family == "thermal_bias" else _ool_term(rng, family, rec, design,
+                                                                      lam))
             rec = BenchRecord(rec.t, rec.y + jnp.asarray(term), rec.channels, rec.attrs)
-            truth |= extra | _remainder_lambda(p, design, term)
+            truth |= extra if family == "thermal_bias" else \
+                extra | _remainder_lambda(p, design, term)
         attrs = {k: v for k, v in rec.conditions.items() if k != "static_s"}
-        rec = BenchRecord(rec.t, rec.y, rec.channels, tuple(sorted(attrs.items())))
+        y, chans = rec.y, rec.channels
+        if temp is not None:
+            y, chans = jnp.concatenate([y, jnp.asarray(temp)[:, None]], axis=1), chans + ("temp",)
+        rec = BenchRecord(rec.t, y, chans, tuple(sorted(attrs.items())))
         sealer.add(rec, truth)
     return sealer.close(design)
 
@@ -340,7 +386,7 @@ NOISE_BAND = {"rate_random_walk": "longest", "bias_instability": "longest",
 def tau_band_hit(where, family, level) -> dict:
     """G8's tau band for a noise-model case: whether a gyro tau cell is significant, and
     whether the smallest-p one sits at the band the term lifts most (:data:`NOISE_BAND`)."""
-    cells = [x for x in where if x["axis"] == "tau" and x["channel"].startswith("g")]
+    cells = [x for x in where if x["axis"] == "tau" and x["channel"].startswith("w")]
     if not cells or family not in NOISE_BAND:
         return {"significant": False, "hit": False}
     taus = sorted({x["tau_s"] for x in cells})
