@@ -1,5 +1,4 @@
 import json
-import os
 
 import jax
 import numpy as np
@@ -107,8 +106,9 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     (["observability", "--scheme", "polar", "--latitude", "50", "--effects", "wobble"],
      "unknown effect 'wobble'"),
 ])
-def test_cli_bad_input_exit_2_one_line_nothing_written(tmp_path, capsys, argv, match):
-    os.chdir(tmp_path)
+def test_cli_bad_input_exit_2_one_line_nothing_written(tmp_path, capsys, monkeypatch, argv,
+                                                      match):
+    monkeypatch.chdir(tmp_path)
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
