@@ -555,24 +555,13 @@ def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise
             score_cells.append(("frequency", f"{name} ({period / 3600:.4g} h)", ch, jt, cov,
                                 dof, {"period_s": float(period)}))
     segments = list(segments or [])
-    for label, cond, w in segments:
-        for ch in range(c):
-            jt, cov, dof = _score_cell(u, _channel_columns(w[:, ch:ch + 1], ch, c))
-            if dof:
-                score_cells.append(("position", str(label), ch, jt, cov, dof,
-                                    {"condition": cond}))
+    score_cells += _member_cells(u, segments, c, "position", "condition")
     conds = list(dict.fromkeys(cond for _, cond, _ in segments))
     if len(conds) > 1:
         score_cells += _group_cells(u, segments, c, "condition", "positions")
     aux = list(aux or [])
-    for label, name, w in aux:
-        for ch in range(c):
-            jt, cov, dof = _score_cell(u, _channel_columns(w[:, ch:ch + 1], ch, c))
-            if dof:
-                score_cells.append(("aux", str(label), ch, jt, cov, dof, {"aux": name}))
-    score_cells += [(ax, f"{label} (all bins)", ch, jt, cov, dof, {"aux": label, **info})
-                    for ax, label, ch, jt, cov, dof, info
-                    in _group_cells(u, aux, c, "aux", "bins")]
+    score_cells += _member_cells(u, aux, c, "aux", "aux")
+    score_cells += _group_cells(u, aux, c, "aux", "bins", suffix=" (all bins)", key="aux")
     tau_cells = []
     m = 2
     while n // m >= min_clusters:
@@ -585,9 +574,21 @@ def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise
                      score_cells, tau_cells, n >= 16)
 
 
-def _group_cells(u, members, c, axis, count):
+def _member_cells(u, members, c, axis, key):
+    """1-dof score cells of each member ``(label, group, w)`` per channel:
+    ``(axis, label, channel, J~, cov, dof, {key: group})``."""
+    out = []
+    for label, group, w in members:
+        for ch in range(c):
+            jt, cov, dof = _score_cell(u, _channel_columns(w[:, ch:ch + 1], ch, c))
+            if dof:
+                out.append((axis, str(label), ch, jt, cov, dof, {key: group}))
+    return out
+
+
+def _group_cells(u, members, c, axis, count, *, suffix="", key=None):
     """Joint score cells of the members ``[(label, group, w)]`` that share a group, per
-    channel: ``(axis, group, channel, J~, cov, dof, {count: members})``."""
+    channel: ``(axis, group + suffix, channel, J~, cov, dof, {count: members[, key: group]})``."""
     out = []
     for group in dict.fromkeys(g for _, g, _ in members):
         ws = [w for _, g, w in members if g == group]
@@ -595,7 +596,8 @@ def _group_cells(u, members, c, axis, count):
             jt, cov, dof = _score_cell(u, _channel_columns(
                 np.stack([w[:, ch] for w in ws], 1), ch, c))
             if dof:
-                out.append((axis, str(group), ch, jt, cov, dof, {count: len(ws)}))
+                out.append((axis, f"{group}{suffix}", ch, jt, cov, dof,
+                            {count: len(ws)} | ({key: group} if key else {})))
     return out
 
 
