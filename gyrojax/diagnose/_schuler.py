@@ -142,23 +142,25 @@ class SchulerProblem:
             y = np.asarray(integrate(self.rig, base, cond, jnp.asarray(ts)))
         ts, y = jnp.asarray(ts), jnp.asarray(y)
         w = jnp.asarray(1.0 / np.asarray(sigma, float))
-        plain = [e for e in self.effects if SCHULER_LIBRARY[e][1] is None]
-        names = THETA_NAMES + tuple(k for e in plain for k in self.effect_names[e])
-        jac = np.asarray(_model_jacobian(self.rig, cond, ts, y, base, names,
-                                         jnp.asarray(sp.scales(names)), w))
+        # one compiled Jacobian over every name: the k-th call sets each gridded effect to its
+        # k-th grid value (the last one past its grid's end); a gridded effect's columns do not
+        # depend on another effect's grid value, since every effect amplitude is 0 here
+        names = THETA_NAMES + tuple(k for e in self.effects for k in self.effect_names[e])
         col = {k: i for i, k in enumerate(names)}
-        jn = jac[:, : len(THETA_NAMES)]
+        grids = {SCHULER_LIBRARY[e][1]: self._grid(e)[3] for e in self.effects
+                 if SCHULER_LIBRARY[e][1] is not None}
+        jacs = [np.asarray(_model_jacobian(
+            self.rig, cond, ts, y,
+            base | {g: jnp.asarray(float(v[min(k, len(v) - 1)])) for g, v in grids.items()},
+            names, jnp.asarray(sp.scales(names)), w))
+            for k in range(max((len(v) for v in grids.values()), default=1))]
+        jn = jacs[0][:, : len(THETA_NAMES)]
         sigs = []
         for e in self.effects:
             en = self.effect_names[e]
-            gpar = SCHULER_LIBRARY[e][1]
             grid, gname, gunit, gvals = self._grid(e)
-            if gpar is None:
-                slices = [jac[:, [col[k] for k in en]]]
-            else:
-                slices = [np.asarray(_model_jacobian(
-                    self.rig, cond, ts, y, base | {gpar: jnp.asarray(v)}, en,
-                    jnp.asarray(sp.scales(en)), w)) for v in gvals]
+            cols = [col[k] for k in en]
+            slices = [jacs[k][:, cols] for k in range(len(gvals))]
             sigs.append(Signature(e, SCHULER_LIBRARY[e][0], en,
                                   tuple(sp[k].display_unit for k in en),
                                   sp.scales(en) / np.array([sp[k].display_factor for k in en]),

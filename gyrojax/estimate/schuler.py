@@ -192,11 +192,16 @@ def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_
     y = jnp.asarray(y, dtype=float)
     sig = _prior_std(rig, prior_std)
     w = 1.0 / jnp.array([sigma_v, sigma_v, sigma_theta, sigma_theta, sigma_theta])
+    # per-sample weights, and the loop limits as arrays: the staged first pass (the first period,
+    # later samples weighted 0) and the full fit share one compiled solver, whatever max_iter/tol
+    w = jnp.broadcast_to(w, y.shape)
+    max_iter, tol = jnp.asarray(max_iter), jnp.asarray(tol, dtype=float)
     u = jnp.zeros(len(THETA_NAMES))
     period = float(conditions.schuler_period)
     if staged and float(ts[-1] - ts[0]) > 1.2 * period:
         n1 = int(np.searchsorted(np.asarray(ts), float(ts[0]) + period)) + 1
-        theta, _, _, _ = _gauss_newton(rig, conditions, ts[:n1], y[:n1], w, sig, u, max_iter, tol)
+        first = (jnp.arange(y.shape[0]) < n1)[:, None]
+        theta, _, _, _ = _gauss_newton(rig, conditions, ts, y, w * first, sig, u, max_iter, tol)
         u = theta / sig
     theta, cov, it, rms = _gauss_newton(rig, conditions, ts, y, w, sig, u, max_iter, tol)
     return SchulerEstimate(names=THETA_NAMES, values=theta, stderr=jnp.sqrt(jnp.diagonal(cov)),
@@ -282,7 +287,8 @@ def schuler_filter(rig: SchulerRig, ts, y, conditions: SchulerConditions, *,
         check_schuler_record(ts, y, conditions, uniform=True)
     ts = jnp.asarray(ts, dtype=float)
     y = jnp.asarray(y, dtype=float)
-    ref = rig.param_space.make({}) if params_ref is None else params_ref
+    # the full parameter dict with float arrays: one compiled filter with or without params_ref
+    ref = rig.param_space.make(params_ref)
     theta_ref = jnp.array([ref[n] for n in THETA_NAMES])
     s0, tmat = prior_factor(rig, prior_std)
     x0 = tmat @ (-theta_ref)
