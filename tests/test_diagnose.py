@@ -201,6 +201,7 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     assert g8["g8_line_other_families"]["rate"] == 1.0
 
 
+@pytest.mark.slow  # ~45 s: 20,000 oracle draws and 2,000 residual draws scored
 def test_oracle_detection_threshold_by_residual_draws():
     """The Bayes oracle's detection threshold (drawn in the library's small score space) against
     a second method: whitened residuals drawn in the record's own space, projected off the
@@ -379,6 +380,7 @@ def test_rotor_tilt_attributed_and_heldout_gap_closes(tilt_report):
     assert any(a["effect"] == "rotor_tilt" for a in rep.design_advice)
 
 
+@pytest.mark.slow  # ~60 s: the first-order model compiles its own diagnosis
 def test_base_rotation_about_earth_axis_has_no_signature_first_order():
     """Seed 000, model (3.1): dchi || u has no signature at all; exact model (5.1): that direction
     keeps only the O(m dchi) gravity-rotation signature (< 1 % of the others)."""
@@ -439,9 +441,9 @@ def test_out_of_library_line_is_not_attributed():
 
 
 # -- blind harness ---------------------------------------------------------------------------
-def test_blind_harness_is_sealed_and_scores(tmp_path):
-    from gyrojax.diagnose import bench
-
+def test_diagnosis_never_reads_the_harness_or_its_manifest():
+    """The diagnosis modules import nothing of the blind harness (``bench*``) and name neither
+    its sealed folder nor its manifest: the blind runs cannot peek."""
     pkg = Path(__file__).parents[1] / "gyrojax" / "diagnose"
     for f in ("_diagnose.py", "_esg.py", "_imu.py", "_platform.py", "_schuler.py",
               "_gyrotheodolite.py", "_stats.py", "_report.py", "__init__.py"):
@@ -453,6 +455,12 @@ def test_blind_harness_is_sealed_and_scores(tmp_path):
         strings = [n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)
                    and isinstance(n.value, str)]
         assert not any("sealed" in x or "manifest" in x for x in strings), f
+
+
+@pytest.mark.slow  # ~60 s: five ESG diagnoses, each compiling its refits
+def test_blind_harness_is_sealed_and_scores(tmp_path):
+    from gyrojax.diagnose import bench
+
     paths = bench.generate(tmp_path, 4, seed=11, null_fraction=0.0, lambdas=(400.0,),
                            families=("rotor_tilt", "drift_ramp"))
     assert len(paths) == 4 and (tmp_path / "sealed" / "manifest.json").exists()

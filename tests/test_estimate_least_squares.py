@@ -47,6 +47,7 @@ def gn_monte_carlo():
     return np.asarray(vals), np.asarray(ses), np.asarray(conv), crlb, true, free
 
 
+@pytest.mark.slow  # the shared fixture: 100 Gauss-Newton fits of the exact model (~45 s)
 def test_gauss_newton_reaches_cramer_rao_bound(gn_monte_carlo):
     vals, ses, conv, crlb, true, free = gn_monte_carlo
     assert conv.all()
@@ -55,6 +56,7 @@ def test_gauss_newton_reaches_cramer_rao_bound(gn_monte_carlo):
     assert np.all(np.abs(ratio - 1) < 0.2), dict(zip(free, ratio.round(3)))
 
 
+@pytest.mark.slow  # the shared fixture: 100 Gauss-Newton fits of the exact model (~45 s)
 def test_gauss_newton_standard_errors_match_scatter(gn_monte_carlo):
     vals, ses, conv, crlb, true, free = gn_monte_carlo
     scatter = vals.std(axis=0)
