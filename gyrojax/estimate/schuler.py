@@ -136,12 +136,24 @@ def check_schuler_record(ts, y, conditions: SchulerConditions, *, uniform: bool 
 
 
 # -- Gauss-Newton (§9.3) ---------------------------------------------------------------------
-@eqx.filter_jit
 def _gauss_newton(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names=THETA_NAMES,
                   fixed=None):
     """Prior-regularised Gauss-Newton over ``names`` (prior sd ``sig``, start ``u0`` in prior
-    units); ``fixed``: other parameters held at given values (an effect's decay time...)."""
-    fixed = {} if fixed is None else fixed
+    units); ``fixed``: other parameters held at given values (an effect's decay time...).
+
+    ``weights`` broadcast to per-sample (N, 5) and the loop limits passed as arrays before the jit
+    boundary, so every caller (a staged first pass, a refit, a different ``max_iter``) reuses one
+    compiled solver per parameter set ``names``."""
+    y = jnp.asarray(y, dtype=float)
+    weights = jnp.broadcast_to(jnp.asarray(weights, dtype=float), y.shape)
+    return _gauss_newton_jit(rig, conditions, jnp.asarray(ts, dtype=float), y, weights,
+                             jnp.asarray(sig, dtype=float), jnp.asarray(u0, dtype=float),
+                             jnp.asarray(max_iter), jnp.asarray(tol, dtype=float), names,
+                             {} if fixed is None else fixed)
+
+
+@eqx.filter_jit
+def _gauss_newton_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names, fixed):
 
     def resid(u):
         params = fixed | dict(zip(names, u * sig, strict=True))
@@ -192,10 +204,9 @@ def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_
     y = jnp.asarray(y, dtype=float)
     sig = _prior_std(rig, prior_std)
     w = 1.0 / jnp.array([sigma_v, sigma_v, sigma_theta, sigma_theta, sigma_theta])
-    # per-sample weights, and the loop limits as arrays: the staged first pass (the first period,
-    # later samples weighted 0) and the full fit share one compiled solver, whatever max_iter/tol
+    # the staged first pass (the first period, later samples weighted 0) and the full fit share
+    # one compiled solver (``_gauss_newton`` passes weights and loop limits as arrays)
     w = jnp.broadcast_to(w, y.shape)
-    max_iter, tol = jnp.asarray(max_iter), jnp.asarray(tol, dtype=float)
     u = jnp.zeros(len(THETA_NAMES))
     period = float(conditions.schuler_period)
     if staged and float(ts[-1] - ts[0]) > 1.2 * period:
