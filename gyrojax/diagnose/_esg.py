@@ -1,20 +1,24 @@
 """The non-contact gyro rig as the diagnosis sees it: nominal fit, Jacobians, refits, designs.
 
-Screening uses the rig with the base misalignment as a rotation vector ``dchi1..3`` (so the
-structural null direction ``dchi || u`` shows as "no signature"); fits and refits use the rig's
-default ``eps``-normal-to-``u`` form, which has no null direction. The two agree exactly at null
-effects, so their nominal Jacobians are the same.
+Everything runs on the rig with the base misalignment as a rotation vector ``dchi1..3`` (so the
+structural null direction ``dchi || u`` shows as "no signature", and a refit can reproduce what
+the screening tested). The nominal fit starts from the integral regression of the rig's default
+``eps``-normal-to-``u`` form; the two forms agree exactly at null effects. The nominal fit and
+every refit are one compiled Gauss-Newton over the same superset of parameters, the ones not
+fitted masked.
 """
 
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .. import units
-from ..estimate._fit import fit
-from ..estimate.least_squares import fit_trajectory, trajectory_jacobian
+from ..estimate._linalg import scaled_lstsq
+from ..estimate.least_squares import trajectory_jacobian
+from ..estimate.regression import integral_regression
 from ..models.esg import SCHEMES, ESGConditions, ESGRig
 from ..record import BenchRecord
 from ..simulate import integrate
@@ -34,6 +38,7 @@ ESG_LIBRARY = {
 }
 TRANSIENT_TIMES_H = tuple(float(x) for x in np.geomspace(0.25, 3.0, 8))
 _GRID_EFFECTS = ("drift_transient", "drift_step")
+_MAX_ITER = 20  # Gauss-Newton steps of the nominal fit and of each refit
 
 
 @eqx.filter_jit
@@ -44,6 +49,60 @@ def _jacobian(rig, params, conditions, ts, free):
 @eqx.filter_jit
 def _predict(rig, params, conditions, ts):
     return integrate(rig, params, conditions, ts, throw=False)
+
+
+@eqx.filter_jit
+def _masked_gauss_newton(rig, p, conditions, ts, y, w, cols, free, mask, line_on, max_iter):
+    """Gauss-Newton on the whitened rows over the rig parameters ``free`` (those with
+    ``mask`` 0 held: their Jacobian columns zeroed, so the minimum-norm step leaves them) and the
+    linear output coefficients ``beta`` of ``cols`` (rad per unit; held at 0 unless ``line_on``).
+    A step that raises the cost is halved (up to 8 times; if none lowers it, the fit stops
+    there). Stops when the step's predicted cost
+    drop is below 1e-10 of the cost (``converged``), or after ``max_iter`` steps. Returns
+    (parameters, ``beta``, converged)."""
+    scales = rig.param_space.scales(free)
+    ct = cols * w[:, None] * line_on
+
+    def params_at(x):
+        return p | {k: p[k] + x[i] * scales[i] for i, k in enumerate(free)}
+
+    def resid(x, beta):
+        model = integrate(rig, params_at(x), conditions, ts, throw=False).reshape(-1)
+        return (y - model) * w - ct @ beta
+
+    def body(carry):
+        x, beta, _, it, r = carry
+        jac = trajectory_jacobian(rig, params_at(x), conditions, ts, free) * scales * mask
+        a = jnp.concatenate([jac * w[:, None], ct], axis=1)
+        step, _, _ = scaled_lstsq(a, r)
+        cost = r @ r
+
+        def halve(c):
+            k, _, _ = c
+            t = 0.5 ** k
+            r_new = resid(x + t * step[: len(free)], beta + t * step[len(free):])
+            return k + 1, r_new, r_new @ r_new
+
+        def worse(c):
+            k, _, cost_new = c
+            return (k < 9) & ~(cost_new <= cost)
+
+        k, r_new, cost_new = jax.lax.while_loop(worse, halve, (0, r, jnp.asarray(jnp.inf)))
+        ok = cost_new <= cost  # else no step lowers the cost: stay, and stop
+        t = jnp.where(ok, 0.5 ** (k - 1), 0.0)
+        done = ~ok | (jnp.sum((a @ step) ** 2) <= 1e-10 * jnp.maximum(cost, 1.0))
+        return (x + t * step[: len(free)], beta + t * step[len(free):], done, it + 1,
+                jnp.where(ok, r_new, r))
+
+    def cond(carry):
+        _, _, done, it, _ = carry
+        return (~done) & (it < max_iter)
+
+    k = len(free)
+    x0, beta0 = jnp.zeros(k), jnp.zeros(cols.shape[1])
+    x, beta, done, _, _ = jax.lax.while_loop(
+        cond, body, (x0, beta0, jnp.asarray(False), jnp.asarray(0), resid(x0, beta0)))
+    return params_at(x), beta, done
 
 
 class ESGProblem:
@@ -76,20 +135,33 @@ class ESGProblem:
                                  self.t[0] / 3600 + (self.t[self.n_train - 1] - self.t[0]) / 3600
                                  * np.arange(1, 9) / 9)
         self.lines = {"sidereal day": SIDEREAL_DAY, "half sidereal day": SIDEREAL_DAY / 2}
+        self.notes: list[str] = []
 
     # -- nominal fit -----------------------------------------------------------------------
     def train_record(self) -> BenchRecord:
         return self.record.slice(0, self.n_train)
 
     def fit_nominal(self) -> dict:
-        rep = fit(self.fit_rig, self.train_record(), self.conditions, method="gauss-newton")
-        return dict(rep.params)
+        """Nominal fit on the train split: the integral regression's drifts (window 2, Simpson, as
+        :func:`gyrojax.estimate.fit` starts from), then Gauss-Newton on the exact model with
+        every effect at its null (the refits' compiled solver, the effects masked). Returns the
+        screening rig's parameter dict."""
+        rec = self.train_record()
+        reg = integral_regression(self.fit_rig, rec, self.conditions, window=2,
+                                  quadrature="simpson", names=self.fit_rig.drift_names)
+        y0 = np.asarray(rec.y[0])
+        p = self.screen_rig.param_space.make() | {"alpha10": jnp.asarray(y0[0]),
+                                                  "alpha20": jnp.asarray(y0[1])} | reg.as_dict()
+        # equal weights on the two angle channels, as fit() has (the scale sets the stop rule)
+        p, _, _ = self._gauss_newton(p, set(self.nominal_names),
+                                     np.full(len(self.channels), units.ARCSEC), line_on=False,
+                                     what="the nominal fit")
+        return p
 
-    def predict(self, params: dict, extra=None, rig=None) -> np.ndarray:
-        """Model channels over the whole record (train + held-out) for a param dict of ``rig``
-        (default: the fit rig)."""
-        pred = np.asarray(_predict(rig or self.fit_rig, params, self.conditions,
-                                   jnp.asarray(self.t)))
+    def predict(self, params: dict, extra=None) -> np.ndarray:
+        """Model channels over the whole record (train + held-out) for a parameter dict of the
+        screening rig (rotation-vector base misalignment)."""
+        pred = np.asarray(_predict(self.screen_rig, params, self.conditions, jnp.asarray(self.t)))
         if extra is not None:
             pred = pred + extra
         return pred
@@ -163,82 +235,70 @@ class ESGProblem:
         train split; returns (full-record prediction, fitted effect coefficients in display
         units, fitted parameters).
 
-        Rig effects are refitted by Gauss-Newton (LM as fallback) on the exact model, in the
-        screening's parametrisation: a base misalignment as the rotation vector ``dchi1..3`` (the
-        ``eps`` form has no component along ``u``, which the g-sensitive drifts make weakly
-        visible, so its refit could not reproduce what the screening tested). Output effects
-        (lines) are linear: they join the rig parameters in a joint Gauss-Newton on the train
-        rows (alternating the two fits converges slowly when a line is nearly a nominal
-        signature, as the sidereal line is).
+        Every refit (and the nominal fit) is one Gauss-Newton on the exact model over the same
+        superset of parameters (the nominal, every library rig effect in the screening's
+        parametrisation, the diurnal-line output columns), those not chosen masked to zero
+        columns: one compiled solver serves every candidate set. The screening's
+        parametrisation is the one to refit in: a base misalignment as the rotation vector
+        ``dchi1..3`` (the ``eps`` form has no component along ``u``, which the g-sensitive drifts
+        make weakly visible, so its refit could not reproduce what the screening tested). Output
+        effects (lines) are linear and join the rig parameters in the same Gauss-Newton
+        (alternating the two fits converges slowly when a line is nearly a nominal signature, as
+        the sidereal line is). The minimum-norm step leaves a direction the record cannot see
+        (``dchi || u`` in the first-order model) at its start.
         """
-        rig = (self.screen_rig if any(sig.name == "base_misalignment" for sig, _ in sig_choices)
-               else self.fit_rig)
-        sp = rig.param_space
-        p = self._screen_params(params0) if rig is self.screen_rig else dict(params0)
-        free = list(self.nominal_names)
-        out_cols = []
+        sp = self.screen_rig.param_space
+        p = self._screen_params(params0)
+        chosen = set(self.nominal_names)
+        line_on = False
         for sig, g in sig_choices:
-            if sig.kind == "output":  # full-record columns (the screened ones are train-only)
-                full = self._line_signature(self.t, sigma, ESG_LIBRARY[sig.name][1])
-                out_cols.append(full.jac[0] / np.asarray(full.prior_scale)[None, :])
+            if sig.kind == "output":
+                line_on = True
                 continue
-            free += [n for n in sp.effect_names(sig.name) if n not in ("k_tr", "t_step")]
+            chosen |= {n for n in sp.effect_names(sig.name) if n not in ("k_tr", "t_step")}
             if sig.name == "drift_transient":
                 p["k_tr"] = jnp.asarray(1.0 / (sig.grid[g] * 3600 * units.EARTH_RATE))
             if sig.name == "drift_step":
                 p["t_step"] = jnp.asarray(sig.grid[g] * 3600 * units.EARTH_RATE)
-        free = tuple(n for n in sp.names if n in free)
-        n = self.n_train
-        rec = BenchRecord(jnp.asarray(self.t[:n]), jnp.asarray(self.y[:n]), self.channels,
-                          self.record.attrs)
-        # Gauss-Newton first: optimistix's LM can stop at the start when the effect's
-        # coefficients begin at zero on a flat ridge; LM only when GN fails
-        res = fit_trajectory(rig, rec, self.conditions, p, free=free, method="gauss-newton",
-                             throw=False, max_steps=100)
-        if not bool(res.converged):
-            res = fit_trajectory(rig, rec, self.conditions, p, free=free,
-                                 method="levenberg-marquardt", throw=False, max_steps=200)
-        p = dict(res.params)
-        beta_out = np.zeros(0)
-        extra = None
-        if out_cols or rig is self.screen_rig:
-            # lines, and the rotation vector (whose component along u may be barely visible:
-            # optimistix's GN then fails and its LM stops at the start) finish with a
-            # least-squares Gauss-Newton
-            w = np.tile(1.0 / np.asarray(sigma), n)
-            cols = (np.concatenate(out_cols, axis=1) * np.tile(np.asarray(sigma), len(self.t))[
-                :, None] if out_cols else np.zeros((self.y.size, 0)))  # rad per display unit
-            p, beta_out = self._joint_gauss_newton(rig, p, free, cols, w)
-            extra = (cols @ beta_out).reshape(self.y.shape) if out_cols else None
+        p, beta, cols = self._gauss_newton(p, chosen, sigma, line_on=line_on,
+                                           what=f"the refit with {[s.name for s, _ in sig_choices]}")
+        extra = (cols @ beta).reshape(self.y.shape) if line_on else None
         coeffs = {}
         for sig, _ in sig_choices:
             if sig.kind == "output":
                 for k, name in enumerate(sig.names):
-                    coeffs[name] = float(beta_out[k])
+                    coeffs[name] = float(beta[k])
             else:
                 for name in sig.names:
                     coeffs[name] = float(sp[name].to_display(p[name])) if name in sp else None
-        return self.predict(p, extra, rig=rig), coeffs, p
+        return self.predict(p, extra), coeffs, p
 
-    def _joint_gauss_newton(self, rig, p, free, cols, w, max_iter: int = 8):
-        """Gauss-Newton on the train rows over the rig parameters ``free`` and the linear output
-        coefficients (columns ``cols``, rad per unit) together; ``w``: row whitening."""
+    def _gauss_newton(self, p, chosen: set, sigma, *, line_on: bool, what: str):
+        """:func:`_masked_gauss_newton` on the train rows over the parameters ``chosen`` (the
+        others of the superset held at their values in ``p``) and, with ``line_on``, the diurnal
+        line; returns (parameters, line coefficients, the line's full-record columns in rad per
+        display unit). A fit that does not converge is noted in :attr:`notes`."""
+        free = self._all_free()
+        unknown = chosen - set(free)
+        if unknown:
+            raise ValueError(f"{what}: parameters {sorted(unknown)} are not in this problem's "
+                             f"library {self.effects}; pass effects= that include them")
         n, c = self.n_train, len(self.channels)
-        scales = rig.param_space.scales(free)
-        ct = cols[: n * c] * w[:, None]
-        beta = np.zeros(cols.shape[1])
-        ts = jnp.asarray(self.t[:n])
-        for _ in range(max_iter):
-            model = np.asarray(_predict(rig, p, self.conditions, ts)).reshape(-1)
-            r = (self.y[:n].reshape(-1) - model) * w - ct @ beta
-            jac = np.asarray(_jacobian(rig, p, self.conditions, ts, free)) * scales * w[:, None]
-            a = np.concatenate([jac, ct], axis=1)
-            step, *_ = np.linalg.lstsq(a, r, rcond=None)
-            p = p | {k: p[k] + step[i] * scales[i] for i, k in enumerate(free)}
-            beta = beta + step[len(free):]
-            if np.sum((a @ step) ** 2) <= 1e-10 * max(float(r @ r), 1.0):
-                break
-        return p, beta
+        sig_arr = np.asarray(sigma, float)
+        full = self._line_signature(self.t, sig_arr, ESG_LIBRARY["diurnal_line"][1])
+        cols = (full.jac[0] / np.asarray(full.prior_scale)[None, :]
+                * np.tile(sig_arr, len(self.t))[:, None])
+        mask = np.array([k in chosen for k in free], float)
+        p = {k: jnp.asarray(v, dtype=float) for k, v in p.items()}  # traced, never static
+        p, beta, ok = _masked_gauss_newton(
+            self.screen_rig, p, self.conditions, jnp.asarray(self.t[:n]),
+            jnp.asarray(self.y[:n].reshape(-1)), jnp.asarray(np.tile(1.0 / sig_arr, n)),
+            jnp.asarray(cols[: n * c]), free, jnp.asarray(mask), jnp.asarray(float(line_on)),
+            jnp.asarray(_MAX_ITER))
+        if not bool(ok):
+            self.notes.append(f"{what}: Gauss-Newton did not converge in {_MAX_ITER} steps; "
+                              "its figures are those of the last step")
+        return dict(p), np.asarray(beta), cols
 
     # -- designs for the advisor -----------------------------------------------------------
     def designs(self):
