@@ -173,21 +173,22 @@ class SchulerProblem:
         (grid values fixed at the screened best), on the train split; returns (``y - residual``
         over the whole record, effect coefficients in display units, params)."""
         sp = self.space
-        names = list(THETA_NAMES)
+        # one superset of names for every refit, the effects not chosen masked (held at 0), and
+        # every grid parameter fixed (at the chosen value, else its first): one compiled solver
+        names = THETA_NAMES + tuple(k for e in self.effects for k in self.effect_names[e])
+        chosen = set(THETA_NAMES) | {k for sig, _ in sig_choices for k in sig.names}
         fixed = {}
-        for sig, g in sig_choices:
-            names += list(sig.names)
-            gpar = SCHULER_LIBRARY[sig.name][1]
+        for e in self.effects:
+            gpar = SCHULER_LIBRARY[e][1]
             if gpar is not None:
-                fixed[gpar] = jnp.asarray(self._grid(sig.name)[3][g])
-        names = tuple(names)
+                g = next((g for sig, g in sig_choices if sig.name == e), 0)
+                fixed[gpar] = jnp.asarray(float(self._grid(e)[3][g]))
         scale = jnp.asarray(sp.scales(names))
         u0 = jnp.asarray([float(params0.get(k, 0.0)) for k in names]) / scale
         n = self.n_train
-        theta, _, _, _ = _gauss_newton(self.rig, self.conditions, jnp.asarray(self.t[:n]),
-                                       jnp.asarray(self.y[:n]),
-                                       jnp.asarray(1.0 / np.asarray(sigma, float)), scale, u0,
-                                       20, 1e-4, names, fixed)
+        theta, _, _, _ = _gauss_newton(self.rig, self.conditions, self.t[:n], self.y[:n],
+                                       1.0 / np.asarray(sigma, float), scale, u0, 20, 1e-4,
+                                       names, fixed, [float(k in chosen) for k in names])
         p = fixed | dict(zip(names, theta, strict=True))
         coeffs = {k: float(sp[k].to_display(p[k])) for sig, _ in sig_choices for k in sig.names}
         return self.predict(p), coeffs, p

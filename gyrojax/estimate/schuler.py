@@ -137,23 +137,28 @@ def check_schuler_record(ts, y, conditions: SchulerConditions, *, uniform: bool 
 
 # -- Gauss-Newton (§9.3) ---------------------------------------------------------------------
 def _gauss_newton(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names=THETA_NAMES,
-                  fixed=None):
+                  fixed=None, mask=None):
     """Prior-regularised Gauss-Newton over ``names`` (prior sd ``sig``, start ``u0`` in prior
-    units); ``fixed``: other parameters held at given values (an effect's decay time...).
+    units); ``fixed``: other parameters held at given values (an effect's decay time...);
+    ``mask`` (per name, default all 1): a name with 0 is held at its start (its Jacobian column
+    and prior row zeroed, so the minimum-norm step leaves it).
 
-    ``weights`` broadcast to per-sample (N, 5) and the loop limits passed as arrays before the jit
-    boundary, so every caller (a staged first pass, a refit, a different ``max_iter``) reuses one
-    compiled solver per parameter set ``names``."""
+    ``weights`` broadcast to per-sample (N, 5), the mask and the loop limits passed as arrays
+    before the jit boundary, so every caller (a staged first pass, refits of different effect
+    sets over one superset ``names``, a different ``max_iter``) reuses one compiled solver."""
     y = jnp.asarray(y, dtype=float)
     weights = jnp.broadcast_to(jnp.asarray(weights, dtype=float), y.shape)
+    mask = jnp.ones(len(names)) if mask is None else jnp.asarray(mask, dtype=float)
+    fixed = {k: jnp.asarray(v, dtype=float) for k, v in (fixed or {}).items()}
     return _gauss_newton_jit(rig, conditions, jnp.asarray(ts, dtype=float), y, weights,
                              jnp.asarray(sig, dtype=float), jnp.asarray(u0, dtype=float),
                              jnp.asarray(max_iter), jnp.asarray(tol, dtype=float), names,
-                             {} if fixed is None else fixed)
+                             fixed, mask)
 
 
 @eqx.filter_jit
-def _gauss_newton_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names, fixed):
+def _gauss_newton_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names, fixed,
+                      mask):
 
     def resid(u):
         params = fixed | dict(zip(names, u * sig, strict=True))
@@ -164,9 +169,9 @@ def _gauss_newton_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, n
 
     def step(u):
         r = resid(u)
-        jac = jax.jacfwd(resid)(u)
-        a = jnp.concatenate([jac, jnp.eye(k)], axis=0)
-        b = -jnp.concatenate([r, u])
+        jac = jax.jacfwd(resid)(u) * mask
+        a = jnp.concatenate([jac, jnp.diag(mask)], axis=0)
+        b = -jnp.concatenate([r, u * mask])
         delta, cov, _ = scaled_lstsq(a, b)
         return delta, cov
 
