@@ -210,9 +210,16 @@ def simulate(rig: AbstractRig, params, conditions, ts, *, key=None, noise_std=0.
     """
     if key is None and not _is_zero(noise_std):
         raise ValueError("simulate: noise_std > 0 needs a PRNG key; pass key=jax.random.key(seed)")
-    y = _simulate(rig, params, conditions, ts, key, jnp.asarray(noise_std, dtype=float), rtol, atol,
-                  max_steps, solver, steps)
+    y = _simulate(rig, _traced(params), conditions, ts, key, jnp.asarray(noise_std, dtype=float),
+                  rtol, atol, max_steps, solver, steps)
     return BenchRecord(jnp.asarray(ts, dtype=float), y, rig.channels, freeze(attrs or {}))
+
+
+def _traced(params):
+    """``params`` with every Python number as a float64 array: ``equinox.filter_jit`` treats a
+    Python float as static, so ``params | {"theta1": 1e-3}`` would compile once per value."""
+    return jax.tree.map(lambda v: jnp.asarray(v, dtype=float)
+                        if isinstance(v, int | float) and not isinstance(v, bool) else v, params)
 
 
 def _is_zero(x) -> bool:
