@@ -28,10 +28,13 @@ def trajectory(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: f
 
     if steps is not None:
         return _grid_trajectory(diffrax.ODETerm(field), solver, tau, y0, steps, rtol, atol, throw)
+    controller = diffrax.PIDController(rtol=rtol, atol=atol)
+    jumps = rig.jump_times(params, conditions)
+    if jumps is not None:
+        controller = diffrax.ClipStepSizeController(controller, jump_ts=jumps)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(field), solver, t0=tau[0], t1=tau[-1], dt0=None, y0=y0,
-        saveat=diffrax.SaveAt(ts=tau),
-        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        saveat=diffrax.SaveAt(ts=tau), stepsize_controller=controller,
         max_steps=max_steps, adjoint=adjoint or diffrax.RecursiveCheckpointAdjoint(),
         throw=throw)
     return sol.ys

@@ -45,6 +45,13 @@ class AbstractRig(eqx.Module):
     def observe(self, t, state, params, conditions):
         """Measured channels (noise-free) at internal time ``t``."""
 
+    def jump_times(self, params, conditions):
+        """Internal times where the vector field jumps (an array), or ``None``: the adaptive
+        solver then steps to just before and just after each (``diffrax``'s ``jump_ts``). A jump
+        whose amplitude is 0 still needs it: forward sensitivities see the jump in their own
+        equations, which the step-size controller (primal error only) does not."""
+        return None
+
     @abc.abstractmethod
     def conditions_from_record(self, record):
         """The rig's conditions module read from a record's attributes."""

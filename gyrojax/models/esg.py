@@ -188,6 +188,10 @@ class ESGRig(AbstractRig):
         r = rotvec_to_matrix(dchi)
         return r.T @ u0, (r.T @ g0 if rotate_gravity else g0)
 
+    def jump_times(self, params, conditions):
+        """The drift step's onset ``t_step`` (internal time)."""
+        return jnp.reshape(jnp.asarray(params["t_step"], dtype=float), (1,))
+
     def _drift(self, params, tau):
         decay = jnp.exp(-params["k_tr"] * tau)
         m = [params[n] + params[f"d{n}_0"] * decay for n in DRIFT_NAMES]
