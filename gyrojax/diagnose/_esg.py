@@ -57,9 +57,8 @@ def _masked_gauss_newton(rig, p, conditions, ts, y, w, cols, free, mask, line_on
     ``mask`` 0 held: their Jacobian columns zeroed, so the minimum-norm step leaves them) and the
     linear output coefficients ``beta`` of ``cols`` (rad per unit; held at 0 unless ``line_on``).
     A step that raises the cost is halved (up to 8 times; if none lowers it, the fit stops
-    there). Stops when the step's predicted cost
-    drop is below 1e-10 of the cost (``converged``), or after ``max_iter`` steps. Returns
-    (parameters, ``beta``, converged)."""
+    there). Stops when the step's predicted cost drop is below 1e-10 of the cost
+    (``converged``), or after ``max_iter`` steps. Returns (parameters, ``beta``, converged)."""
     scales = rig.param_space.scales(free)
     ct = cols * w[:, None] * line_on
 
