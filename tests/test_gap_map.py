@@ -77,6 +77,12 @@ def test_allan_form_null_moments_match_monte_carlo():
         k = N // m
         m0, v0 = tau_band_moments(np.zeros((N * C, 0)), N, C, 1, m)
         assert (m0, v0) == pytest.approx((k - 1, 2 * (k - 1) + (k - 2)))
+        # the closed form against the dense T = M M' - (M u)(M u)' it stands for
+        mu = np.diff(u.reshape(N, C, -1)[: k * m, 1].reshape(k, m, -1).sum(1), axis=0)
+        tmat = (np.eye(k - 1) - 0.5 * (np.eye(k - 1, k=1) + np.eye(k - 1, k=-1))
+                - mu @ mu.T / (2 * m))
+        assert (mean, var) == pytest.approx((np.trace(tmat), 2 * np.sum(tmat * tmat)),
+                                            rel=1e-12)
 
 
 def test_position_condition_tau_cells_hold_their_null_rates():

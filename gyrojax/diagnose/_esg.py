@@ -47,6 +47,16 @@ def _jacobian(rig, params, conditions, ts, free):
 
 
 @eqx.filter_jit
+def _grid_jacobians(rig, params, conditions, ts, free, k_tr, t_step):
+    """:func:`trajectory_jacobian` over ``free`` at each (decay rate, onset) pair of the grid
+    (leading axis), one vmapped solve."""
+    def one(k, ts_step):
+        return trajectory_jacobian(rig, params | {"k_tr": k, "t_step": ts_step}, conditions, ts,
+                                   free)
+    return jax.vmap(one)(k_tr, t_step)
+
+
+@eqx.filter_jit
 def _predict(rig, params, conditions, ts):
     return integrate(rig, params, conditions, ts, throw=False)
 
@@ -187,15 +197,23 @@ class ESGProblem:
         free = self._all_free()
         p = self._screen_params(params)
         w = np.tile(1.0 / np.asarray(sigma), len(t))[:, None]
-        grid_n = len(TRANSIENT_TIMES_H)
-        jacs = []
-        for g in range(grid_n if any(e in _GRID_EFFECTS for e in self.effects) else 1):
-            pg = p | {"k_tr": jnp.asarray(1.0 / (TRANSIENT_TIMES_H[g] * 3600 * units.EARTH_RATE)),
-                      "t_step": jnp.asarray(self.step_grid_h[g] * 3600 * units.EARTH_RATE)}
-            j = np.asarray(_jacobian(self.screen_rig, pg, cond, jnp.asarray(t), free))
-            jacs.append(j * w)
-        col = {n: i for i, n in enumerate(free)}
-        jn = jacs[0][:, [col[n] for n in self.nominal_names]] * self.nominal_scales
+        # the effect columns that depend on a grid value (decay time, onset) at every grid
+        # point, one vmapped solve; every other column once (at null effects the grid values do
+        # not move the trajectory)
+        grid_names = {n for e in _GRID_EFFECTS if e in self.effects and e in sp.effects
+                      for n in sp.effect_names(e)}
+        flat = tuple(n for n in free if n not in grid_names)
+        gfree = tuple(n for n in free if n in grid_names)
+        tt = jnp.asarray(t)
+        col = {n: i for i, n in enumerate(flat)}
+        j0 = np.asarray(_jacobian(self.screen_rig, p, cond, tt, flat)) * w
+        if gfree:
+            k_tr = jnp.asarray([1.0 / (h * 3600 * units.EARTH_RATE) for h in TRANSIENT_TIMES_H])
+            t_step = jnp.asarray([h * 3600 * units.EARTH_RATE for h in self.step_grid_h])
+            jg = np.asarray(_grid_jacobians(self.screen_rig, p, cond, tt, gfree, k_tr, t_step))
+            jg = jg * w[None]
+            gcol = {n: i for i, n in enumerate(gfree)}
+        jn = j0[:, [col[n] for n in self.nominal_names]] * self.nominal_scales
         sigs = []
         for e in self.effects:
             fam, prior = ESG_LIBRARY[e]
@@ -203,10 +221,11 @@ class ESGProblem:
                 sigs.append(self._line_signature(t, sigma, prior))
                 continue
             names = tuple(n for n in sp.effect_names(e) if n not in ("k_tr", "t_step"))
-            idx = [col[n] for n in names]
             factor = np.array([sp[n].display_factor for n in names]) * prior
-            slices = jacs if e in _GRID_EFFECTS else jacs[:1]
-            jac = np.stack([jg[:, idx] * factor for jg in slices])
+            if e in _GRID_EFFECTS:
+                jac = jg[:, :, [gcol[n] for n in names]] * factor
+            else:
+                jac = j0[None, :, [col[n] for n in names]] * factor
             grid, gname, gunit = (), "", ""
             if e == "drift_transient":
                 grid, gname, gunit = TRANSIENT_TIMES_H, "decay time", "h"

@@ -517,8 +517,13 @@ def tau_band_moments(u, n: int, c: int, ch: int, m: int):
     k = n // m
     uc = u.reshape(n, c, -1)[: k * m, ch, :]
     mu = np.diff(uc.reshape(k, m, -1).sum(1), axis=0) / np.sqrt(2 * m)  # (K-1, p)
-    tmat = (np.eye(k - 1) - 0.5 * (np.eye(k - 1, k=1) + np.eye(k - 1, k=-1))) - mu @ mu.T
-    return float(np.trace(tmat)), float(2 * np.sum(tmat * tmat))
+    # with A = M M' and B = (M u)(M u)': tr T = tr A - tr B and
+    # tr T^2 = |A|_F^2 - 2 <A, B> + |mu' mu|_F^2, <A, B> = tr B - sum_i mu_i . mu_i+1
+    tr_b = float(np.sum(mu * mu))
+    ab = tr_b - float(np.sum(mu[1:] * mu[:-1]))
+    a2 = (k - 1) + 0.5 * (k - 2)
+    g = mu.T @ mu
+    return (k - 1) - tr_b, 2 * (a2 - 2 * ab + float(np.sum(g * g)))
 
 
 def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise_dof: float,
@@ -629,14 +634,17 @@ def map_statistics(design: MapDesign, e: np.ndarray):
         flat = e.reshape(bsz, n * c)
         sc_all = flat @ np.concatenate([x[3] for x in design.score_cells], axis=1)
         i = 0
+        lms, dofs = [], []
         for _, _, _, jt, cov, dof, _ in design.score_cells:
             sc = sc_all[:, i:i + jt.shape[1]]
             i += jt.shape[1]
-            lm = np.sum(sc * (sc @ cov), axis=1)
-            stat.append(lm)
-            pv.append(stats.chi2.sf(lm, dof) if dof else np.ones(bsz))
+            lms.append(np.sum(sc * (sc @ cov), axis=1))
+            dofs.append(dof)
             # one tested direction: the signed Wald z (its square is the statistic)
             extra.append(sc[:, 0] * np.sqrt(cov[0, 0]) if jt.shape[1] == 1 else np.zeros(bsz))
+        stat += lms
+        dofs = np.array(dofs, float)[:, None]
+        pv += list(np.where(dofs > 0, stats.chi2.sf(np.array(lms), np.maximum(dofs, 1)), 1.0))
     forms = {}
     csum = np.concatenate([np.zeros((bsz, 1, c)), np.cumsum(e, axis=1)], axis=1) \
         if design.tau_cells else None
@@ -709,12 +717,14 @@ def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_
                           **info, **({"z": float(extra[i])} if jt.shape[1] == 1 else {})))
         i += 1
     tau0 = float(np.median(np.diff(t))) if n > 1 else 0.0
-    for m, k, ch, mean, g, h in design.tau_cells:
+    hs = np.array([x[5] for x in design.tau_cells], float)
+    lo, hi = stats.chi2.ppf(0.975, hs), stats.chi2.ppf(0.025, hs)
+    for j, (m, k, ch, mean, g, h) in enumerate(design.tau_cells):
         r = float(stat[i])
         cells.append(dict(axis="tau", cell=f"tau {_duration(m * tau0)}", channel=channels[ch],
                           statistic=r, dof=h, expected=1.0, excess=(r - 1.0) * mean,
                           p=float(pv[i]), tau_s=m * tau0, clusters=k,
-                          ci95=[r * h / stats.chi2.ppf(0.975, h), r * h / stats.chi2.ppf(0.025, h)]))
+                          ci95=[r * h / float(lo[j]), r * h / float(hi[j])]))
         i += 1
     if design.fisher:
         q = (n - 1) // 2
