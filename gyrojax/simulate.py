@@ -26,12 +26,14 @@ def trajectory(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: f
     def field(t, y, args):
         return rig.vector_field(t, y, params, conditions)
 
-    if steps is not None:
-        return _grid_trajectory(diffrax.ODETerm(field), solver, tau, y0, steps, rtol, atol, throw)
-    controller = diffrax.PIDController(rtol=rtol, atol=atol)
     jumps = rig.jump_times(params, conditions)
-    if jumps is not None:
-        controller = diffrax.ClipStepSizeController(controller, jump_ts=jumps)
+    if steps is not None:
+        return _grid_trajectory(diffrax.ODETerm(field), solver, tau, y0, steps, rtol, atol, throw,
+                                jumps is not None)
+    controller = diffrax.PIDController(rtol=rtol, atol=atol)
+    stops = rig.step_times(params, conditions)
+    if jumps is not None or stops is not None:
+        controller = diffrax.ClipStepSizeController(controller, step_ts=stops, jump_ts=jumps)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(field), solver, t0=tau[0], t1=tau[-1], dt0=None, y0=y0,
         saveat=diffrax.SaveAt(ts=tau), stepsize_controller=controller,
@@ -88,18 +90,23 @@ def _grid_error(rig, params, conditions, tau, solver, rtol, atol, steps):
                        atol)[1]
 
 
-def _grid_trajectory(term, solver, tau, y0, steps, rtol, atol, throw):
+def _grid_trajectory(term, solver, tau, y0, steps, rtol, atol, throw, has_jumps=False):
     """The fixed-grid path of :func:`trajectory`: ``steps`` equal steps of ``solver``, the
     samples read from its dense interpolant, every step's error estimate checked against
     ``rtol``/``atol`` with the RMS norm the PID controller uses: a grid too coarse (or
-    nonuniform samples) raises with ``throw=True`` and gives NaN states otherwise."""
+    nonuniform samples) raises with ``throw=True`` and gives NaN states otherwise. A jump of
+    the vector field inside a step (the rig's ``jump_times``, which the grid does not stop at)
+    fails that check unless the jump is null: such records need ``steps=None``."""
     ys, worst, uniform = _grid_solve(term, solver, tau, y0, steps, rtol, atol)
     if throw:
         ys = eqx.error_if(ys, ~uniform, "trajectory(steps=...): the sample times are not uniform; "
                           "a fixed step grid needs uniform samples (use steps=None)")
+        jump = (" (this rig's vector field jumps at its jump_times, e.g. a drift step's onset: "
+                "a step across a jump fails the check at any grid, so use steps=None, whose "
+                "adaptive steps stop at the jumps)") if has_jumps else ""
         return eqx.error_if(ys, worst > 1.0,
                             f"trajectory(steps={steps}): a step's error estimate exceeds rtol/atol; "
-                            "the grid is too coarse: use more steps (or steps=None)")
+                            f"the grid is too coarse: use more steps (or steps=None){jump}")
     return jnp.where(uniform & (worst <= 1.0), ys, jnp.nan)
 
 

@@ -124,3 +124,13 @@ def test_fixed_step_grid_is_diffrax_constant_steps_and_checks_its_error():
         trajectory(rig, p, cond, bent, steps=steps)
     with pytest.raises(ValueError, match="must divide the 1440"):
         trajectory(rig, p, cond, ts, steps=7)
+    # a 0.05 deg/h drift step with its onset inside a grid step: a jump the grid does not stop
+    # at fails the error check (the adaptive path stops at rig.jump_times), and grid_steps
+    # falls back to adaptive steps
+    sp = rig.param_space
+    q = p | {"smc1": jnp.asarray(0.05 / sp["smc1"].display_factor),
+             "t_step": jnp.asarray((5 * 3600 + 37) * rig.time_scale)}
+    with pytest.raises(Exception, match="jump_times"):
+        trajectory(rig, q, cond, ts, steps=steps)
+    assert bool(jnp.all(jnp.isnan(trajectory(rig, q, cond, ts, steps=steps, throw=False))))
+    assert grid_steps(rig, q, cond, ts) is None

@@ -52,6 +52,13 @@ class AbstractRig(eqx.Module):
         equations, which the step-size controller (primal error only) does not."""
         return None
 
+    def step_times(self, params, conditions):
+        """Internal times the adaptive solver must step to (an array), or ``None``
+        (``diffrax``'s ``step_ts``): for a fast but smooth feature of the vector field, e.g. a
+        rise over a minute in a record of hours, which forward sensitivities at zero amplitude
+        see and the step-size controller (primal error only) does not."""
+        return None
+
     @abc.abstractmethod
     def conditions_from_record(self, record):
         """The rig's conditions module read from a record's attributes."""

@@ -196,6 +196,14 @@ class SchulerRig(AbstractRig):
             uv,
         ])
 
+    def step_times(self, params, conditions):
+        """Steps through the drift step's rise (``t_step`` +- 3 ``STEP_WIDTH``, at half-widths
+        near the centre): the adaptive steps would otherwise stride over the rise where its
+        amplitude is 0, and the step's forward sensitivity was 7e-4 of its norm off (now 2e-7,
+        tests/test_models_schuler.py)."""
+        return jnp.asarray(params.get("t_step", 3600.0), dtype=float) + STEP_WIDTH * jnp.array(
+            [-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0, 3.0])
+
     @staticmethod
     def extra_drift(t, p, f1, f2):
         """Gyro drift of the unmodelled effects (rad/s, platform axes 1-3): ramp, warm-up
