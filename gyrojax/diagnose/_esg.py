@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import units
 from ..estimate._linalg import scaled_lstsq
-from ..estimate.least_squares import trajectory_jacobian
+from ..estimate.least_squares import _residual_fn, trajectory_jacobian
 from ..estimate.regression import integral_regression
 from ..models.esg import SCHEMES, ESGConditions, ESGRig
 from ..record import BenchRecord
@@ -42,18 +42,23 @@ _MAX_ITER = 20  # Gauss-Newton steps of the nominal fit and of each refit
 
 
 @eqx.filter_jit
-def _jacobian(rig, params, conditions, ts, free):
-    return trajectory_jacobian(rig, params, conditions, ts, free)
+def _screen_jacobians(rig, params, conditions, ts, free, k_tr, t_step, basis):
+    """Forward sensitivities of the channels (``n c`` rows) along ``basis[g]`` (``k x
+    len(free)`` directions of the scaled parameters ``free``) at the ``g``-th (decay rate,
+    onset) pair of the grid: ``(G, n c, k)``, one solve vmapped over the grid. The screening
+    puts every grid-dependent column in each ``basis[g]`` and spreads the others over the grid
+    (they do not depend on it), so one compiled solve gives all columns once."""
+    space = rig.param_space
+    x0 = space.flatten(params, free)
+    zeros = jnp.zeros((ts.shape[0], len(rig.channels)))
 
+    def one(k, onset, dirs):
+        fn = _residual_fn(rig, space, free, params | {"k_tr": k, "t_step": onset}, conditions,
+                          ts, zeros, 1e-10, 1e-12, 100_000)
+        return jax.vmap(lambda v: jax.jvp(lambda x: fn(x, None), (x0,), (v,))[1],
+                        out_axes=1)(dirs)
 
-@eqx.filter_jit
-def _grid_jacobians(rig, params, conditions, ts, free, k_tr, t_step):
-    """:func:`trajectory_jacobian` over ``free`` at each (decay rate, onset) pair of the grid
-    (leading axis), one vmapped solve."""
-    def one(k, ts_step):
-        return trajectory_jacobian(rig, params | {"k_tr": k, "t_step": ts_step}, conditions, ts,
-                                   free)
-    return jax.vmap(one)(k_tr, t_step)
+    return jax.vmap(one)(k_tr, t_step, basis)
 
 
 @eqx.filter_jit
@@ -198,21 +203,32 @@ class ESGProblem:
         p = self._screen_params(params)
         w = np.tile(1.0 / np.asarray(sigma), len(t))[:, None]
         # the effect columns that depend on a grid value (decay time, onset) at every grid
-        # point, one vmapped solve; every other column once (at null effects the grid values do
-        # not move the trajectory)
+        # point; every other column once (at null effects the grid values do not move the
+        # trajectory), spread over the grid points: one vmapped solve of ~80 tangent columns
         grid_names = {n for e in _GRID_EFFECTS if e in self.effects and e in sp.effects
                       for n in sp.effect_names(e)}
-        flat = tuple(n for n in free if n not in grid_names)
-        gfree = tuple(n for n in free if n in grid_names)
-        tt = jnp.asarray(t)
-        col = {n: i for i, n in enumerate(flat)}
-        j0 = np.asarray(_jacobian(self.screen_rig, p, cond, tt, flat)) * w
-        if gfree:
-            k_tr = jnp.asarray([1.0 / (h * 3600 * units.EARTH_RATE) for h in TRANSIENT_TIMES_H])
-            t_step = jnp.asarray([h * 3600 * units.EARTH_RATE for h in self.step_grid_h])
-            jg = np.asarray(_grid_jacobians(self.screen_rig, p, cond, tt, gfree, k_tr, t_step))
-            jg = jg * w[None]
-            gcol = {n: i for i, n in enumerate(gfree)}
+        gi = [i for i, n in enumerate(free) if n in grid_names]
+        fi = [i for i, n in enumerate(free) if n not in grid_names]
+        n_grid = len(TRANSIENT_TIMES_H) if gi else 1
+        per = -(-len(fi) // n_grid)
+        eye = np.eye(len(free))
+        basis = np.zeros((n_grid, len(gi) + per, len(free)))
+        for g in range(n_grid):
+            basis[g, : len(gi)] = eye[gi]
+            share = fi[g * per:(g + 1) * per]
+            basis[g, len(gi): len(gi) + len(share)] = eye[share]
+        k_tr = [1.0 / (h * 3600 * units.EARTH_RATE) for h in TRANSIENT_TIMES_H][:n_grid]
+        t_step = [h * 3600 * units.EARTH_RATE for h in self.step_grid_h][:n_grid]
+        jac = np.asarray(_screen_jacobians(self.screen_rig, p, cond, jnp.asarray(t), free,
+                                           jnp.asarray(k_tr), jnp.asarray(t_step),
+                                           jnp.asarray(basis)))
+        jac = jac * w[None] / np.asarray(sp.scales(free))[
+            np.argmax(basis, axis=2)][:, None, :]  # per internal unit
+        jg = jac[:, :, : len(gi)]
+        gcol = {free[i]: k for k, i in enumerate(gi)}
+        j0 = np.concatenate([jac[g, :, len(gi): len(gi) + len(fi[g * per:(g + 1) * per])]
+                             for g in range(n_grid)], axis=1)
+        col = {free[i]: k for k, i in enumerate(fi)}
         jn = j0[:, [col[n] for n in self.nominal_names]] * self.nominal_scales
         sigs = []
         for e in self.effects:
