@@ -96,7 +96,8 @@ def _grid_trajectory(term, solver, tau, y0, steps, rtol, atol, throw, has_jumps=
     ``rtol``/``atol`` with the RMS norm the PID controller uses: a grid too coarse (or
     nonuniform samples) raises with ``throw=True`` and gives NaN states otherwise. A jump of
     the vector field inside a step (the rig's ``jump_times``, which the grid does not stop at)
-    fails that check unless the jump is null: such records need ``steps=None``."""
+    fails that check unless it is too small to matter at ``rtol``/``atol``: such records need
+    ``steps=None``."""
     ys, worst, uniform = _grid_solve(term, solver, tau, y0, steps, rtol, atol)
     if throw:
         ys = eqx.error_if(ys, ~uniform, "trajectory(steps=...): the sample times are not uniform; "
