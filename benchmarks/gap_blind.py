@@ -7,7 +7,7 @@ records (B1 Ljung-Box whiteness, B2 refit-all + BIC), unseals and scores. Writes
 
     python benchmarks/gap_blind.py        # 160 cases + 1000 nulls + 40 OOL + 60 G8 (~15 min)
     python benchmarks/gap_blind.py --cases 24 --nulls 0 --ool-cases 0 --g8-cases 0  # quick look
-    python benchmarks/gap_blind.py --cases 0 --calibration-cases 400  # G4 alone (~15 min)
+    python benchmarks/gap_blind.py --cases 0 --calibration-cases 400  # G4 alone (~6 min)
 """
 
 from __future__ import annotations
