@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import units
 from ..estimate._linalg import scaled_lstsq
-from ..estimate.least_squares import _residual_fn, trajectory_jacobian
+from ..estimate.least_squares import trajectory_jacobian
 from ..estimate.regression import integral_regression
 from ..models.esg import SCHEMES, ESGConditions, ESGRig
 from ..record import BenchRecord
@@ -43,20 +43,14 @@ _MAX_ITER = 20  # Gauss-Newton steps of the nominal fit and of each refit
 
 @eqx.filter_jit
 def _screen_jacobians(rig, params, conditions, ts, free, k_tr, t_step, basis):
-    """Forward sensitivities of the channels (``n c`` rows) along ``basis[g]`` (``k x
-    len(free)`` directions of the scaled parameters ``free``) at the ``g``-th (decay rate,
-    onset) pair of the grid: ``(G, n c, k)``, one solve vmapped over the grid. The screening
-    puts every grid-dependent column in each ``basis[g]`` and spreads the others over the grid
-    (they do not depend on it), so one compiled solve gives all columns once."""
-    space = rig.param_space
-    x0 = space.flatten(params, free)
-    zeros = jnp.zeros((ts.shape[0], len(rig.channels)))
-
+    """:func:`trajectory_jacobian` along ``basis[g]`` (``k x len(free)`` directions) at the
+    ``g``-th (decay rate, onset) pair of the grid: ``(G, n c, k)``, one solve vmapped over the
+    grid. The screening puts every grid-dependent column in each ``basis[g]`` and spreads the
+    others over the grid (they do not depend on it), so one compiled solve gives all columns
+    once."""
     def one(k, onset, dirs):
-        fn = _residual_fn(rig, space, free, params | {"k_tr": k, "t_step": onset}, conditions,
-                          ts, zeros, 1e-10, 1e-12, 100_000)
-        return jax.vmap(lambda v: jax.jvp(lambda x: fn(x, None), (x0,), (v,))[1],
-                        out_axes=1)(dirs)
+        return trajectory_jacobian(rig, params | {"k_tr": k, "t_step": onset}, conditions, ts,
+                                   free, directions=dirs)
 
     return jax.vmap(one)(k_tr, t_step, basis)
 
@@ -222,8 +216,7 @@ class ESGProblem:
         jac = np.asarray(_screen_jacobians(self.screen_rig, p, cond, jnp.asarray(t), free,
                                            jnp.asarray(k_tr), jnp.asarray(t_step),
                                            jnp.asarray(basis)))
-        jac = jac * w[None] / np.asarray(sp.scales(free))[
-            np.argmax(basis, axis=2)][:, None, :]  # per internal unit
+        jac = jac * w[None]
         jg = jac[:, :, : len(gi)]
         gcol = {free[i]: k for k, i in enumerate(gi)}
         j0 = np.concatenate([jac[g, :, len(gi): len(gi) + len(fi[g * per:(g + 1) * per])]

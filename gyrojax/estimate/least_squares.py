@@ -58,15 +58,21 @@ def _residual_fn(rig, space, free, base, conditions, ts, y, rtol, atol, max_step
 
 def trajectory_jacobian(rig, params: Mapping, conditions, ts, free: Sequence[str], *,
                         rtol: float = 1e-10, atol: float = 1e-12, max_steps: int = 100_000,
-                        solver=None):
+                        solver=None, directions=None):
     """Jacobian of the noise-free channels (flattened, ``n*c``) w.r.t. the free parameters in
     internal units (not scaled), by forward sensitivities through diffrax (``solver``: a diffrax
-    solver, default ``Dopri8``; an implicit one such as ``Kvaerno5`` for stiff rigs)."""
+    solver, default ``Dopri8``; an implicit one such as ``Kvaerno5`` for stiff rigs).
+    ``directions`` (``k x len(free)``, internal units): only the derivatives along those rows,
+    ``(n*c, k)`` (the Jacobian times ``directions.T``), one tangent solve each."""
     space = rig.param_space
     free = space.check_names(free)
     fn = _residual_fn(rig, space, free, dict(params), conditions, ts,
                       jnp.zeros((len(ts), len(rig.channels))), rtol, atol, max_steps, solver)
     x0 = space.flatten(params, free)
+    if directions is not None:
+        scales = space.scales(free)
+        return jax.vmap(lambda v: jax.jvp(lambda x: fn(x, None), (x0,), (v / scales,))[1],
+                        out_axes=1)(directions)
     return jax.jacfwd(lambda x: fn(x, None))(x0) / space.scales(free)
 
 
