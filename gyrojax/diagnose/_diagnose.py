@@ -242,7 +242,9 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     - `noise_std`: measurement noise per channel (SI); default estimated from the residual.
     - `design_advice`: compute the design advisor for confounded, weak or ambiguous effects.
     - `order`: ESG model, ``"exact"`` (5.1) or the paper's first-order ``"first"`` (3.1).
-    - `prior`: Bayes-factor prior, ``"design"`` (g-prior, default) or ``"scale"`` (prior scales).
+    - `prior`: Bayes-factor prior of the posteriors: ``"design"`` (default: coefficients spread
+      as their prior scales, sized to expect noncentrality 32 on this record's design),
+      ``"scale"`` (the prior scales themselves) or ``"zellner"`` (g-prior expecting 32).
     - `library_share`: share of the weighted-BH weight held by the library's tests (the gap map
       holds the rest; ``None``: equal weights, plain BH over every test).
     - `split`: the held-out plan where a rig offers more than one (platform:
@@ -662,6 +664,8 @@ def _row_json(r: Screen, prob, excess, n, c, cells):
         # the score statistic and its dof at every grid value (one entry without a grid)
         "score_grid": [float(x) for x in r.lm_grid], "dof_grid": [int(x) for x in r.dof_grid],
         "log_bf": r.log_bf, "posterior": r.posterior,
+        # the design prior's log Bayes factor at other expected noncentralities (prior sizes)
+        "log_bf_by_lambda": {f"{k:g}": v for k, v in r.log_bf_curve.items()},
         "onestep": _onestep_display(r),
         "onestep_se": {nm: float(s * ps) for nm, s, ps in zip(r.sig.names, r.beta_se,
                                                               r.sig.prior_scale)},

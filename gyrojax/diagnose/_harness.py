@@ -77,25 +77,26 @@ def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
                                 seed: int = 0) -> dict:
     """Null thresholds of the Bayes-oracle detector (:func:`~gyrojax.diagnose.bench.
     oracle_detect_statistic`) on the design of ``record``: per noncentrality, the ``1 - alpha``
-    quantile of the statistic under the linearised null, from ``n_draws`` draws of the library's
-    score vectors (jointly Gaussian, covariance the Gram matrix of the tested directions' bases;
-    drawn in that small space as :func:`~gyrojax.diagnose._stats._sup_null` does). The
-    statistic is the Neyman-Pearson statistic of the generator's alternative (equal odds
-    between the catalogue's effects, a design prior expecting exactly ``lambda``), so rejecting
-    above the threshold is the most powerful level-``alpha`` test a diagnosis could run: the
-    reference for spec §6 G2's detection power."""
-    from ._stats import _grid_log_bf, score_draws, screen_designs
+    quantile of the statistic under the linearised null, from ``n_draws`` draws of the residual
+    in the span of the library's projected signatures (its only part the scores see; drawn there
+    as :func:`~gyrojax.diagnose._stats._sup_null` does). The statistic is the Neyman-Pearson
+    statistic of the generator's alternative (equal odds between the catalogue's effects,
+    coefficients spread as the prior scales and sized to expect exactly ``lambda``), so
+    rejecting above the threshold is the most powerful level-``alpha`` test a diagnosis could
+    run: the reference for spec §6 G2's detection power."""
+    from ._stats import design_log_bf, screen_designs
 
     jn, sigs = _train_jacobians(record, rig, sigma, split)
     _, designs = screen_designs(jn, sigs, n_boot=0)
-    blocks = iter(score_draws([b for des in designs for b in des.bases], n_draws,
-                              np.random.default_rng(seed)))
-    lms = [(np.array([np.sum(next(blocks) ** 2, axis=0) for _ in des.bases]),
-            [b.shape[1] for b in des.bases]) for des in designs]
+    span = np.concatenate([jt for des in designs for jt in des.jt], axis=1)
+    q, s, _ = np.linalg.svd(span, full_matrices=False)
+    q = q[:, s > 1e-10 * s[0]]
+    z = np.random.default_rng(seed).standard_normal((q.shape[1], n_draws))
+    small = [[q.T @ jt for jt in des.jt] for des in designs]
     out = {}
     for lam in lambdas:
-        stat = np.stack([_grid_log_bf(lm, d, lam) for lm, d in lms])
-        stat = np.logaddexp.reduce(stat, axis=0) - np.log(len(lms))
+        stat = np.stack([design_log_bf(jts, z, [lam])[0] for jts in small])
+        stat = np.logaddexp.reduce(stat, axis=0) - np.log(len(small))
         out[float(lam)] = float(np.quantile(stat, 1 - alpha))
     return out
 
@@ -122,6 +123,7 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
             "ranking": [r["name"] for r in rep.ranking],
             "posterior": {r["name"]: r["posterior"] for r in rep.ranking},
             "scores": _scores(rep.ranking),
+            "log_bf_by_lambda": {r["name"]: r["log_bf_by_lambda"] for r in rep.ranking},
             "ambiguity": rep.ambiguity["set"],
             "heldout_gap_before": v.get("heldout_gap_before"),
             "heldout_gap_after": v.get("heldout_gap_after"),

@@ -9,7 +9,10 @@ effect's coefficient ``b`` is in prior-scale units and its noncentrality is ``b^
 - efficient score test per effect: ``J~ = J - U U^T J``, ``I = J~^T J~``, ``s = J~^T e``,
   ``LM = s^T I^+ s ~ chi2(rank I)``; grid effects take ``sup_g LM_g`` with a parametric bootstrap
   p-value (the scores are jointly Gaussian with covariance ``J~_g^T J~_h`` under H0);
-- score Bayes factor with ``b ~ N(0, 1)``: ``log BF = s^T (I + 1)^-1 s / 2 - log det(1 + I) / 2``;
+- score Bayes factor under a Gaussian prior ``b ~ N(0, c^2)`` (prior-scale units):
+  ``log BF = c^2 s^T (c^2 I + 1)^-1 s / 2 - log det(1 + c^2 I) / 2``, with ``c = 1`` (the prior
+  scales themselves) or ``c^2 = lambda0 / tr I`` (the design prior: the prior scales' shape,
+  sized so that the expected noncentrality is ``lambda0`` on this design);
 - visible fraction ``v = 1 - rho_max^2`` of the effect's signature after the nominal projection,
   null directions of the raw signature ("no signature on this bench"), the alias matrix
   ``A = J_theta^+ J_beta`` by name, and canonical correlations between projected signatures.
@@ -27,6 +30,7 @@ __all__ = ["Signature", "Screen", "screen", "bh_qvalues", "gap_map_cells", "cano
 
 LAMBDA_80 = 7.85  # noncentrality giving 80 % power at alpha = 0.05, 1 dof
 NULL_TOL = 1e-6  # relative singular value of a raw signature direction counted as no signature
+PRIORS = ("design", "scale", "zellner")  # Bayes-factor priors of the screening (see screen)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,8 +139,8 @@ def _tested_directions(j, jt):
 
 
 def grid_log_bf(lms, dofs, lambda0) -> float:
-    """Design-prior Bayes factor (log) of a grid effect: the score Bayes factor under a
-    design-relative (Zellner g-) prior ``b ~ N(0, g I^-1)`` with ``g = lambda0 / dof`` at each
+    """Zellner g-prior Bayes factor (log) of a grid effect: the score Bayes factor under the
+    design-relative prior ``b ~ N(0, g I^-1)`` with ``g = lambda0 / dof`` at each
     grid value (score ``lms[g]`` on ``dofs[g]`` dof; 0 dof: factor 1), averaged over the grid
     with equal weights. The prior expects noncentrality ``lambda0`` whatever the effect's units,
     so over-flexible effects pay ``dof/2 log(1 + g)`` and no prior scale can tilt it."""
@@ -148,6 +152,48 @@ def _log_bf(info, s):
     a = info + np.eye(p)
     _, logdet = np.linalg.slogdet(a)
     return 0.5 * float(s @ np.linalg.solve(a, s)) - 0.5 * logdet
+
+
+def design_log_bf(jts, e, lambdas) -> np.ndarray:
+    """Design-prior Bayes factors (log) of one effect at each prior size in ``lambdas``.
+
+    ``jts``: the effect's projected whitened Jacobians ``J~_g`` (one per grid value, columns per
+    unit prior scale); ``e``: the whitened residual. At each grid value the coefficients get
+    ``b ~ N(0, c^2 I)`` in prior-scale units -- the prior scales' *shape* (coefficients independent,
+    spread in proportion to their prior scales) -- with ``c^2 = lambda / tr(J~^T J~)`` so that the
+    expected noncentrality ``E[b^T I b]`` is ``lambda`` on this design. Then (exact for the
+    linearised model) ``log BF = s'^T (I' + 1)^-1 s' / 2 - log det(I' + 1) / 2`` with
+    ``I' = c^2 J~^T J~``, ``s' = c J~^T e``; a grid effect averages the factors over its grid
+    with equal weights. Unlike a g-prior (``b ~ N(0, g I^-1)``), the prior does not give the
+    directions the design sees worst -- those shared with other effects -- the largest
+    coefficients. Returns ``(len(lambdas),)``, or ``(len(lambdas), B)`` for ``B`` residuals
+    ``e`` ``(m, B)``; an effect without signature gets 0."""
+    e = np.asarray(e, float)
+    return design_log_bf_scores([(jt.T @ jt, jt.T @ e) for jt in jts], lambdas)
+
+
+def design_log_bf_scores(blocks, lambdas) -> np.ndarray:
+    """:func:`design_log_bf` from each grid value's information ``J~^T J~`` and score
+    ``J~^T e`` (``(p,)`` or ``(p, B)``): ``blocks`` is a list of ``(info, score)`` pairs. A refit
+    that estimates ``b^`` gives the same factor with ``score = info @ b^`` (exact when the
+    model is linear)."""
+    lambdas = np.atleast_1d(np.asarray(lambdas, float))
+    out = []
+    for info, score in blocks:
+        score = np.asarray(score, float)
+        tr = float(np.trace(info))
+        if tr <= 0.0:
+            out.append(np.zeros((lambdas.size,) + score.shape[1:]))
+            continue
+        w, v = np.linalg.eigh((info + info.T) / 2)
+        w = np.clip(w, 0.0, None)
+        z2 = (v.T @ score) ** 2  # squared scores in the information's eigenbasis
+        c2w = lambdas[:, None] / tr * w  # (L, p)
+        fit = np.tensordot(c2w / np.where(w > 0, w, 1.0) / (1 + c2w), z2, axes=(1, 0))
+        out.append(0.5 * fit - 0.5 * np.sum(np.log1p(c2w), axis=1).reshape(
+            (-1,) + (1,) * (score.ndim - 1)))
+    out = np.asarray(out)
+    return np.logaddexp.reduce(out, axis=0) - math.log(out.shape[0])
 
 
 @dataclasses.dataclass
@@ -171,6 +217,7 @@ class Screen:
     projected: np.ndarray  # J~ at the chosen grid value
     lm_grid: np.ndarray
     dof_grid: np.ndarray  # tested dof at each grid value (visible directions differ along a grid)
+    log_bf_curve: dict = dataclasses.field(default_factory=dict)  # design prior, per size
     posterior: float = 0.0
 
 
@@ -318,6 +365,9 @@ def library_pvalues(designs: list[SignatureDesign], e: np.ndarray) -> np.ndarray
     return np.array(rows).reshape(len(designs), e.shape[1])
 
 
+PRIOR_LAMBDAS = tuple(2.0 ** k for k in range(11))  # prior sizes of the evidence curve, 1-1024
+
+
 def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int = 2000,
            seed: int = 0, prior_none: float = 0.5, prior: str = "design",
            lambda0: float = 32.0, designs=None) -> list[Screen]:
@@ -326,12 +376,16 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
     ``jn``: whitened nominal Jacobian (``m x p``, columns per nominal scale). Grid effects get the
     sup over their grid with a bootstrap p-value from ``n_boot`` draws (seeded). Posteriors use
     prior probability ``prior_none`` for "no effect" and the rest shared equally; the Bayes factor
-    uses ``prior="design"`` (g-prior expecting noncentrality ``lambda0``, the default) or
-    ``prior="scale"`` (``b ~ N(0, prior_scale^2)``, spec §4.2 step 5). ``designs``: the output of
-    :func:`screen_designs` for these ``jn`` and ``sigs`` (computed here when not given).
+    uses ``prior="design"`` (the prior scales' shape sized to expect noncentrality ``lambda0``,
+    :func:`design_log_bf`; the default), ``prior="scale"`` (``b ~ N(0, prior_scale^2)``, spec
+    §4.2 step 5) or ``prior="zellner"`` (the g-prior ``b ~ N(0, g I^-1)``, ``g = lambda0 / dof``,
+    on the tested directions: :func:`grid_log_bf`). Each row also carries ``log_bf_curve``, the
+    design prior's factor at the sizes ``PRIOR_LAMBDAS`` (how the evidence depends on the prior
+    size). ``designs``: the output of :func:`screen_designs` for these ``jn`` and ``sigs``
+    (computed here when not given).
     """
-    if prior not in ("design", "scale"):
-        raise ValueError(f"prior={prior!r}; use 'design' or 'scale'")
+    if prior not in PRIORS:
+        raise ValueError(f"prior={prior!r}; use one of {', '.join(map(repr, PRIORS))}")
     u, designs = designs if designs is not None else screen_designs(jn, sigs, n_boot=n_boot,
                                                                     seed=seed)
     cov_n = np.linalg.pinv(jn.T @ jn)
@@ -346,18 +400,22 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
         sd = (jt @ d).T @ e
         beta = d @ (sd / w) if w.size else np.zeros(jt.shape[1])
         cov = (d / w) @ d.T if w.size else np.zeros((jt.shape[1], jt.shape[1]))
+        curve = design_log_bf(des.jt, e, PRIOR_LAMBDAS + (lambda0,))
         if prior == "scale":
             lbf = [_log_bf(x.T @ x, x.T @ e) for x in des.jt]
             log_bf = float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
-        else:
+        elif prior == "zellner":
             log_bf = grid_log_bf(lms, dofs, lambda0)
+        else:
+            log_bf = float(curve[-1])
         p = float(_pvalue(des, lms[gi], dof))
         v, null, conf = _visibility(sig.jac[gi], u)
         flag = visibility_flag(v, bool(null), sig.jac.shape[2] - len(null), len(conf))
         alias = cov_n @ (jn.T @ sig.jac[gi])
         alias_std = alias / se_n[:, None]
         out.append(Screen(sig, lms[gi], dof, p, log_bf, gi, beta, np.sqrt(np.diag(cov)), v, flag,
-                          null, conf, alias, alias_std, jt, np.asarray(lms), np.asarray(dofs)))
+                          null, conf, alias, alias_std, jt, np.asarray(lms), np.asarray(dofs),
+                          log_bf_curve=dict(zip(PRIOR_LAMBDAS, map(float, curve[:-1])))))
     _posteriors(out, prior_none)
     return out
 

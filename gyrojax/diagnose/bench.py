@@ -33,7 +33,7 @@ from ..io import load_record, save_record, write_json
 from ..models.esg import ESGConditions, ESGRig
 from ..record import BenchRecord
 from ._esg import TRANSIENT_TIMES_H
-from ._stats import grid_log_bf, ljung_box
+from ._stats import _project, design_log_bf_scores, ljung_box, nominal_basis
 
 __all__ = ["generate", "run", "score", "LIBRARY_FAMILIES", "OUT_OF_LIBRARY"]
 
@@ -297,6 +297,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
             "p": {r["name"]: r["p"] for r in ranking},
             "flags": {r["name"]: r["flag"] for r in ranking},
             "scores": _scores(ranking),
+            "log_bf_by_lambda": {r["name"]: r["log_bf_by_lambda"] for r in ranking},
             "visible_fraction": {r["name"]: r["visible_fraction"] for r in ranking},
             "ambiguity": rep.ambiguity["set"],
             "heldout_gap_before": rep.verdict.get("heldout_gap_before"),
@@ -323,8 +324,8 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
             n = prob.n_train
             rss0 = float(np.sum(((prob.y[:n] - prob.predict(params0)[:n]) / sigma) ** 2))
             m = n * len(prob.channels)
-            _, sigs = prob.jacobians(params0, sigma)  # only for the effects' names and grids
-            screened_dof = {r["name"]: int(r["dof"]) for r in ranking}
+            jn, sigs = prob.jacobians(params0, sigma)
+            u = nominal_basis(jn)
             t0 = time.perf_counter()  # both answers start from the same nominal fit
             n_refits = 0
             bic = {"none": m * math.log(rss0 / m)}
@@ -332,20 +333,19 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
             for sig in sigs:
                 # refit-all has no score to pick a decay time or onset: it refits at every grid
                 # value and keeps the best (the grid value counts as one more parameter)
-                rss = []
+                rss, blocks = [], []
                 for g in range(max(len(sig.grid), 1)):
-                    pred, _, _ = prob.refit(params0, [(sig, g)], sigma)
+                    pred, coeffs, _ = prob.refit(params0, [(sig, g)], sigma)
                     n_refits += 1
                     rss.append(float(np.sum(((prob.y[:n] - pred[:n]) / sigma) ** 2)))
+                    # the screening's Bayes factor with the refit's estimate in place of the
+                    # one-step one (score = I b^): the answer screening approximates (G10)
+                    jt = _project(u, sig.jac[g])
+                    b_hat = np.array([coeffs[nm] for nm in sig.names]) / sig.prior_scale
+                    blocks.append((jt.T @ jt, jt.T @ jt @ b_hat))
                 k = len(sig.names) + (1 if sig.grid else 0)
                 bic[sig.name] = m * math.log(min(rss) / m) + k * math.log(m)
-                # the screening's Bayes factor with the refit's likelihood-ratio drop in place
-                # of the score statistic: the answer screening approximates (G10 agreement)
-                # the dof the screening tested (directions with visible fraction >= 1e-6), so
-                # both answers pay the same Occam penalty
-                dof = screened_dof[sig.name]
-                lr_bf[sig.name] = grid_log_bf([max(rss0 - r, 0.0) for r in rss],
-                                              [dof] * len(rss), 32.0)
+                lr_bf[sig.name] = float(design_log_bf_scores(blocks, [32.0])[0])
             res["b2_choice"] = min(bic, key=bic.get)
             res["b2_lr_choice"] = max(lr_bf, key=lr_bf.get) if lr_bf else None
             res["time_refit_all_s"] = time.perf_counter() - t0
@@ -511,14 +511,22 @@ def _scores(ranking) -> dict:
 def oracle_choice(r, lam: float):
     """The Bayes-oracle answer (spec §5.6) for a case of noncentrality ``lam``: the effect of
     largest posterior under the linearised model when the prior is the generator's, i.e. equal
-    prior odds between the catalogue effects and a design prior expecting exactly ``lam``
-    (``g = lam / dof``), averaged over each effect's grid. It reads the blind run's score
-    statistics at every grid value (``r["scores"]``) and the sealed ``lam``, which the diagnosis
-    does not know (it assumes ``lambda0 = 32``)."""
-    if not r.get("scores"):
-        return None
-    lbf = {k: grid_log_bf(sc, d, lam) for k, (sc, d) in r["scores"].items()}
-    return max(lbf, key=lbf.get)
+    prior odds between the catalogue effects and coefficients spread as the prior scales, sized
+    to expect exactly ``lam`` (:func:`~gyrojax.diagnose._stats.design_log_bf`), averaged over each
+    effect's grid. It reads the blind run's design-prior factors at every prior size
+    (``r["log_bf_by_lambda"]``) at the sealed ``lam``, which the diagnosis does not know (it
+    assumes ``lambda0 = 32``)."""
+    lbf = _oracle_log_bfs(r, lam)
+    return max(lbf, key=lbf.get) if lbf else None
+
+
+def _oracle_log_bfs(r, lam: float) -> dict:
+    curves = r.get("log_bf_by_lambda") or {}
+    key = f"{float(lam):g}"
+    if curves and any(key not in c for c in curves.values()):
+        raise KeyError(f"the run has no design-prior factor at lambda {key}: its sizes are "
+                       f"{sorted(next(iter(curves.values())), key=float)}")
+    return {k: c[key] for k, c in curves.items()}
 
 
 def oracle_detect_statistic(r, lam: float) -> float:
@@ -526,7 +534,7 @@ def oracle_detect_statistic(r, lam: float) -> float:
     the mean over the catalogue of the design-prior Bayes factors expecting exactly ``lam``
     (:func:`oracle_choice`'s prior), i.e. the likelihood ratio of the generator's alternative
     against the null in the linearised model (Neyman-Pearson: the most powerful detector)."""
-    lbf = [grid_log_bf(sc, d, lam) for sc, d in r["scores"].values()]
+    lbf = list(_oracle_log_bfs(r, lam).values())
     return float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
 
 
@@ -536,7 +544,7 @@ def oracle_power(pairs, lam: float, thresholds):
     :func:`gyrojax.diagnose._harness.oracle_detection_thresholds`); ``None`` without one."""
     if not thresholds or float(lam) not in thresholds:
         return None
-    return _rate([(t, r) for t, r in pairs if r.get("scores")],
+    return _rate([(t, r) for t, r in pairs if r.get("log_bf_by_lambda")],
                  lambda t, r: oracle_detect_statistic(r, lam) > thresholds[float(lam)])
 
 
