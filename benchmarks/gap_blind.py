@@ -249,8 +249,9 @@ def main(argv=None):
               f"{c['median_refit_all_s'] / (c['median_screen_s'] + c.get('median_calibration_s', 0.0)):.1f}x)"
               " for 6 effects "
               f"({c['n_refits']} nonlinear refits: every grid value of the decay time and the "
-              f"onset). Top-1 agreement of screening with the refits' likelihood-ratio answer "
-              f"(same prior) at lambda >= 32: {_fmt(s['screen_refit_agreement'])}; on the "
+              f"onset). Top-1 agreement of screening with the refits' answer (the same design "
+              f"prior's Bayes factor with each refit's estimate in place of the one-step one) at "
+              f"lambda >= 32: {_fmt(s['screen_refit_agreement'])}; on the "
               f"separable families {_fmt(s['screen_refit_agreement_separable'])}.",
               ""]
     publish(args.out, "gap_blind", lines)
