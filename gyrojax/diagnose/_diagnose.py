@@ -242,9 +242,10 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     - `noise_std`: measurement noise per channel (SI); default estimated from the residual.
     - `design_advice`: compute the design advisor for confounded, weak or ambiguous effects.
     - `order`: ESG model, ``"exact"`` (5.1) or the paper's first-order ``"first"`` (3.1).
-    - `prior`: Bayes-factor prior of the posteriors: ``"design"`` (default: coefficients spread
-      as their prior scales, sized to expect noncentrality 32 on this record's design),
-      ``"scale"`` (the prior scales themselves) or ``"zellner"`` (g-prior expecting 32).
+    - `prior`: Bayes-factor prior of the posteriors: ``"design"`` (default: the equal mixture of
+      the next two), ``"shape"`` (coefficients spread as their prior scales, sized to expect
+      noncentrality 32 on this record's design), ``"zellner"`` (g-prior expecting 32) or
+      ``"scale"`` (the prior scales themselves).
     - `library_share`: share of the weighted-BH weight held by the library's tests (the gap map
       holds the rest; ``None``: equal weights, plain BH over every test).
     - `split`: the held-out plan where a rig offers more than one (platform:

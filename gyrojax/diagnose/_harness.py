@@ -81,7 +81,7 @@ def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
     in the span of the library's projected signatures (its only part the scores see; drawn there
     as :func:`~gyrojax.diagnose._stats._sup_null` does). The statistic is the Neyman-Pearson
     statistic of the generator's alternative (equal odds between the catalogue's effects,
-    coefficients spread as the prior scales and sized to expect exactly ``lambda``), so
+    the diagnosis' design prior sized to expect exactly ``lambda``), so
     rejecting above the threshold is the most powerful level-``alpha`` test a diagnosis could
     run: the reference for spec §6 G2's detection power."""
     from ._stats import design_log_bf, screen_designs
@@ -90,12 +90,12 @@ def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
     _, designs = screen_designs(jn, sigs, n_boot=0)
     span = np.concatenate([jt for des in designs for jt in des.jt], axis=1)
     q, s, _ = np.linalg.svd(span, full_matrices=False)
-    q = q[:, s > 1e-10 * s[0]]
+    q = q[:, s > 1e-10 * s[0]]  # the tested bases lie in this span too
     z = np.random.default_rng(seed).standard_normal((q.shape[1], n_draws))
-    small = [[q.T @ jt for jt in des.jt] for des in designs]
+    small = [([q.T @ jt for jt in des.jt], [q.T @ b for b in des.bases]) for des in designs]
     out = {}
     for lam in lambdas:
-        stat = np.stack([design_log_bf(jts, z, [lam])[0] for jts in small])
+        stat = np.stack([design_log_bf(jts, bases, z, [lam])[0] for jts, bases in small])
         stat = np.logaddexp.reduce(stat, axis=0) - np.log(len(small))
         out[float(lam)] = float(np.quantile(stat, 1 - alpha))
     return out

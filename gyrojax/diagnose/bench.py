@@ -33,7 +33,7 @@ from ..io import load_record, save_record, write_json
 from ..models.esg import ESGConditions, ESGRig
 from ..record import BenchRecord
 from ._esg import TRANSIENT_TIMES_H
-from ._stats import _project, design_log_bf_scores, ljung_box, nominal_basis
+from ._stats import _project, grid_log_bf, ljung_box, nominal_basis, shape_log_bf_scores
 
 __all__ = ["generate", "run", "score", "LIBRARY_FAMILIES", "OUT_OF_LIBRARY"]
 
@@ -326,6 +326,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
             m = n * len(prob.channels)
             jn, sigs = prob.jacobians(params0, sigma)
             u = nominal_basis(jn)
+            screened_dof = {r["name"]: int(r["dof"]) for r in ranking}
             t0 = time.perf_counter()  # both answers start from the same nominal fit
             n_refits = 0
             bic = {"none": m * math.log(rss0 / m)}
@@ -338,14 +339,19 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
                     pred, coeffs, _ = prob.refit(params0, [(sig, g)], sigma)
                     n_refits += 1
                     rss.append(float(np.sum(((prob.y[:n] - pred[:n]) / sigma) ** 2)))
-                    # the screening's Bayes factor with the refit's estimate in place of the
-                    # one-step one (score = I b^): the answer screening approximates (G10)
+                    # the screening's Bayes factor with the refit in place of the one-step
+                    # estimate (shape part: score = I b^; g-prior part: the likelihood-ratio
+                    # drop for the score statistic, on the dof the screening tested): the answer
+                    # screening approximates (G10)
                     jt = _project(u, sig.jac[g])
                     b_hat = np.array([coeffs[nm] for nm in sig.names]) / sig.prior_scale
                     blocks.append((jt.T @ jt, jt.T @ jt @ b_hat))
                 k = len(sig.names) + (1 if sig.grid else 0)
                 bic[sig.name] = m * math.log(min(rss) / m) + k * math.log(m)
-                lr_bf[sig.name] = float(design_log_bf_scores(blocks, [32.0])[0])
+                drops = [max(rss0 - r, 0.0) for r in rss]
+                lr_bf[sig.name] = float(np.logaddexp(
+                    shape_log_bf_scores(blocks, [32.0])[0],
+                    grid_log_bf(drops, [screened_dof[sig.name]] * len(rss), 32.0)) - math.log(2))
             res["b2_choice"] = min(bic, key=bic.get)
             res["b2_lr_choice"] = max(lr_bf, key=lr_bf.get) if lr_bf else None
             res["time_refit_all_s"] = time.perf_counter() - t0
@@ -510,12 +516,11 @@ def _scores(ranking) -> dict:
 
 def oracle_choice(r, lam: float):
     """The Bayes-oracle answer (spec §5.6) for a case of noncentrality ``lam``: the effect of
-    largest posterior under the linearised model when the prior is the generator's, i.e. equal
-    prior odds between the catalogue effects and coefficients spread as the prior scales, sized
-    to expect exactly ``lam`` (:func:`~gyrojax.diagnose._stats.design_log_bf`), averaged over each
-    effect's grid. It reads the blind run's design-prior factors at every prior size
-    (``r["log_bf_by_lambda"]``) at the sealed ``lam``, which the diagnosis does not know (it
-    assumes ``lambda0 = 32``)."""
+    largest posterior under the linearised model with equal prior odds between the catalogue
+    effects and the diagnosis' design prior sized to expect exactly ``lam``
+    (:func:`~gyrojax.diagnose._stats.design_log_bf`), averaged over each effect's grid. It
+    reads the blind run's design-prior factors at every prior size (``r["log_bf_by_lambda"]``)
+    at the sealed ``lam``, which the diagnosis does not know (it assumes ``lambda0 = 32``)."""
     lbf = _oracle_log_bfs(r, lam)
     return max(lbf, key=lbf.get) if lbf else None
 
