@@ -154,17 +154,16 @@ def g9_text(s) -> str:
 
 ORACLE_NOTE = ("Spec §6 G3: separable = largest projected canonical correlation with another "
                "catalogue effect <= 0.9 on the design; the Bayes oracle is the exact posterior of "
-               "the linearised model with the generator's prior (equal odds between the effects, "
-               "coefficients spread as the prior scales and sized to expect exactly the sealed "
-               "lambda: the diagnosis' design prior), read from the blind run's Bayes factors "
-               "at every prior size: it knows lambda, the diagnosis assumes 32, "
+               "the linearised model with equal odds between the effects and the diagnosis' "
+               "design prior sized to expect exactly the sealed lambda, read from the blind run's "
+               "Bayes factors at every prior size: it knows lambda, the diagnosis assumes 32, "
                "so at lambda = 32 the two differ only where the verdict's first effect is not the "
                "top posterior. top-1 / oracle: delta-method standard error over paired cases. "
                "Bayes-oracle power (spec §6 G2's reference): the same oracle as a detector, its "
                "likelihood ratio (mean Bayes factor over the catalogue at the sealed lambda) "
                "above its 95 % quantile under the linearised null (20,000 draws of the "
-               "residual in the library's span on one record of the design): the most powerful level-0.05 "
-               "test against the generator's alternative.")
+               "residual in the library's span on one record of the design): the most powerful "
+               "level-0.05 test against that alternative.")
 
 ORACLE_LAMBDAS = (8.0, 16.0, 32.0, 64.0)
 
