@@ -325,7 +325,8 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
             rss0 = float(np.sum(((prob.y[:n] - prob.predict(params0)[:n]) / sigma) ** 2))
             m = n * len(prob.channels)
             jn, sigs = prob.jacobians(params0, sigma)
-            u = nominal_basis(jn)
+            rows = slice(0, n * len(prob.channels))  # the train rows the refits fit
+            u = nominal_basis(jn[rows])
             screened_dof = {r["name"]: int(r["dof"]) for r in ranking}
             t0 = time.perf_counter()  # both answers start from the same nominal fit
             n_refits = 0
@@ -343,7 +344,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
                     # estimate (shape part: score = I b^; g-prior part: the likelihood-ratio
                     # drop for the score statistic, on the dof the screening tested): the answer
                     # screening approximates (G10)
-                    jt = _project(u, sig.jac[g])
+                    jt = _project(u, sig.jac[g][rows])
                     b_hat = np.array([coeffs[nm] for nm in sig.names]) / sig.prior_scale
                     blocks.append((jt.T @ jt, jt.T @ jt @ b_hat))
                 k = len(sig.names) + (1 if sig.grid else 0)
