@@ -297,6 +297,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
             "p": {r["name"]: r["p"] for r in ranking},
             "flags": {r["name"]: r["flag"] for r in ranking},
             "scores": _scores(ranking),
+            "log_bf": {r["name"]: r["log_bf"] for r in ranking},
             "log_bf_by_lambda": {r["name"]: r["log_bf_by_lambda"] for r in ranking},
             "visible_fraction": {r["name"]: r["visible_fraction"] for r in ranking},
             "ambiguity": rep.ambiguity["set"],
@@ -355,6 +356,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
                     grid_log_bf(drops, [screened_dof[sig.name]] * len(rss), 32.0)) - math.log(2))
             res["b2_choice"] = min(bic, key=bic.get)
             res["b2_lr_choice"] = max(lr_bf, key=lr_bf.get) if lr_bf else None
+            res["b2_lr_log_bf"] = lr_bf
             res["time_refit_all_s"] = time.perf_counter() - t0
             res["n_refits"] = n_refits
         results.append(res)
@@ -527,12 +529,19 @@ def oracle_choice(r, lam: float):
 
 
 def _oracle_log_bfs(r, lam: float) -> dict:
+    """Each effect's design-prior log Bayes factor at prior size ``lam`` from the run's recorded
+    curve (``log_bf_by_lambda``, powers of 2 from 1 to 1024: every suite's lambda is one); a
+    ``lam`` between two recorded sizes is interpolated linearly in ``log lambda``."""
     curves = r.get("log_bf_by_lambda") or {}
-    key = f"{float(lam):g}"
-    if curves and any(key not in c for c in curves.values()):
-        raise KeyError(f"the run has no design-prior factor at lambda {key}: its sizes are "
-                       f"{sorted(next(iter(curves.values())), key=float)}")
-    return {k: c[key] for k, c in curves.items()}
+    out = {}
+    for k, c in curves.items():
+        sizes = sorted(c, key=float)
+        x = np.log([float(v) for v in sizes])
+        if not x[0] - 1e-12 <= math.log(lam) <= x[-1] + 1e-12:
+            raise KeyError(f"the run's design-prior factors cover lambda {sizes[0]}-{sizes[-1]}, "
+                           f"not {lam:g}")
+        out[k] = float(np.interp(math.log(lam), x, [c[v] for v in sizes]))
+    return out
 
 
 def oracle_detect_statistic(r, lam: float) -> float:
