@@ -93,12 +93,10 @@ def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
     q = q[:, s > 1e-10 * s[0]]  # the tested bases lie in this span too
     z = np.random.default_rng(seed).standard_normal((q.shape[1], n_draws))
     small = [([q.T @ jt for jt in des.jt], [q.T @ b for b in des.bases]) for des in designs]
-    out = {}
-    for lam in lambdas:
-        stat = np.stack([design_log_bf(jts, bases, z, [lam])[0] for jts, bases in small])
-        stat = np.logaddexp.reduce(stat, axis=0) - np.log(len(small))
-        out[float(lam)] = float(np.quantile(stat, 1 - alpha))
-    return out
+    lambdas = [float(lam) for lam in lambdas]
+    stat = np.stack([design_log_bf(jts, bases, z, lambdas) for jts, bases in small])  # (K, L, B)
+    stat = np.logaddexp.reduce(stat, axis=0) - np.log(len(small))
+    return {lam: float(np.quantile(st, 1 - alpha)) for lam, st in zip(lambdas, stat)}
 
 
 def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool = False,

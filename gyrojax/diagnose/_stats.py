@@ -218,8 +218,13 @@ def design_log_bf(jts, bases, e, lambdas) -> np.ndarray:
     mixture 0.66, the g-prior 0.68). Shapes as :func:`shape_log_bf`."""
     e = np.asarray(e, float)
     lms = np.stack([np.sum((b.T @ e) ** 2, axis=0) for b in bases])
-    return np.logaddexp(shape_log_bf(jts, e, lambdas),
-                        zellner_log_bf(lms, [b.shape[1] for b in bases], lambdas)) - math.log(2)
+    return mix_log_bf(shape_log_bf(jts, e, lambdas),
+                      zellner_log_bf(lms, [b.shape[1] for b in bases], lambdas))
+
+
+def mix_log_bf(shape, zellner):
+    """The design prior's log Bayes factor from its two parts' (the equal mixture)."""
+    return np.logaddexp(shape, zellner) - math.log(2)
 
 
 @dataclasses.dataclass
@@ -430,7 +435,7 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
         lams = PRIOR_LAMBDAS + (lambda0,)
         shape = shape_log_bf(des.jt, e, lams)
         zell = zellner_log_bf(lms, dofs, lams)
-        curve = np.logaddexp(shape, zell) - math.log(2)
+        curve = mix_log_bf(shape, zell)
         if prior == "scale":
             lbf = [_log_bf(x.T @ x, x.T @ e) for x in des.jt]
             log_bf = float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))

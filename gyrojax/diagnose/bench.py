@@ -33,7 +33,14 @@ from ..io import load_record, save_record, write_json
 from ..models.esg import ESGConditions, ESGRig
 from ..record import BenchRecord
 from ._esg import TRANSIENT_TIMES_H
-from ._stats import _project, grid_log_bf, ljung_box, nominal_basis, shape_log_bf_scores
+from ._stats import (
+    _project,
+    grid_log_bf,
+    ljung_box,
+    mix_log_bf,
+    nominal_basis,
+    shape_log_bf_scores,
+)
 
 __all__ = ["generate", "run", "score", "LIBRARY_FAMILIES", "OUT_OF_LIBRARY"]
 
@@ -351,9 +358,9 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
                 k = len(sig.names) + (1 if sig.grid else 0)
                 bic[sig.name] = m * math.log(min(rss) / m) + k * math.log(m)
                 drops = [max(rss0 - r, 0.0) for r in rss]
-                lr_bf[sig.name] = float(np.logaddexp(
+                lr_bf[sig.name] = float(mix_log_bf(
                     shape_log_bf_scores(blocks, [32.0])[0],
-                    grid_log_bf(drops, [screened_dof[sig.name]] * len(rss), 32.0)) - math.log(2))
+                    grid_log_bf(drops, [screened_dof[sig.name]] * len(rss), 32.0)))
             res["b2_choice"] = min(bic, key=bic.get)
             res["b2_lr_choice"] = max(lr_bf, key=lr_bf.get) if lr_bf else None
             res["b2_lr_log_bf"] = lr_bf
