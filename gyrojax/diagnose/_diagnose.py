@@ -745,9 +745,14 @@ def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band
         return {"kind": "unexplained", "effects": [], "heldout_gap_after": None, **base,
                 "cells": where[:10],
                 "reason": "the gap map is significant but no catalogued effect's score test is"}
-    if top.flag in ("structurally confounded", "no signature"):
+    # `confounded` names one effect as the likely cause, so that effect must hold most of the
+    # posterior mass; a confounded effect that merely leads a spread posterior (an effect outside
+    # the catalogue leaning on its visible part) leaves the verdict to the ambiguity set.
+    share = top.posterior / (sum(r.posterior for r in rows) or 1.0)  # as the ambiguity set's
+    if top.flag in ("structurally confounded", "no signature") and share >= 0.5:
         return {"kind": "confounded", "effects": [top.sig.name], "heldout_gap_after": None,
-                **base, "reason": f"{top.sig.name} is {top.flag} on this design"}
+                **base, "posterior": {r.sig.name: r.posterior for r in amb},
+                "reason": f"{top.sig.name} is {top.flag} on this design"}
     names = [r.sig.name for r in amb]
     single = [rf for rf in refits if len(rf["effects"]) == 1]
     best = min(single, key=lambda rf: rf["gap_train_after"]) if single else None
