@@ -94,10 +94,10 @@ def test_schuler_blind_harness(tmp_path):
     shutil.move(tmp_path / "b_sealed", tmp_path / "b" / "sealed")
     assert null["verdict"] == "no-gap"
     assert "drift_ramp" in ramp["effects"] + ramp["ambiguity"]
-    # spec §6 G9: not attributed. With the design prior (cb969ce) the line's top posterior is a
-    # structurally confounded effect, so the verdict is `confounded` (it was `ambiguous` under
-    # the g-prior): no effect named as the cause, and no posterior > 0.9 on a wrong effect
-    assert line["verdict"] in ("unexplained", "ambiguous", "no-gap", "confounded")
+    # spec §6 G9: unexplained or ambiguous, not attributed. Under the design prior the line's top
+    # posterior is a structurally confounded effect, but without most of the posterior mass,
+    # so the verdict is not `confounded` naming it either
+    assert line["verdict"] in ("unexplained", "ambiguous", "no-gap"), line
     s = bs.score(tmp_path / "b", [ramp, line])
     assert s["by_lambda"]["400"]["power"]["rate"] == 1.0
     assert s["ool_confident_misattribution"]["rate"] == 0.0

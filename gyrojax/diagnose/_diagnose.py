@@ -745,15 +745,23 @@ def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band
         return {"kind": "unexplained", "effects": [], "heldout_gap_after": None, **base,
                 "cells": where[:10],
                 "reason": "the gap map is significant but no catalogued effect's score test is"}
-    # `confounded` names one effect as the likely cause, so that effect must hold most of the
-    # posterior mass; a confounded effect that merely leads a spread posterior (an effect outside
-    # the catalogue leaning on its visible part) leaves the verdict to the ambiguity set.
+    # `confounded` names one effect as the likely cause, so its own score test must be
+    # significant (an effect without a visible part cannot make a detected gap: its Bayes factor
+    # is 1, and it leads the posterior only when every other effect fits worse than none, as
+    # for an effect outside the catalogue) and it must hold most of the posterior mass.
     share = top.posterior / (sum(r.posterior for r in rows) or 1.0)  # as the ambiguity set's
-    if top.flag in ("structurally confounded", "no signature") and share >= 0.5:
+    if top.flag in ("structurally confounded", "no signature") and top in sig_rows \
+            and share >= 0.5:
         return {"kind": "confounded", "effects": [top.sig.name], "heldout_gap_after": None,
                 **base, "posterior": {r.sig.name: r.posterior for r in amb},
                 "reason": f"{top.sig.name} is {top.flag} on this design"}
     names = [r.sig.name for r in amb]
+    if len(amb) == 1 and top.flag in ("structurally confounded", "no signature"):
+        return {"kind": "unexplained", "effects": [], "heldout_gap_after": None, **base,
+                "posterior": {top.sig.name: top.posterior},
+                "reason": f"the posterior's top effect, {top.sig.name}, is {top.flag} on this "
+                          "design and its score test is not significant: no catalogued "
+                          "effect's visible signature explains the gap"}
     single = [rf for rf in refits if len(rf["effects"]) == 1]
     best = min(single, key=lambda rf: rf["gap_train_after"]) if single else None
     if len(amb) > 1:
