@@ -666,6 +666,38 @@ def test_heldout_transfer_rule():
     assert not _does_not_transfer(rf(float("nan"), None, None))  # no held-out part
 
 
+def test_confounded_verdict_needs_a_significant_majority_top():
+    """`confounded` names the structurally confounded top effect only when its own score test is
+    significant and it holds most of the effects' posterior; an invisible top (Bayes factor 1,
+    leading because every other effect fits worse than none) holding the 90 % set alone gives
+    `unexplained`, and a confounded top in a spread posterior leaves it to the ambiguity set."""
+    from types import SimpleNamespace
+
+    from gyrojax.diagnose._diagnose import _verdict
+    from gyrojax.diagnose._stats import ambiguity_set
+
+    def row(name, flag, q, post):
+        return SimpleNamespace(sig=SimpleNamespace(name=name), flag=flag, q=q, p=q,
+                               posterior=post)
+
+    def verdict(rows):
+        top = max(rows, key=lambda r: r.posterior)
+        return _verdict(True, rows, ambiguity_set(rows), [], None, top, 0.05, [], 1.0,
+                        (0.0, 0.1))
+
+    conf = "structurally confounded"
+    invisible = [row("tilt", "no signature", 1.0, 0.50), row("ramp", "visible", 0.01, 0.02)]
+    v = verdict(invisible)
+    assert v["kind"] == "unexplained" and "tilt" in v["reason"]
+    visible = [row("d_oo", conf, 0.001, 0.60), row("ramp", "visible", 0.01, 0.30)]
+    v = verdict(visible)
+    assert v["kind"] == "confounded" and v["effects"] == ["d_oo"]
+    spread = [row("d_oo", conf, 0.001, 0.40), row("ramp", "visible", 0.01, 0.35),
+              row("step", "visible", 0.02, 0.25)]
+    v = verdict(spread)
+    assert v["kind"] == "ambiguous" and v["effects"] == ["d_oo", "ramp", "step"]
+
+
 # -- bad input -------------------------------------------------------------------------------
 def test_bad_input_errors():
     rec = _record(seed=2)

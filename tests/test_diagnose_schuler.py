@@ -95,8 +95,8 @@ def test_schuler_blind_harness(tmp_path):
     assert null["verdict"] == "no-gap"
     assert "drift_ramp" in ramp["effects"] + ramp["ambiguity"]
     # spec §6 G9: unexplained or ambiguous, not attributed. Under the design prior the line's top
-    # posterior is a structurally confounded effect, but without most of the posterior mass,
-    # so the verdict is not `confounded` naming it either
+    # posterior is accelerometer_tilt, which the bias absorbs whole (Bayes factor 1): without a
+    # significant score test of its own it is not named `confounded` either (5d1933e)
     assert line["verdict"] in ("unexplained", "ambiguous", "no-gap"), line
     s = bs.score(tmp_path / "b", [ramp, line])
     assert s["by_lambda"]["400"]["power"]["rate"] == 1.0
