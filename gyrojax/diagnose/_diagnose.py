@@ -68,6 +68,7 @@ __all__ = ["diagnose", "library", "RIGS"]
 
 RIGS = ("esg", "imu", "platform", "schuler", "gyrotheodolite")
 LABEL_CHANNELS = ("position", "amplitude")  # segment labels, not measurements
+_CONFOUNDED_FLAGS = ("structurally confounded", "no signature")  # the nominal fit absorbs part or all
 
 
 def _check_effects(effects, library, rig):
@@ -421,8 +422,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         t0 = time.perf_counter()
         done = {tuple(rf["effects"]) for rf in refits}
         for r in rows:
-            if (r.sig.name,) not in done and r.dof > 0 and r.flag not in (
-                    "no signature", "structurally confounded"):
+            if (r.sig.name,) not in done and r.dof > 0 and r.flag not in _CONFOUNDED_FLAGS:
                 refits.append(dict(run_refit([r])[0], screened=False))
         timings["refit_all_s"] = time.perf_counter() - t0
     if getattr(prob, "notes", None):
@@ -618,7 +618,7 @@ def _shift_hidden(rows, cells, jn_all, s_full):
     u = nominal_basis(jn_all)
     out = []
     for r in rows:
-        if r.flag in ("structurally confounded", "no signature"):
+        if r.flag in _CONFOUNDED_FLAGS:
             if visible(u, s_full[r.sig.name].jac[r.grid_index]):
                 out.append(r.sig.name)
     return out
@@ -750,13 +750,13 @@ def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band
     # is 1, and it leads the posterior only when every other effect fits worse than none, as
     # for an effect outside the catalogue) and it must hold most of the posterior mass.
     share = top.posterior / (sum(r.posterior for r in rows) or 1.0)  # as the ambiguity set's
-    if top.flag in ("structurally confounded", "no signature") and top in sig_rows \
-            and share >= 0.5:
+    top_confounded = top.flag in _CONFOUNDED_FLAGS
+    if top_confounded and top in sig_rows and share >= 0.5:
         return {"kind": "confounded", "effects": [top.sig.name], "heldout_gap_after": None,
                 **base, "posterior": {r.sig.name: r.posterior for r in amb},
                 "reason": f"{top.sig.name} is {top.flag} on this design"}
     names = [r.sig.name for r in amb]
-    if len(amb) == 1 and top.flag in ("structurally confounded", "no signature"):
+    if len(amb) == 1 and top_confounded:
         return {"kind": "unexplained", "effects": [], "heldout_gap_after": None, **base,
                 "posterior": {top.sig.name: top.posterior},
                 "reason": f"the posterior's top effect, {top.sig.name}, is {top.flag} on this "
