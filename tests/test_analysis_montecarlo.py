@@ -83,6 +83,7 @@ def test_sharded_over_two_host_devices():
     assert "OK 2" in res.stdout
 
 
+@pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_mounting_budget_joint_estimation_beats_drift_only():
     """Monte Carlo over random mounting errors, noise-free (alpha2(0) = 30 deg where every
     parameter but theta is observable): estimating the mounting errors jointly cuts the drift

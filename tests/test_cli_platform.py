@@ -2,10 +2,13 @@
 
 import json
 
+import pytest
+
 from gyrojax.cli import main
 from gyrojax.models.platform import TRUE_TABLE2
 
 
+@pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_simulate_fit_observability(tmp_path, capsys):
     sched = tmp_path / "s.json"
     sched.write_text(json.dumps({"dwell_s": 20, "table_amplitudes_g": [9, 7]}))
@@ -35,6 +38,7 @@ def test_bad_schedules_exit_2(tmp_path, capsys):
     assert "0 g amplitude" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_fit_methods_agree_and_unknown_method_refused(tmp_path, capsys):
     sched = tmp_path / "s.json"
     sched.write_text(json.dumps({"dwell_s": 10, "table_amplitudes_g": [9, 7]}))

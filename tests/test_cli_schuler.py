@@ -9,6 +9,7 @@ from gyrojax.cli import main
 from gyrojax.io import load_record
 
 
+@pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_simulate_fit_observability(tmp_path):
     rec = tmp_path / "schuler.nc"
     truth = {"nu1": 0.1, "D22": 5000.0, "K11": -3000.0, "dA0": 20.0}

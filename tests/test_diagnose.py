@@ -631,6 +631,7 @@ def test_imu_blind_harness_design_shift(tmp_path):
     assert s["heldout_closure"]["rate"] == 1.0
 
 
+@pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_imu_out_of_library_mimic_fails_its_heldout_check(tmp_path):
     """Spec §6 G9. An accelerometer bias that jumps at one pose change (out of the catalogue) is
     mimicked on the train rows by catalogue effects (truth side: the remainder after the best

@@ -88,6 +88,7 @@ def test_filter_with_transient_states_recovers_settled_drift(transient_case):
     np.testing.assert_allclose(innov.std(axis=0), 1.0, atol=0.1)
 
 
+@pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_normalised_filter_errors_have_unit_rms():
     """On data from the first-order model with theta = 0 (where (6.1) is exact) the filter is
     consistent: estimation errors divided by the reported standard errors have RMS near 1."""

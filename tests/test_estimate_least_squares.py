@@ -65,6 +65,7 @@ def test_gauss_newton_standard_errors_match_scatter(gn_monte_carlo):
     np.testing.assert_allclose(mean_se, crlb, rtol=0.05)  # the noise estimate is unbiased
 
 
+@pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_levenberg_marquardt_agrees_and_bad_input():
     rig, cond, truth = design("vertical")
     ts = TS_24H[:481]

@@ -50,6 +50,7 @@ def _display(x):
     return out
 
 
+@pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_single_pass_filter_is_one_gauss_newton_step():
     """Spec §12: one pass of the linearised filter equals one Gauss-Newton step from theta = 0; and
     re-run about the Gauss-Newton estimate it returns that estimate (one pass = one step)."""

@@ -294,6 +294,7 @@ def test_design_tool_ranks_and_improves_on_table1():
     assert enu.rank == 27 and not np.isfinite(enu.worst_se)
 
 
+@pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_kalman_filter_equals_batch_regression(tests_1_and_2):
     """Spec §10.3: the source's EKF on the averaged model (angle states restarted per dwell, D
     carried over) over both amplitude records ends where the batch regression (S22) is, to 0.05 of
@@ -335,6 +336,7 @@ def test_original_model_with_measured_acceleration_vs_averaged():
     assert np.max(np.abs(np.asarray(avg.values - meas.values) / np.asarray(avg.stderr))) < 0.2
 
 
+@pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_batch_gauss_newton_equals_regression(tests_1_and_2):
     """Batch Gauss-Newton on the averaged ODE model (30 coefficients + 84 initial angles, forward
     sensitivities through diffrax), started from zero, lands on the regression (S22) estimate

@@ -91,6 +91,7 @@ def test_simulate_needs_key_for_noise():
         gj.simulate(rig, p, cond, TS_24H[:10], noise_std=1e-6)
 
 
+@pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_fixed_step_grid_is_diffrax_constant_steps_and_checks_its_error():
     """The fixed-grid path (``steps``) against diffrax's own constant-step solve on the same grid
     (a second implementation of the same numbers), against a tight adaptive solve (accuracy), and
