@@ -172,16 +172,25 @@ def _plot_tau_band(ax, where, chans):
     if not cells:
         ax.text(0.5, 0.5, "no tau band (record too short)", ha="center", transform=ax.transAxes)
         return
+    full = any(x.get("rate") == "full" for x in cells)
     for j, c in enumerate(chans):
-        xs = [x for x in cells if x["channel"] == c]
-        tau = np.array([x["tau_s"] for x in xs]) * (1 + 0.04 * (j - (len(chans) - 1) / 2))
-        r = np.array([x["statistic"] for x in xs])
-        ci = np.array([x["ci95"] for x in xs]).T
-        line = ax.errorbar(tau, r, yerr=[r - ci[0], ci[1] - r], fmt="o-", ms=4, lw=0.8,
-                           capsize=2, label=c)
-        sig = [x.get("significant", False) for x in xs]
-        ax.scatter(tau[sig], r[sig], s=60, facecolors="none",
-                   edgecolors=line[0].get_color(), lw=1.4)
+        color = None
+        for rate in (None, "full"):  # the decided rows' band, then the full-rate band
+            xs = [x for x in cells if x["channel"] == c and x.get("rate") == rate]
+            if not xs:
+                continue
+            tau = np.array([x["tau_s"] for x in xs]) * (1 + 0.04 * (j - (len(chans) - 1) / 2))
+            r = np.array([x["statistic"] for x in xs])
+            ci = np.array([x["ci95"] for x in xs]).T
+            line = ax.errorbar(tau, r, yerr=[r - ci[0], ci[1] - r],
+                               fmt="o-" if rate is None else "s--", ms=4 if rate is None else 3,
+                               lw=0.8, capsize=2, color=color,
+                               label=c if color is None else None)
+            color = line[0].get_color()
+            sig = [x.get("significant", False) for x in xs]
+            ax.scatter(tau[sig], r[sig], s=60, facecolors="none", edgecolors=color, lw=1.4)
+    if full:
+        ax.plot([], [], "ks--", ms=3, lw=0.8, label="full rate (reported)")
     ax.axhline(1.0, color="k", lw=0.8, ls=":")
     ax.set_xscale("log")
     ax.set_yscale("log")

@@ -10,6 +10,7 @@ from gyrojax.diagnose._diagnose import first_difference_level
 from gyrojax.diagnose._stats import (
     allan_form,
     cross_correlation,
+    full_rate_tau_cells,
     gap_map_cells,
     lag_cells,
     ljung_box,
@@ -17,6 +18,7 @@ from gyrojax.diagnose._stats import (
     map_statistics,
     nominal_basis,
     tau_band_moments,
+    white_allan_moments,
 )
 
 N, C = 600, 2
@@ -209,3 +211,57 @@ def test_angle_random_walk_generator_sets_the_longest_band_excess():
     excess = allan_form(z, m)[:, 0].mean() - (k - 1)
     sd0 = np.sqrt(2 * (k - 1) + (k - 2))
     assert excess / sd0 == pytest.approx(3.0, rel=0.08)
+
+
+def test_white_allan_moments_match_monte_carlo():
+    """The exact null mean and variance of the Allan quadratic form of unit white noise against
+    20,000 simulated records (k = 12 clusters of m = 3 samples)."""
+    k, m = 12, 3
+    e = np.random.default_rng(11).standard_normal((20_000, k * m, 1))
+    q = allan_form(e, m)[:, 0]
+    mean, var = white_allan_moments(k)
+    assert np.mean(q) == pytest.approx(mean, rel=0.01)
+    assert np.var(q) == pytest.approx(var, rel=0.04)
+
+
+def test_full_rate_tau_cells_null_rate_and_localisation():
+    """Full-rate tau band on static pieces of unequal length: under white noise the cells hold
+    their level (pooled rejection rate at 0.05, mean ratio 1); a quantization-like term (the
+    first difference of a white sequence: Allan excess ~ 1 / tau^2) is localised at the
+    shortest band, a rate random walk within the three longest octaves, with the shortest band
+    not significant."""
+    rng = np.random.default_rng(12)
+    sizes = (4000, 3000, 2500)
+    p_all, r_all = [], []
+    for _ in range(300):
+        cells = full_rate_tau_cells({0: [rng.standard_normal(n) for n in sizes]}, ("wx",), 0.02)
+        p_all += [x["p"] for x in cells]
+        r_all += [x["statistic"] for x in cells]
+    assert [x["tau_s"] for x in cells] == pytest.approx([0.02 * 2 ** j for j in range(len(cells))])
+    assert all(x["q"] is None and not x["decision"] and x["rate"] == "full" for x in cells)
+    assert np.mean(np.array(p_all) < 0.05) == pytest.approx(0.05, abs=0.01)
+    assert np.mean(r_all) == pytest.approx(1.0, abs=0.01)
+    # a white level known from elsewhere (here: exactly; levels = {channel: (s^2, dof)})
+    p_known = [x["p"] for _ in range(300) for x in full_rate_tau_cells(
+        {0: [rng.standard_normal(n) for n in sizes]}, ("wx",), 0.02, levels={0: (1.0, np.inf)})]
+    assert np.mean(np.array(p_known) < 0.05) == pytest.approx(0.05, abs=0.01)
+
+    def pieces(extra):
+        return {0: [rng.standard_normal(n) + extra(n) for n in sizes]}
+
+    quant = full_rate_tau_cells(pieces(lambda n: 0.4 * np.diff(rng.standard_normal(n + 1))),
+                                ("wx",), 0.02)
+    best = min(quant, key=lambda x: x["p"])
+    assert best["tau_s"] == quant[0]["tau_s"] and best["p"] < 1e-6
+    # against the white level alone (1), the ratio falls back to 1 at long tau; against the
+    # pieces' own mean square (1 + 2 * 0.16), below 1 there
+    known = full_rate_tau_cells(pieces(lambda n: 0.4 * np.diff(rng.standard_normal(n + 1))),
+                                ("wx",), 0.02, levels={0: (1.0, np.inf)})
+    assert known[0]["statistic"] == pytest.approx(1 + 3 * 0.16, rel=0.05)
+    for x in (known[-1], quant[-1]):
+        assert x["ci95"][0] < (1.0 if x is known[-1] else 1 / 1.32) < x["ci95"][1]
+    rrw = full_rate_tau_cells(pieces(lambda n: np.cumsum(0.01 * rng.standard_normal(n))),
+                              ("wx",), 0.02)
+    best = min(rrw, key=lambda x: x["p"])
+    assert best["tau_s"] >= rrw[-1]["tau_s"] / 8 and best["p"] < 1e-3
+    assert rrw[0]["p"] > 0.01

@@ -351,6 +351,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     q_mean = q_all[: len(cells) + len(rows)]
     cells += lag_cells(e.reshape(n, c), prob.channels,  # reported, not decided on
                        aux=getattr(prob, "aux_rows", None))
+    if hasattr(prob, "full_rate_tau_cells"):  # reported, not decided on
+        cells += prob.full_rate_tau_cells(params0)
     # excess energy of the whole-record windows (level 0), all channels
     excess = sum(max(0.0, x["excess"]) for x in cells if x["axis"] == "time" and x["level"] == 0)
     detected = bool(np.any(q_mean < level))

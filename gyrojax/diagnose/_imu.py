@@ -32,12 +32,12 @@ import numpy as np
 from scipy import stats
 
 from .. import units
-from ..analysis.spectral import fit_noise_likelihood
+from ..analysis.spectral import HANN_DOF_FACTOR, fit_noise_likelihood
 from ..datasets import masked
 from ..estimate.multiposition import detect_static
 from ..models.imu import IMU_CHANNELS, MEAN_EFFECTS, NOISE_EFFECTS, IMUConditions, IMURig, imu_measure
 from ..record import BenchRecord
-from ._stats import Signature
+from ._stats import Signature, full_rate_tau_cells
 
 __all__ = ["IMUProblem", "IMU_LIBRARY"]
 
@@ -474,13 +474,11 @@ class IMUProblem:
         out = {k: float(self.space[k].to_display(params[k])) for k in self.nominal_names}
         return out
 
-    # -- noise-model effects ---------------------------------------------------------------
-    def noise_screen(self, params, alpha: float = 0.05):
-        """Noise-model effects on the full-rate static residual (train part) of the full mean
-        model. Returns one row per noise effect: p (min over channels, Bonferroni), the channel,
-        the statistic and the fitted term per channel in display units."""
-        if not self.noise_effects:
-            return []
+    def _static_residuals(self, params):
+        """Two residuals at the full rate on the train part of every static interval (>= 64
+        samples), per channel index: of the full mean model (the nominal plus every catalogued
+        mean effect, fitted to the rows: noise beyond them) and of the nominal model (where a
+        slow drift and a random walk compete)."""
         t_all = np.asarray(self.record.t, float)
         y_all = np.asarray(self.record.y, float)
         bad = masked(self.record)
@@ -492,8 +490,6 @@ class IMUProblem:
         pred = self.predict(params)
         resid_rows = self.y - pred
         n = self.n_train
-        # two residuals at full rate: of the full mean model (noise beyond every catalogued mean
-        # effect) and of the nominal model (where a slow drift and a random walk compete)
         pieces = {c: [] for c in range(len(self.channels))}
         nominal = {c: [] for c in range(len(self.channels))}
         for c in range(len(self.channels)):
@@ -512,13 +508,46 @@ class IMUProblem:
                                                            fitted_rows[rows]))
                 nominal[c].append(y_all[idx, c] - np.interp(t_all[idx], self.t[rows],
                                                             pred[rows, c]))
+        self._residuals = (params, pieces, nominal)
+        return pieces, nominal
+
+    def _long(self, pcs):
+        return [x for x in pcs if x.size >= MIN_NOISE_PIECE_S * self.rate_hz]
+
+    def full_rate_tau_cells(self, params):
+        """The gap map's full-rate tau band (:func:`~._stats.full_rate_tau_cells`) of the
+        full-model residual on the static pieces that test the slow noise terms (>=
+        ``MIN_NOISE_PIECE_S``): where in tau the noise departs from white, down to one sample
+        (reported, not decided on). The white level is the white term of
+        :meth:`noise_screen`'s noise-model fit (every IEEE term fitted at once) where it ran,
+        else the pieces' own mean square."""
+        done = getattr(self, "_residuals", None)
+        pieces = done[1] if done is not None and done[0] is params else \
+            self._static_residuals(params)[0]
+        # the white level of the noise-model fit (noise_screen's, on the same pieces)
+        fits = getattr(self, "noise_fits", {}) if done is not None and done[0] is params else {}
+        # (per-sample variance N^2 / dt; dof of the Hann-tapered ordinates in the fitted band)
+        levels = {self.channels.index(ch): (f.terms.angle_random_walk ** 2 * self.rate_hz,
+                                            2.0 * f.n_freq / HANN_DOF_FACTOR)
+                  for ch, f in fits.items()}
+        return full_rate_tau_cells({c: self._long(p) for c, p in pieces.items()}, self.channels,
+                                   1.0 / self.rate_hz, levels=levels)
+
+    # -- noise-model effects ---------------------------------------------------------------
+    def noise_screen(self, params, alpha: float = 0.05):
+        """Noise-model effects on the full-rate static residual (train part) of the full mean
+        model. Returns one row per noise effect: p (min over channels, Bonferroni), the channel,
+        the statistic and the fitted term per channel in display units."""
+        if not self.noise_effects:
+            return []
+        pieces, nominal = self._static_residuals(params)
         rows_out = []
         # bias instability and rate random walk live at long tau: only static pieces of at
         # least MIN_NOISE_PIECE_S test them (short hand-held poses carry settling motion)
         fits, fits_nom = {}, {}
         for c in pieces:
-            long_full = [x for x in pieces[c] if x.size >= MIN_NOISE_PIECE_S * self.rate_hz]
-            long_nom = [x for x in nominal[c] if x.size >= MIN_NOISE_PIECE_S * self.rate_hz]
+            long_full = self._long(pieces[c])
+            long_nom = self._long(nominal[c])
             if long_full:
                 fits[c] = fit_noise_likelihood(long_full, self.rate_hz)
                 fits_nom[c] = fit_noise_likelihood(long_nom, self.rate_hz)

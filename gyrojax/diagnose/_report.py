@@ -173,6 +173,17 @@ class GapReport:
                 unit = next(iter(x["unit"].values()), "")
                 lines.append(f"| {x['name']} | {x['p']:.2g} | {x.get('q', float('nan')):.2g} | "
                              f"{x['channel']} | {fit} ({unit}; gyro/accel units differ) |")
+        full = [x for x in self.where if x["axis"] == "tau" and x.get("rate") == "full"]
+        if full:
+            best = {}
+            for x in full:
+                if x["p"] < best.get(x["channel"], {"p": 0.05})["p"]:
+                    best[x["channel"]] = x
+            lines += ["", "Where the noise departs from white (full-rate Allan variance over "
+                      "its white value, smallest p per channel below 0.05; reported, not "
+                      "decided on): " + ("; ".join(
+                          f"{ch} at tau {x['tau_s']:.3g} s (ratio {x['statistic']:.3g}, "
+                          f"p {x['p']:.2g})" for ch, x in best.items()) or "nowhere")]
         if self.verdict.get("notes"):
             lines += [""] + [f"Note: {x}" for x in self.verdict["notes"]]
         nulls = [(r["name"], d) for r in self.ranking for d in r["no_signature_directions"]]

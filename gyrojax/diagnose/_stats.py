@@ -612,9 +612,9 @@ def tau_band_moments(u, n: int, c: int, ch: int, m: int):
     # tr T^2 = |A|_F^2 - 2 <A, B> + |mu' mu|_F^2, <A, B> = tr B - sum_i mu_i . mu_i+1
     tr_b = float(np.sum(mu * mu))
     ab = tr_b - float(np.sum(mu[1:] * mu[:-1]))
-    a2 = (k - 1) + 0.5 * (k - 2)
+    tr_a, var_a = white_allan_moments(k)  # tr A and 2 |A|_F^2
     g = mu.T @ mu
-    return (k - 1) - tr_b, 2 * (a2 - 2 * ab + float(np.sum(g * g)))
+    return tr_a - tr_b, var_a + 2 * (-2 * ab + float(np.sum(g * g)))
 
 
 def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise_dof: float,
@@ -707,6 +707,71 @@ def allan_form(e: np.ndarray, m: int, csum: np.ndarray | None = None) -> np.ndar
     edges = np.arange(e.shape[1] // m + 1) * m
     s = np.diff(csum[:, edges], axis=1)
     return np.sum(np.diff(s, axis=1) ** 2, axis=1) / (2 * m)
+
+
+def white_allan_moments(k: int) -> tuple[float, float]:
+    """Mean and variance of the Allan quadratic form :func:`allan_form` over ``k >= 2`` clusters
+    of unit white noise: ``Q = d' d`` with ``d`` the ``k - 1`` differences of the cluster sums
+    over ``sqrt(2 m)``, whose covariance ``M M'`` is the tridiagonal ``(1, -1/2)``; so
+    ``E Q = k - 1`` and ``var Q = 2 tr (M M')^2 = 2 ((k - 1) + (k - 2) / 2)``."""
+    return float(k - 1), 2.0 * ((k - 1) + 0.5 * (k - 2))
+
+
+def full_rate_tau_cells(pieces: dict, channels: tuple[str, ...], tau0: float, *,
+                        levels: dict | None = None, min_clusters: int = 9) -> list[dict]:
+    """Tau band x channel at the full sampling rate: the non-overlapping Allan variance of
+    residual ``pieces`` (channel index -> list of 1-D arrays, e.g. the static intervals of one
+    record, sampled every ``tau0`` s) over a white null at the pieces' own mean square, at
+    ``tau = m tau0`` for ``m = 1, 2, 4, ...`` while the pieces hold ``>= min_clusters`` clusters.
+
+    This is the axis that localises noise-model effects whose excess lives below a gap map's
+    row spacing (quantization at the shortest tau) as well as the slow ones (bias instability,
+    rate random walk at the longest). The white level ``s^2`` (per sample) is, per channel,
+    ``levels[ch] = (s^2, dof)`` where given: a noise-model fit's white term, estimated with
+    ``dof`` degrees of freedom on other data or frequencies (then the ratio shows each non-white
+    term's excess where it lives, and the p-value is the F(h, dof) upper tail of the known-level
+    scaled chi-square ``g chi2_h``); else the mean square of the same ``N`` samples, for which
+    the null mean and variance of ``Q / s^2`` are exact (see the comment below; a term then
+    also lowers the ratio away from its band, since it raised ``s^2``). Cells
+    are reported, not decided on (``q`` None, ``decision`` False, like the lag axis): the
+    decision family tests the noise-model effects themselves; these say where in tau their
+    excess lies. ``rate`` is ``"full"``."""
+    out = []
+    for ch, pcs in pieces.items():
+        pcs = [np.asarray(p, float) for p in pcs if np.size(p) >= 2]
+        n_all = sum(p.size for p in pcs)
+        if not n_all:
+            continue
+        own = levels is None or ch not in levels or not levels[ch][0] > 0
+        s2, dof = (sum(float(np.sum(p * p)) for p in pcs) / n_all, None) if own else levels[ch]
+        if s2 == 0.0:
+            continue
+        s = math.sqrt(s2)
+        m = 1
+        while True:
+            use = [(p, p.size // m) for p in pcs if p.size // m >= 2]
+            clusters = sum(k for _, k in use)
+            if clusters < min_clusters:
+                break
+            q = sum(float(allan_form(p[None, :, None] / s, m)[0, 0]) for p, _ in use)
+            mom = np.array([white_allan_moments(k) for _, k in use]).sum(0)
+            # Q / s^2 = N z'Az / z'z is independent of z'z (spherical symmetry): its mean is
+            # tr A and its variance (N 2 tr A^2 - 2 (tr A)^2) / (N + 2), well below the
+            # known-level 2 tr A^2 at the short bands, where Q and s^2 share their samples
+            mean = float(mom[0])
+            var = float(mom[1]) if not own else (n_all * float(mom[1]) - 2 * mean ** 2) / (n_all + 2)
+            g, h = var / (2 * mean), 2 * mean ** 2 / var
+            p_val = float(stats.chi2.sf(q / g, h)) if own else _f_sf(q / (g * h), h, dof)
+            r = q / mean
+            out.append(dict(axis="tau", cell=f"tau {_duration(m * tau0)} (full rate)",
+                            channel=channels[ch], statistic=r, dof=h, expected=1.0,
+                            excess=(r - 1.0) * mean, p=p_val, q=None,
+                            significant=False, decision=False, tau_s=m * tau0,
+                            clusters=clusters, rate="full",
+                            ci95=[r * h / float(stats.chi2.ppf(0.975, h)),
+                                  r * h / float(stats.chi2.ppf(0.025, h))]))
+            m *= 2
+    return out
 
 
 def map_statistics(design: MapDesign, e: np.ndarray):
