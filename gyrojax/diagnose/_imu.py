@@ -32,7 +32,7 @@ import numpy as np
 from scipy import stats
 
 from .. import units
-from ..analysis.spectral import HANN_DOF_FACTOR, fit_noise_likelihood
+from ..analysis.spectral import fit_noise_likelihood
 from ..datasets import masked
 from ..estimate.multiposition import detect_static
 from ..models.imu import IMU_CHANNELS, MEAN_EFFECTS, NOISE_EFFECTS, IMUConditions, IMURig, imu_measure
@@ -518,20 +518,12 @@ class IMUProblem:
         """The gap map's full-rate tau band (:func:`~._stats.full_rate_tau_cells`) of the
         full-model residual on the static pieces that test the slow noise terms (>=
         ``MIN_NOISE_PIECE_S``): where in tau the noise departs from white, down to one sample
-        (reported, not decided on). The white level is the white term of
-        :meth:`noise_screen`'s noise-model fit (every IEEE term fitted at once) where it ran,
-        else the pieces' own mean square."""
+        (reported, not decided on)."""
         done = getattr(self, "_residuals", None)
         pieces = done[1] if done is not None and done[0] is params else \
             self._static_residuals(params)[0]
-        # the white level of the noise-model fit (noise_screen's, on the same pieces)
-        fits = getattr(self, "noise_fits", {}) if done is not None and done[0] is params else {}
-        # (per-sample variance N^2 / dt; dof of the Hann-tapered ordinates in the fitted band)
-        levels = {self.channels.index(ch): (f.terms.angle_random_walk ** 2 * self.rate_hz,
-                                            2.0 * f.n_freq / HANN_DOF_FACTOR)
-                  for ch, f in fits.items()}
         return full_rate_tau_cells({c: self._long(p) for c, p in pieces.items()}, self.channels,
-                                   1.0 / self.rate_hz, levels=levels)
+                                   1.0 / self.rate_hz)
 
     # -- noise-model effects ---------------------------------------------------------------
     def noise_screen(self, params, alpha: float = 0.05):

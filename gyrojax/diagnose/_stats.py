@@ -718,21 +718,22 @@ def white_allan_moments(k: int) -> tuple[float, float]:
 
 
 def full_rate_tau_cells(pieces: dict, channels: tuple[str, ...], tau0: float, *,
-                        levels: dict | None = None, min_clusters: int = 9) -> list[dict]:
+                        min_clusters: int = 9) -> list[dict]:
     """Tau band x channel at the full sampling rate: the non-overlapping Allan variance of
     residual ``pieces`` (channel index -> list of 1-D arrays, e.g. the static intervals of one
-    record, sampled every ``tau0`` s) over a white null at the pieces' own mean square, at
+    record, sampled every ``tau0`` s) over its value for white noise (below), at
     ``tau = m tau0`` for ``m = 1, 2, 4, ...`` while the pieces hold ``>= min_clusters`` clusters.
 
     This is the axis that localises noise-model effects whose excess lives below a gap map's
     row spacing (quantization at the shortest tau) as well as the slow ones (bias instability,
-    rate random walk at the longest). The white level ``s^2`` (per sample) is, per channel,
-    ``levels[ch] = (s^2, dof)`` where given: a noise-model fit's white term, estimated with
-    ``dof`` degrees of freedom on other data or frequencies (then the ratio shows each non-white
-    term's excess where it lives, and the p-value is the F(h, dof) upper tail of the known-level
-    scaled chi-square ``g chi2_h``); else the mean square of the same ``N`` samples, for which
-    the null mean and variance of ``Q / s^2`` are exact (see the comment below; a term then
-    also lowers the ratio away from its band, since it raised ``s^2``). Cells
+    rate random walk at the longest). The white value is that of the pieces' own mean square
+    ``s^2`` (per channel), for which the null mean and variance of ``Q / s^2`` are exact (see
+    the comment below), so every cell holds its level. A term that carries much of the variance
+    raises ``s^2`` and so also lowers the ratio away from its band (strong quantization: an
+    excess at one sample, a deficit at long tau); the one-sided p-values see only the excess.
+    (A noise-model fit's white level as the reference, tried instead, moved the smallest p of
+    weak slow terms to the shortest band: that level's own error, with ~N/10 dof from the
+    fitted band, outweighs a short band's sampling error.) Cells
     are reported, not decided on (``q`` None, ``decision`` False, like the lag axis): the
     decision family tests the noise-model effects themselves; these say where in tau their
     excess lies. ``rate`` is ``"full"``."""
@@ -742,11 +743,9 @@ def full_rate_tau_cells(pieces: dict, channels: tuple[str, ...], tau0: float, *,
         n_all = sum(p.size for p in pcs)
         if not n_all:
             continue
-        own = levels is None or ch not in levels or not levels[ch][0] > 0
-        s2, dof = (sum(float(np.sum(p * p)) for p in pcs) / n_all, None) if own else levels[ch]
-        if s2 == 0.0:
+        s = math.sqrt(sum(float(np.sum(p * p)) for p in pcs) / n_all)
+        if s == 0.0:
             continue
-        s = math.sqrt(s2)
         m = 1
         while True:
             use = [(p, p.size // m) for p in pcs if p.size // m >= 2]
@@ -759,13 +758,12 @@ def full_rate_tau_cells(pieces: dict, channels: tuple[str, ...], tau0: float, *,
             # tr A and its variance (N 2 tr A^2 - 2 (tr A)^2) / (N + 2), well below the
             # known-level 2 tr A^2 at the short bands, where Q and s^2 share their samples
             mean = float(mom[0])
-            var = float(mom[1]) if not own else (n_all * float(mom[1]) - 2 * mean ** 2) / (n_all + 2)
+            var = (n_all * float(mom[1]) - 2 * mean ** 2) / (n_all + 2)
             g, h = var / (2 * mean), 2 * mean ** 2 / var
-            p_val = float(stats.chi2.sf(q / g, h)) if own else _f_sf(q / (g * h), h, dof)
             r = q / mean
             out.append(dict(axis="tau", cell=f"tau {_duration(m * tau0)} (full rate)",
                             channel=channels[ch], statistic=r, dof=h, expected=1.0,
-                            excess=(r - 1.0) * mean, p=p_val, q=None,
+                            excess=(r - 1.0) * mean, p=float(stats.chi2.sf(q / g, h)), q=None,
                             significant=False, decision=False, tau_s=m * tau0,
                             clusters=clusters, rate="full",
                             ci95=[r * h / float(stats.chi2.ppf(0.975, h)),
