@@ -760,16 +760,24 @@ def full_rate_tau_cells(pieces: dict, channels: tuple[str, ...], tau0: float, *,
             mean = float(mom[0])
             var = (n_all * float(mom[1]) - 2 * mean ** 2) / (n_all + 2)
             g, h = var / (2 * mean), 2 * mean ** 2 / var
-            r = q / mean
-            out.append(dict(axis="tau", cell=f"tau {_duration(m * tau0)} (full rate)",
-                            channel=channels[ch], statistic=r, dof=h, expected=1.0,
-                            excess=(r - 1.0) * mean, p=float(stats.chi2.sf(q / g, h)), q=None,
-                            significant=False, decision=False, tau_s=m * tau0,
-                            clusters=clusters, rate="full",
-                            ci95=[r * h / float(stats.chi2.ppf(0.975, h)),
-                                  r * h / float(stats.chi2.ppf(0.025, h))]))
+            out.append(tau_cell(m * tau0, channels[ch], q / mean, mean, h,
+                                float(stats.chi2.sf(q / g, h)), clusters, rate="full", q=None,
+                                significant=False, decision=False))
             m *= 2
     return out
+
+
+def tau_cell(tau_s: float, channel: str, r: float, mean: float, h: float, p: float,
+             clusters: int, *, rate: str | None = None, **extra) -> dict:
+    """One tau-band cell of a report's ``where``: the Allan ratio ``r`` at ``tau_s`` over its
+    white-noise value (null mean ``mean`` counts, equivalent dof ``h``), its p-value and its EDF
+    95 % interval. ``rate="full"`` marks the full-rate band (:func:`full_rate_tau_cells`)."""
+    return dict(axis="tau", cell=f"tau {_duration(tau_s)}" + (f" ({rate} rate)" if rate else ""),
+                channel=channel, statistic=r, dof=h, expected=1.0, excess=(r - 1.0) * mean,
+                p=p, tau_s=tau_s, clusters=clusters,
+                ci95=[r * h / float(stats.chi2.ppf(0.975, h)),
+                      r * h / float(stats.chi2.ppf(0.025, h))],
+                **({"rate": rate} if rate else {}), **extra)
 
 
 def map_statistics(design: MapDesign, e: np.ndarray):
@@ -871,14 +879,8 @@ def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_
                           **info, **({"z": float(extra[i])} if jt.shape[1] == 1 else {})))
         i += 1
     tau0 = float(np.median(np.diff(t))) if n > 1 else 0.0
-    hs = np.array([x[5] for x in design.tau_cells], float)
-    lo, hi = stats.chi2.ppf(0.975, hs), stats.chi2.ppf(0.025, hs)
-    for j, (m, k, ch, mean, g, h) in enumerate(design.tau_cells):
-        r = float(stat[i])
-        cells.append(dict(axis="tau", cell=f"tau {_duration(m * tau0)}", channel=channels[ch],
-                          statistic=r, dof=h, expected=1.0, excess=(r - 1.0) * mean,
-                          p=float(pv[i]), tau_s=m * tau0, clusters=k,
-                          ci95=[r * h / float(lo[j]), r * h / float(hi[j])]))
+    for m, k, ch, mean, g, h in design.tau_cells:
+        cells.append(tau_cell(m * tau0, channels[ch], float(stat[i]), mean, h, float(pv[i]), k))
         i += 1
     if design.fisher:
         q = (n - 1) // 2

@@ -378,7 +378,7 @@ def localisation_fields(rep) -> dict:
     record's length in hours."""
     lines = [x for x in rep.where if x["axis"] == "frequency"]
     top = min(lines, key=lambda x: x["p"]) if lines else None
-    taus = [x for x in rep.where if x["axis"] == "tau" and x.get("q") is not None]  # decided
+    taus = [x for x in rep.where if x["axis"] == "tau" and x.get("rate") != "full"]  # decided
     top_tau = min(taus, key=lambda x: x["p"]) if taus else None
     t = np.asarray(rep.t)
     return {"grid_best": {r["name"]: r["grid"]["best"] for r in rep.ranking if r.get("grid")},
