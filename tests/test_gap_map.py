@@ -13,10 +13,12 @@ from gyrojax.diagnose._stats import (
     full_rate_tau_cells,
     gap_map_cells,
     lag_cells,
+    lag_one_moments,
     ljung_box,
     map_design,
     map_statistics,
     nominal_basis,
+    quantization_score,
     tau_band_moments,
     white_allan_moments,
 )
@@ -259,3 +261,45 @@ def test_full_rate_tau_cells_null_rate_and_localisation():
     best = min(rrw, key=lambda x: x["p"])
     assert best["tau_s"] >= rrw[-1]["tau_s"] / 8 and best["p"] < 1e-3
     assert rrw[0]["p"] > 0.01
+
+
+def test_lag_one_moments_match_monte_carlo():
+    """The exact white-noise mean and variance of the pooled lag-one autocorrelation of
+    mean-removed pieces (7, 20 and 150 samples) against 200,000 simulated sets."""
+    rng = np.random.default_rng(13)
+    sizes = (7, 20, 150)
+    xs = [rng.standard_normal((200_000, n)) for n in sizes]
+    xs = [x - x.mean(1, keepdims=True) for x in xs]
+    r = sum((x[:, 1:] * x[:, :-1]).sum(1) for x in xs) / sum((x * x).sum(1) for x in xs)
+    mean, var = lag_one_moments(sizes)
+    assert mean == pytest.approx(-0.016095, rel=1e-4)  # -sum (n - 1) / n / sum (n - 1)
+    assert np.mean(r) == pytest.approx(mean, abs=4 * np.sqrt(var / r.size))
+    assert np.var(r) == pytest.approx(var, rel=0.015)
+
+
+def test_quantization_score_level_power_and_estimate():
+    """The MA(1) score test for quantization: under white noise on unequal pieces its one-sided
+    p holds its level (rejection at 0.05 over 3,000 sets); white + the first difference of a
+    white angle error of Q = 0.3 tau0 (unit white rate; local noncentrality N Q^4 / tau0^4 = 16)
+    rejects at the normal-theory rate of its lag-one autocorrelation -0.09 / 1.18 (the term's
+    own variance 2 Q^2 / tau0^2 dilutes it): Phi(0.0763 sqrt(N) - 1.645) = 0.96, and estimates
+    Q within 5 %; a
+    low-passed (moving-average) white noise, an anti-alias filter's signature, is never taken
+    for quantization."""
+    rng = np.random.default_rng(14)
+    tau0 = 0.02
+    p = [quantization_score([rng.standard_normal(n) for n in (900, 600, 64)], tau0)[0]
+         for _ in range(3000)]
+    assert np.mean(np.array(p) < 0.05) == pytest.approx(0.05, abs=0.012)
+    n = 1975  # 16 / 0.3^4
+    hits, q_hat = [], []
+    for _ in range(400):
+        y = rng.standard_normal(n) + 0.3 * np.diff(rng.standard_normal(n + 1))
+        pv, z, q = quantization_score([y], tau0)
+        hits.append(pv < 0.05)
+        q_hat.append(q)
+    assert np.mean(hits) == pytest.approx(0.96, abs=0.03)
+    big = rng.standard_normal(400_000) + 0.3 * np.diff(rng.standard_normal(400_001))
+    assert quantization_score([big], tau0)[2] == pytest.approx(0.3 * tau0, rel=0.05)
+    lp = [np.convolve(rng.standard_normal(5000), np.ones(3) / 3, "valid") for _ in range(20)]
+    assert min(quantization_score([x], tau0)[0] for x in lp) > 0.5

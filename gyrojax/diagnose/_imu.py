@@ -9,11 +9,14 @@ channel (order by BIC, p <= 5), fitted to the residual of the nominal model plus
 mean effect (so a catalogued drift is not taken for coloured noise), filters the residual and every
 Jacobian column — the nominal model's colour would otherwise make every slow effect "significant".
 
-Noise-model effects (``quantization``, ``bias_instability``, ``rate_random_walk``) are tested at the
-full sampling rate on the static residual of the same full model, by the likelihood-ratio tests of
-the Whittle fit (:func:`gyrojax.analysis.spectral.fit_noise_likelihood`); ``outliers`` by the excess
-kurtosis of non-overlapping first differences (one-sided). Each effect's p-value is the smallest
-over channels, Bonferroni-corrected.
+Noise-model effects are tested at the full sampling rate on the static residual of the same full
+model: ``bias_instability`` and ``rate_random_walk`` by the likelihood-ratio tests of the Whittle
+fit (:func:`gyrojax.analysis.spectral.fit_noise_likelihood`, band-limited to ``rate / 10`` for real
+sensors' anti-alias roll-off) on static pieces of at least ``MIN_NOISE_PIECE_S``;
+``quantization``, which lives up to the Nyquist frequency, by the MA(1) score test (the lag-one
+autocorrelation, :func:`~._stats.quantization_score`) on every static piece; ``outliers`` by the
+excess kurtosis of non-overlapping first differences (one-sided). Each effect's p-value is the
+smallest over channels, Bonferroni-corrected.
 
 Auxiliary channels (``temp*``, ``tilt*``, ``supply*``, ``aux*``) ride along block by block and are
 never fitted: the gap map's aux axis bins them (:meth:`IMUProblem.aux_signatures`) and the lag
@@ -37,7 +40,7 @@ from ..datasets import masked
 from ..estimate.multiposition import detect_static
 from ..models.imu import IMU_CHANNELS, MEAN_EFFECTS, NOISE_EFFECTS, IMUConditions, IMURig, imu_measure
 from ..record import BenchRecord
-from ._stats import Signature, full_rate_tau_cells
+from ._stats import Signature, full_rate_tau_cells, quantization_score
 
 __all__ = ["IMUProblem", "IMU_LIBRARY"]
 
@@ -546,7 +549,7 @@ class IMUProblem:
         longest = max((x.size for pcs in pieces.values() for x in pcs), default=0) / self.rate_hz
         for e in self.noise_effects:
             per = {}
-            if e != "outliers" and not fits:
+            if e in ("bias_instability", "rate_random_walk") and not fits:
                 rows_out.append({"name": e, "family": "noise", "kind": "noise", "p": 1.0,
                                  "p_nominal": 1.0, "channel": None, "statistic": 0.0,
                                  "fitted": {}, "unit": {}, "testable": False,
@@ -554,9 +557,13 @@ class IMUProblem:
                                  f"{longest:.0f} s < {MIN_NOISE_PIECE_S:.0f} s"})
                 continue
             for c, pcs in pieces.items():
-                if not pcs or (e != "outliers" and c not in fits):
+                if not pcs or (e in ("bias_instability", "rate_random_walk") and c not in fits):
                     continue
-                if e == "outliers":
+                if e == "quantization":
+                    p_q, z, q = quantization_score(pcs, 1.0 / self.rate_hz)
+                    per[self.channels[c]] = (p_q, z * abs(z), q,
+                                             quantization_score(nominal[c], 1.0 / self.rate_hz)[0])
+                elif e == "outliers":
                     d = np.concatenate([np.diff(p)[::2] for p in pcs])
                     d = d - d.mean()
                     k = float(np.mean(d ** 4) / np.mean(d ** 2) ** 2 - 3)
@@ -575,8 +582,8 @@ class IMUProblem:
                 "p": min(1.0, per[best][0] * len(per)), "channel": best,
                 "p_nominal": min(1.0, min(v[3] for v in per.values()) * len(per)),
                 "statistic": float(per[best][1]),
-                "statistic_kind": "excess kurtosis z * |z|" if e == "outliers" else
-                "likelihood ratio (Whittle, boundary-corrected), chi2_1 scale",
+                "statistic_kind": _NOISE_STATISTIC.get(
+                    e, "likelihood ratio (Whittle, boundary-corrected), chi2_1 scale"),
                 "fitted": {ch: _noise_display(e, ch, v[2]) for ch, v in per.items()},
                 "testable": True,
                 "unit": {ch: _noise_unit(e, ch) for ch in per},
@@ -585,6 +592,9 @@ class IMUProblem:
         return rows_out
 
 
+_NOISE_STATISTIC = {"outliers": "excess kurtosis z * |z|",
+                    "quantization": "lag-one autocorrelation score z * |z| (MA(1) Rao test, "
+                                    "full rate)"}
 _COMPILED: dict = {}
 _SPACE = IMURig().param_space
 

@@ -767,6 +767,53 @@ def full_rate_tau_cells(pieces: dict, channels: tuple[str, ...], tau0: float, *,
     return out
 
 
+def lag_one_moments(sizes) -> tuple[float, float]:
+    """Exact mean and variance, for white noise, of the pooled lag-one autocorrelation
+    :func:`quantization_score` reads: ``r = sum x_k x_{k+1} / sum x_k^2`` over pieces of
+    ``sizes`` samples, each mean-removed.
+
+    Per piece ``r`` is ``x'Ax / x'Cx`` with ``A`` the symmetric lag-one form (``1/2`` off the
+    diagonal) and ``C`` the centring projector; over the pieces' ``N' = sum (n - 1)`` free
+    dimensions the ratio ``w'Bw / w'w`` (``B = CAC``) has mean ``tr B / N'`` and variance
+    ``2 (N' tr B^2 - (tr B)^2) / (N'^2 (N' + 2))``, with ``tr B = -(n - 1) / n`` and
+    ``tr B^2 = (n - 1) / 2 - 2 (n - 3/2) / n + (n - 1)^2 / n^2`` per piece."""
+    n = np.asarray(sizes, float)
+    n = n[n >= 2]
+    if n.size == 0:
+        raise ValueError("lag_one_moments: no piece of at least 2 samples")
+    dof = float(np.sum(n - 1))
+    tr = float(np.sum(-(n - 1) / n))
+    tr2 = float(np.sum((n - 1) / 2 - 2 * (n - 1.5) / n + (n - 1) ** 2 / n ** 2))
+    return tr / dof, 2 * (dof * tr2 - tr * tr) / (dof * dof * (dof + 2))
+
+
+def quantization_score(pieces, tau0: float) -> tuple[float, float, float]:
+    """Score (Rao) test for quantization on white-noise residual ``pieces`` sampled every
+    ``tau0`` s: returns ``(p, z, Q)``, ``z`` positive where ``r`` lies below its white mean.
+
+    Angle quantization adds the first difference of a white angle error to the rate: white +
+    quantization is an MA(1) process with a negative coefficient (lag-one autocovariance
+    ``-Q^2 / tau0^2``, all else zero), and the score test of an MA(1) coefficient at zero is the
+    lag-one autocorrelation ``r`` (Box-Jenkins). ``z = (r - E r) / sd r`` with the exact white
+    moments of :func:`lag_one_moments`; one-sided (``p = Phi(z)``): a negative ``r`` is
+    quantization; slow terms, an anti-alias roll-off and settling motion make ``r`` positive and
+    the test only conservative. It uses every sample pair up to the Nyquist frequency, where
+    quantization's spectrum ``4 sin^2(pi f tau0) Q^2 / tau0^2`` lives; a band-limited fit (the
+    Whittle one up to ``rate / 10``) keeps a tenth of it. ``Q`` (the pieces' unit times s) is
+    ``tau0 sqrt(-c1)`` from the lag-one autocovariance ``c1`` (0 when ``c1 >= 0``)."""
+    pcs = [np.asarray(x, float) - np.mean(x) for x in pieces if np.size(x) >= 2]
+    if not pcs:
+        raise ValueError("quantization_score: no piece of at least 2 samples")
+    c0 = sum(float(np.dot(x, x)) for x in pcs)
+    if c0 == 0.0:
+        raise ValueError("quantization_score: the pieces are constant")
+    c1 = sum(float(np.dot(x[1:], x[:-1])) for x in pcs)
+    mean, var = lag_one_moments([x.size for x in pcs])
+    z = (c1 / c0 - mean) / math.sqrt(var)
+    c1 /= sum(x.size - 1 for x in pcs)
+    return float(stats.norm.cdf(z)), float(-z), tau0 * math.sqrt(max(-c1, 0.0))
+
+
 def tau_cell(tau_s: float, channel: str, r: float, mean: float, h: float, p: float,
              clusters: int, *, rate: str | None = None, **extra) -> dict:
     """One tau-band cell of a report's ``where``: the Allan ratio ``r`` at ``tau_s`` over its
