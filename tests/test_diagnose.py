@@ -367,6 +367,16 @@ def test_bh_and_fisher_g():
     assert 0.021 <= far_library <= 0.029, far_library
     with pytest.raises(ValueError, match="library_share=1.5"):
         _bh_weights(10, 2, 1.5)
+    # a record far from the model: every map cell at p ~ 0; a library test weighted 25.5 (half
+    # the weight over 4 rows against 200 cells, above 1 / alpha) gets q = (1 / 25.5) 204 / 204
+    # < 0.05 at p = 1 - weighted BH rejects it; the report never calls it significant
+    from gyrojax.diagnose._diagnose import rejected
+
+    p_far = np.concatenate([np.full(200, 1e-12), [1e-12, 0.5, 1.0, 1.0]])
+    q_far = bh_qvalues(p_far, _bh_weights(200, 4, 0.5))
+    assert q_far[-1] == pytest.approx(1 / 25.5) and q_far[-1] < 0.05
+    assert [rejected(p, q, 0.05) for p, q in zip(p_far[200:], q_far[200:])] == \
+        [True, False, False, False]
     # Fisher's g: P(g > x) for q = 2 ordinates is 2 (1 - x) for x >= 1/2
     assert fisher_g_pvalue(0.8, 2) == pytest.approx(0.4)
     rng = np.random.default_rng(2)

@@ -342,12 +342,12 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     level = multiplicity["level"]
     for x, q in zip(cells, q_all[: len(cells)]):
         x["q"] = float(q)
-        x["significant"] = bool(q < level)
+        x["significant"] = rejected(x["p"], q, level)
     for r, q in zip(rows, q_all[len(cells): len(cells) + len(rows)]):
         r.q = float(q)
     for x, q in zip(noise_rows, q_all[len(cells) + len(rows):]):
         x["q"] = float(q)
-        x["significant"] = bool(q < level)
+        x["significant"] = rejected(x["p"], q, level)
     q_mean = q_all[: len(cells) + len(rows)]
     cells += lag_cells(e.reshape(n, c), prob.channels,  # reported, not decided on
                        aux=getattr(prob, "aux_rows", None))
@@ -465,6 +465,16 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
 
 SLOW_MEAN = ("time_drift", "warmup_transient", "drift_ramp", "drift_transient")
 STOCHASTIC_SLOW = ("rate_random_walk", "bias_instability")
+
+
+def rejected(p: float, q: float, level: float) -> bool:
+    """Whether a test of the decision family is significant: its weighted-BH q-value below the
+    level *and* its own p-value below it. The second condition matters only for tests weighted
+    above ``1 / level`` (the library's few rows against the map's many cells): when a record is
+    far from the model and nearly every hypothesis is rejected, weighted BH rejects those at any
+    p, even 1 (``q <= (p / w) M / rank``); a test whose own p-value exceeds the level is never
+    reported as a finding. Under the null (nothing else rejected) it changes nothing."""
+    return bool(q < level and p < level)
 
 
 def _bh_weights(n_map: int, n_library: int, library_share):
@@ -731,7 +741,7 @@ def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band
     if not detected:
         return {"kind": "no-gap", "effects": [], "heldout_gap_after": None, **base,
                 "reason": f"no gap-map cell or library test significant at q < {alpha}"}
-    sig_rows = [r for r in rows if getattr(r, "q", 1.0) < alpha]
+    sig_rows = [r for r in rows if rejected(r.p, getattr(r, "q", 1.0), alpha)]
     shifted = [x for x in cells if x["axis"] == "heldout" and x.get("significant")]
     if not sig_rows and shifted and shift_hidden and not any(
             x.get("significant") for x in cells if x["axis"] != "heldout"):
