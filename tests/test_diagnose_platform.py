@@ -64,6 +64,12 @@ def test_one_amplitude_d_oo_absorbed_with_exact_aliases(records):
     advice = [a for a in rep.design_advice if a["effect"] == "anisoelastic_oo"]
     second = next(a for a in advice if a["design"].startswith("second amplitude"))
     assert second["mde_over_prior"] < 0.05
+    # advised (ranked first): the second amplitude. An added 0 g run makes D_oo visible too
+    # (lower MDE alone) but aliased with the rectification (both a bias on the vibrated run
+    # only): with that rival fitted its MDE is unbounded
+    assert advice[0] is second and second["mde_vs_closest_rival"] < 0.05
+    zero = next(a for a in advice if a["design"].startswith("an added 0 g"))
+    assert zero["mde_over_prior"] < 0.05 and zero["mde_vs_closest_rival"] > 1e6
 
 
 def test_two_amplitudes_attribute_d_oo_and_null(records):
@@ -274,3 +280,13 @@ def test_platform_blind_harness(tmp_path):
     # G7 oracle: the hidden effect's own refit (refit_all, blind) against the verdict's pick
     assert s["heldout_vs_oracle"]["n"] >= 1 and s["heldout_vs_oracle"]["rate"] == 1.0
     assert set(mis["single_refits"]) >= {"base_misalignment", "drift_ramp", "anisoelastic_oo"}
+
+
+def test_advised_amplitudes_read_the_advisor_labels():
+    """The G6 closed loop turns the advisor's platform design labels into table amplitudes."""
+    from gyrojax.diagnose.bench_platform import advised_amplitudes
+
+    assert advised_amplitudes("second amplitude 7 g (table)", [9.0]) == [9.0, 7.0]
+    assert advised_amplitudes("an added 0 g (static) run", [9.0, 7.0]) == [9.0, 7.0, 0.0]
+    with pytest.raises(ValueError, match="not a platform design"):
+        advised_amplitudes("48 h record", [9.0])

@@ -47,8 +47,9 @@ class GapReport:
     - `refits`: per refitted candidate: coefficients, the nominal parameters refitted with them
       (``nominal_after``, display units), held-out gap before/after, reduction, closure,
       gap-map cells still significant.
-    - `design_advice`: per flagged effect and candidate design, MDE / prior scale and the largest
-      correlation with another effect.
+    - `design_advice`: per flagged effect and candidate design, MDE / prior scale alone and with
+      the closest rival effect fitted too (the ranking key: the advised design first), the
+      largest correlation with another effect and whether that is <= 0.9 (separable).
     - `verdict`: kind (no-gap | attributed | ambiguous | confounded | unexplained) and effects.
     """
 
@@ -203,11 +204,13 @@ class GapReport:
                              f"{rf['heldout_gap_after']:.3g} | {red} | {rf['closure']} | "
                              f"{len(rf['remaining_cells'])} |")
         if self.design_advice:
-            lines += ["", "## Design advice (MDE in prior scales; lower is better)", "",
-                      "| effect | design | MDE / prior | max corr. with other effects |",
-                      "|---|---|---|---|"]
+            lines += ["", "## Design advice (MDE in prior scales, alone and with the closest "
+                      "rival effect fitted too; per effect the advised design first)", "",
+                      "| effect | design | MDE / prior | MDE / prior vs closest rival | "
+                      "max corr. with other effects |", "|---|---|---|---|---|"]
             for a in self.design_advice:
                 lines.append(f"| {a['effect']} | {a['design']} | {a['mde_over_prior']:.3g} | "
+                             f"{a['mde_vs_closest_rival']:.3g} | "
                              f"{a['max_correlation_with_other_effects']:.3f} |")
         return "\n".join(lines)
 

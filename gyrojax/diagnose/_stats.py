@@ -31,6 +31,7 @@ from scipy import special, stats
 __all__ = ["Signature", "Screen", "screen", "bh_qvalues", "gap_map_cells", "canonical_correlation"]
 
 LAMBDA_80 = 7.85  # noncentrality giving 80 % power at alpha = 0.05, 1 dof
+SEPARABLE = 0.9  # spec §5.6: separable = largest projected canonical correlation <= this
 NULL_TOL = 1e-6  # relative singular value of a raw signature direction counted as no signature
 PRIORS = ("design", "shape", "zellner", "scale")  # Bayes-factor priors of the screening (see screen)
 

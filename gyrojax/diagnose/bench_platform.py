@@ -218,3 +218,104 @@ def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
     return score_cases(case_dir, results, MEAN_FAMILIES, (), OUT_OF_LIBRARY,
                        structural=STRUCTURAL, separable=separable,
                        oracle_thresholds=oracle_thresholds)
+
+
+# -- spec §6 G6: design advice, closed loop ---------------------------------------------------
+def advised_amplitudes(label: str, amplitudes) -> list:
+    """Table amplitudes (g) of the test an advice row names, from the record's own
+    ``amplitudes``: ``"second amplitude X g (table)"`` adds X, ``"an added 0 g (static) run"``
+    adds 0 (the labels of :meth:`gyrojax.diagnose._platform.PlatformProblem.designs`)."""
+    import re
+
+    m = re.match(r"second amplitude ([0-9.eE+-]+) g", label)
+    if m:
+        return list(amplitudes) + [float(m.group(1))]
+    if label.startswith("an added 0 g"):
+        return list(amplitudes) + [0.0]
+    raise ValueError(f"advice design {label!r} is not a platform design this harness knows")
+
+
+def closed_loop(case_dir, *, design: PlatformDesign | None = None, seed: int = 0,
+                progress=None) -> list:
+    """Spec §6 G6 on the seed-001 structural cases of ``case_dir`` (hidden ``D_oo`` at its
+    prior scale on a single-amplitude test). Each record is diagnosed blind with the design
+    advisor on; then, as an experimenter would, the same instrument (the sealed truth: the
+    nominal coefficients and ``D_oo``) is run again under the design the advisor ranks first
+    for ``anisoelastic_oo`` (new noise), and that record is diagnosed blind. Returns per case:
+    every flagged effect's first advised design and its predicted MDE over the prior scale, the
+    verdict on the advised design and its first effect (or top posterior)."""
+    from pathlib import Path
+
+    from ..io import load_record
+    from ._diagnose import diagnose
+
+    design = design or PlatformDesign()
+    space = _RIG.param_space
+    paths = sorted(Path(case_dir).glob("case_*.nc"))
+    first = []
+    for path in paths:  # blind: the manifest is not read until every record is diagnosed
+        rec = load_record(path)
+        rep = diagnose(rec, rig="platform", holdout=design.holdout)
+        flagged = {r["name"]: r["flag"] for r in rep.ranking if r["flag"] != "visible"}
+        advice = {}
+        for a in rep.design_advice:  # sorted by MDE per effect: the first is the advised one
+            advice.setdefault(a["effect"], a)
+        amps = json.loads(rec.conditions["schedule_json"])["table_amplitudes_g"]
+        first.append((path, rep.verdict["kind"], flagged, advice, amps))
+    from .bench import _sha
+
+    manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
+    key = jax.random.key(seed)
+    out = []
+    for k, (path, kind, flagged, advice, amps) in enumerate(first):
+        truth = manifest[_sha(path)]
+        row = {"file": path.name, "family": truth["family"], "verdict": kind,
+               "flagged": flagged,
+               "advised": {e: {"design": a["design"], "mde_over_prior": a["mde_over_prior"],
+                               "mde_vs_closest_rival": a["mde_vs_closest_rival"]}
+                           for e, a in advice.items()}}
+        hidden = "anisoelastic_oo"
+        if hidden in advice:
+            amps2 = advised_amplitudes(advice[hidden]["design"], amps)
+            p = space.make(truth["nominal"] | truth["coefficients"], display=True)
+            key, sub = jax.random.split(key)
+            rec2 = simulate_schedule(p, design.schedule(amps2), sub,
+                                     noise_arcsec=design.noise_arcsec)
+            rep2 = diagnose(rec2, rig="platform", holdout=design.holdout, design_advice=False)
+            v = rep2.verdict
+            top = (v.get("effects") or [None])[0] or max(
+                rep2.ranking, key=lambda r: r["posterior"])["name"]
+            row |= {"advised_amplitudes_g": amps2, "verdict_advised": v["kind"],
+                    "top_advised": top, "effects_advised": v.get("effects") or []}
+        out.append(row)
+        if progress is not None:
+            progress(k + 1, len(first))
+    return out
+
+
+def closed_loop_scores(rows, hidden: str = "anisoelastic_oo") -> dict:
+    """G6's rates. Over every flagged effect of every case: whether the design the advisor ranks
+    first resolves it, i.e. predicts an MDE within the prior scale with the closest rival effect
+    fitted too (the advisor's ranking key, so where any catalogued design resolves it the first
+    one does), per effect; over the re-simulated cases (the hidden effect's advised design,
+    same instrument, new noise): the share whose first effect is the hidden one (class-level
+    top-1), and the share attributed to it alone."""
+    from .bench import _rate
+
+    pairs = [(e, row["advised"][e]) for row in rows for e in row["flagged"]
+             if e in row["advised"]]
+    resolved = lambda _, a: a["mde_vs_closest_rival"] <= 1.0  # noqa: E731
+    looped = [r for r in rows if "top_advised" in r]
+    return {"resolved": _rate(pairs, resolved),
+            "resolved_by_effect": {e: _rate([x for x in pairs if x[0] == e], resolved)
+                                   for e in sorted({x for x, _ in pairs})},
+            "hidden_flagged": _rate([(None, r) for r in rows], lambda _, r: hidden in r["flagged"]),
+            "advised_designs": sorted({r["advised"][hidden]["design"] for r in rows
+                                       if hidden in r["advised"]}),
+            "max_mde_hidden": max((r["advised"][hidden]["mde_vs_closest_rival"] for r in rows
+                                   if hidden in r["advised"]), default=float("nan")),
+            "top1_advised": _rate([(None, r) for r in looped],
+                                  lambda _, r: r["top_advised"] == hidden),
+            "attributed_advised": _rate([(None, r) for r in looped],
+                                        lambda _, r: r["verdict_advised"] == "attributed"
+                                        and r["effects_advised"] == [hidden])}
