@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -34,6 +36,7 @@ import numpy as np
 
 from .. import units
 from ..estimate.platform import _position_design
+from ..io import load_record
 from ..models.platform import COEFF_NAMES, TABLE1_DEG, PlatformRig
 from ..models.platform_schedule import (
     dwell_span,
@@ -43,7 +46,7 @@ from ..models.platform_schedule import (
     simulate_schedule,
 )
 from ._harness import projector, run_cases, score_cases
-from .bench import _Sealer
+from .bench import _rate, _Sealer, _sha
 
 __all__ = ["PlatformDesign", "generate", "run", "score", "MEAN_FAMILIES", "OUT_OF_LIBRARY",
            "STRUCTURAL"]
@@ -225,8 +228,6 @@ def advised_amplitudes(label: str, amplitudes) -> list:
     """Table amplitudes (g) of the test an advice row names, from the record's own
     ``amplitudes``: ``"second amplitude X g (table)"`` adds X, ``"an added 0 g (static) run"``
     adds 0 (the labels of :meth:`gyrojax.diagnose._platform.PlatformProblem.designs`)."""
-    import re
-
     m = re.match(r"second amplitude ([0-9.eE+-]+) g", label)
     if m:
         return list(amplitudes) + [float(m.group(1))]
@@ -242,11 +243,9 @@ def closed_loop(case_dir, *, design: PlatformDesign | None = None, seed: int = 0
     advisor on; then, as an experimenter would, the same instrument (the sealed truth: the
     nominal coefficients and ``D_oo``) is run again under the design the advisor ranks first
     for ``anisoelastic_oo`` (new noise), and that record is diagnosed blind. Returns per case:
-    every flagged effect's first advised design and its predicted MDE over the prior scale, the
-    verdict on the advised design and its first effect (or top posterior)."""
-    from pathlib import Path
-
-    from ..io import load_record
+    every flagged effect's first advised design and its predicted MDE over the prior scale
+    (alone and with the closest rival fitted too), the verdict on the advised design and its
+    first effect (or top posterior)."""
     from ._diagnose import diagnose
 
     design = design or PlatformDesign()
@@ -258,12 +257,10 @@ def closed_loop(case_dir, *, design: PlatformDesign | None = None, seed: int = 0
         rep = diagnose(rec, rig="platform", holdout=design.holdout)
         flagged = {r["name"]: r["flag"] for r in rep.ranking if r["flag"] != "visible"}
         advice = {}
-        for a in rep.design_advice:  # sorted by MDE per effect: the first is the advised one
+        for a in rep.design_advice:  # ranked per effect: the first is the advised one
             advice.setdefault(a["effect"], a)
         amps = json.loads(rec.conditions["schedule_json"])["table_amplitudes_g"]
         first.append((path, rep.verdict["kind"], flagged, advice, amps))
-    from .bench import _sha
-
     manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
     key = jax.random.key(seed)
     out = []
@@ -300,8 +297,6 @@ def closed_loop_scores(rows, hidden: str = "anisoelastic_oo") -> dict:
     one does), per effect; over the re-simulated cases (the hidden effect's advised design,
     same instrument, new noise): the share whose first effect is the hidden one (class-level
     top-1), and the share attributed to it alone."""
-    from .bench import _rate
-
     pairs = [(e, row["advised"][e]) for row in rows for e in row["flagged"]
              if e in row["advised"]]
     resolved = lambda _, a: a["mde_vs_closest_rival"] <= 1.0  # noqa: E731
