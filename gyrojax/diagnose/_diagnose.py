@@ -720,6 +720,7 @@ def _design_advice(prob, params0, sigma, flagged):
         u = nominal_basis(jn)
         proj = {s.name: _project(u, s.jac[min(grid.get(s.name, 0), s.jac.shape[0] - 1)])
                 for s in sigs}
+        span = {k: _orth(v)[0] for k, v in proj.items()}  # each rival's span, once per design
         for s in sigs:
             if s.name not in names:
                 continue
@@ -729,7 +730,7 @@ def _design_advice(prob, params0, sigma, flagged):
             mde = _mde(proj[s.name])
             rows.append({"effect": s.name, "design": label, "mde_over_prior": mde,
                          "mde_vs_closest_rival": max(
-                             (_mde(_project(_orth(proj[o])[0], proj[s.name])) for o in others),
+                             (_mde(_project(span[o], proj[s.name])) for o in others),
                              default=mde),
                          "max_correlation_with_other_effects": corr,
                          "separable": corr <= SEPARABLE})

@@ -62,6 +62,7 @@ AUX_PREFIXES = ("temp", "tilt", "supply", "aux")  # auxiliary channels: not mode
 AUX_BINS = 5
 POSE_SCALE = 1e-2  # rad, scale of the pose terms (conditioning only)
 MIN_NOISE_PIECE_S = 100.0  # s, shortest static piece that tests bias instability / RRW
+LONG_TAU_TERMS = ("bias_instability", "rate_random_walk")  # tested on those pieces only
 
 
 def is_aux(channel: str) -> bool:
@@ -549,7 +550,7 @@ class IMUProblem:
         longest = max((x.size for pcs in pieces.values() for x in pcs), default=0) / self.rate_hz
         for e in self.noise_effects:
             per = {}
-            if e in ("bias_instability", "rate_random_walk") and not fits:
+            if e in LONG_TAU_TERMS and not fits:
                 rows_out.append({"name": e, "family": "noise", "kind": "noise", "p": 1.0,
                                  "p_nominal": 1.0, "channel": None, "statistic": 0.0,
                                  "fitted": {}, "unit": {}, "testable": False,
@@ -557,7 +558,7 @@ class IMUProblem:
                                  f"{longest:.0f} s < {MIN_NOISE_PIECE_S:.0f} s"})
                 continue
             for c, pcs in pieces.items():
-                if not pcs or (e in ("bias_instability", "rate_random_walk") and c not in fits):
+                if not pcs or (e in LONG_TAU_TERMS and c not in fits):
                     continue
                 if e == "quantization":
                     p_q, z, q = quantization_score(pcs, 1.0 / self.rate_hz)
