@@ -341,6 +341,35 @@ def test_oracle_detection_threshold_by_residual_draws():
     assert 0.035 <= far <= 0.065, (far, thr)
 
 
+def test_refit_standard_errors_are_the_joint_fit_covariance():
+    """The refit's standard errors (projected columns, Schur complement) equal the effect block
+    of the inverse normal matrix of the joint least squares of nominal and effect columns (a
+    second route), in display units; an effect the nominal columns absorb gets inf."""
+    from types import SimpleNamespace
+
+    from gyrojax.diagnose._diagnose import _refit_std_errors
+    from gyrojax.diagnose._stats import nominal_basis
+
+    rng = np.random.default_rng(7)
+    jn, jb = rng.standard_normal((400, 5)), rng.standard_normal((400, 3))
+    u = nominal_basis(jn)
+
+    def row(cols, names, scale):
+        sig = SimpleNamespace(names=names, prior_scale=np.asarray(scale))
+        return SimpleNamespace(projected=cols - u @ (u.T @ cols), sig=sig)
+
+    combo = [row(jb[:, :2], ("a", "b"), [2.0, 0.5]), row(jb[:, 2:], ("c",), [10.0])]
+    cov = np.linalg.inv(np.hstack([jn, jb]).T @ np.hstack([jn, jb]))[5:, 5:]
+    want = np.sqrt(np.diag(cov)) * [2.0, 0.5, 10.0]
+    got = _refit_std_errors(combo)
+    np.testing.assert_allclose([got[k] for k in "abc"], want, rtol=1e-10)
+    absorbed = row(jn[:, :1], ("d",), [1.0])
+    assert _refit_std_errors([combo[1], absorbed]) == {"c": pytest.approx(
+        float(np.sqrt(np.linalg.inv(np.hstack([jn, jb[:, 2:]]).T
+                                    @ np.hstack([jn, jb[:, 2:]]))[5, 5]) * 10.0), rel=1e-10),
+        "d": math.inf}
+
+
 def test_bh_and_fisher_g():
     q = bh_qvalues(np.array([0.01, 0.04, 0.03, 0.5]))
     np.testing.assert_allclose(q, [0.04, 0.16 / 3, 0.16 / 3, 0.5], rtol=1e-12)

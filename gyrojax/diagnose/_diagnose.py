@@ -389,6 +389,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         remaining = [dict(x, q=float(q)) for x, q in zip(post_cells, qq) if q < alpha]
         resid_after[tuple(r.sig.name for r in combo)] = ea
         return dict(effects=[r.sig.name for r in combo], coefficients=coeffs,
+                    std_errors=_refit_std_errors(combo),
+                    units={nm: u for r in combo for nm, u in zip(r.sig.names, r.sig.units)},
                     nominal_after=prob.display_nominal(p_refit),
                     onestep={r.sig.name: _onestep_display(r) for r in combo},
                     gap_train_after=float(np.mean(ea[:n] ** 2) - 1),
@@ -646,6 +648,22 @@ def _heldout_cell(g, band, m, noise_dof, kind) -> dict:
     return dict(axis="heldout", cell=kind, channel="all", statistic=float(m * (1 + g)),
                 dof=float(m), expected=float(m * (1 + band[0])),
                 excess=float(m * (g - band[0])), p=_f_sf(ratio, m, noise_dof))
+
+
+def _refit_std_errors(combo) -> dict:
+    """Standard errors (display units) of a refit's effect coefficients, linearised at the
+    nominal fit with the nominal parameters fitted too: the effect block of the inverse
+    information, ``(J~^T J~)^-1`` of the projected columns, times the prior scales. A
+    coefficient the train rows cannot separate (information below 1e-12 of the largest) gets
+    ``inf``."""
+    jt = np.concatenate([r.projected for r in combo], axis=1)
+    scale = np.concatenate([r.sig.prior_scale for r in combo])
+    names = [n for r in combo for n in r.sig.names]
+    w, v = np.linalg.eigh(jt.T @ jt)
+    ok = w > 1e-12 * max(float(w.max()), 1e-300)
+    var = (v[:, ok] ** 2) @ (1.0 / w[ok])
+    var[np.any(np.abs(v[:, ~ok]) > 1e-6, axis=1)] = np.inf
+    return {n: float(np.sqrt(x) * ps) for n, x, ps in zip(names, var, scale)}
 
 
 def _onestep_display(r: Screen) -> dict:

@@ -196,11 +196,16 @@ class GapReport:
                       + "; ".join(f"{d} ({n})" for n, d in conf)]
         if self.refits:
             lines += ["", "## How much (refit on train, gap on held-out)", "",
-                      "| effects | held-out gap before | after | reduction | closure | cells left |",
-                      "|---|---|---|---|---|---|"]
+                      "| effects | estimate ± std. error | held-out gap before | after | "
+                      "reduction | closure | cells left |", "|---|---|---|---|---|---|---|"]
             for rf in self.refits:
                 red = f"{rf['reduction']:.2f}" if rf["reduction"] is not None else "-"
-                lines.append(f"| {' + '.join(rf['effects'])} | {rf['heldout_gap_before']:.3g} | "
+                se, un = rf.get("std_errors", {}), rf.get("units", {})
+                est = ", ".join(f"{k} {v:.4g}" + (f" ± {se[k]:.2g}" if k in se else "")
+                                + (f" {un[k]}" if un.get(k) else "")
+                                for k, v in rf["coefficients"].items())
+                lines.append(f"| {' + '.join(rf['effects'])} | {est} | "
+                             f"{rf['heldout_gap_before']:.3g} | "
                              f"{rf['heldout_gap_after']:.3g} | {red} | {rf['closure']} | "
                              f"{len(rf['remaining_cells'])} |")
         if self.design_advice:
