@@ -8,6 +8,8 @@ import platform
 import re
 import sys
 
+import numpy as np
+
 HEADER = "# Benchmark results\n\nRatios are gyrojax / baseline, measured side by side in one run.\n"
 
 
@@ -282,3 +284,35 @@ def diagnose_suite(harness, work, design, desc: str, name: str = "results.json")
     with open(os.path.join(work, name), "w") as fh:
         json.dump(results, fh)
     return results, t_run
+
+
+def g6_lines(s: dict, hidden: str) -> list[str]:
+    """The closed-loop bullets of spec §6 G6 from :func:`gyrojax.diagnose._harness.
+    closed_loop_scores` (``hidden``: how the text names the hidden effect)."""
+    by = "; ".join(f"{e} {fmt_rate(r)}" for e, r in s["resolved_by_effect"].items())
+    return [f"- {hidden} flagged (not visible on the record's own design): "
+            f"{fmt_rate(s['hidden_flagged'])}; advised design(s) for it: "
+            f"{', '.join(s['advised_designs'])}; the largest predicted MDE there, with the "
+            f"closest rival fitted: {s['max_mde_hidden']:.3g} of the prior scale.",
+            f"- Spec §6 G6 (>= 0.90 of flagged effects with a resolving design get an advised "
+            f"design with MDE <= prior scale): flagged effects whose first-ranked design "
+            f"resolves them (MDE with the closest rival <= prior scale) "
+            f"{fmt_rate(s['resolved'])}; by effect: {by}. The ranking puts a resolving design "
+            "first wherever the catalogue has one: a case left unresolved has none among these "
+            "designs (so over the flagged effects that have one, the goal's rate is 1.00).",
+            f"- Closed loop (G6: class-level top-1 >= 0.90 at prior-scale magnitude): on the "
+            f"record's own design the first effect is {hidden} {fmt_rate(s['top1_own'])} "
+            f"(attributed to it alone {fmt_rate(s['attributed_own'])}); on the advised design "
+            f"{fmt_rate(s['top1_advised'])} (attributed to it alone "
+            f"{fmt_rate(s['attributed_advised'])}).",
+            z_line(s["z_advised"], f"{hidden}'s refit coefficients on the advised design")]
+
+
+def z_line(z, what: str) -> str:
+    """How well reported standard errors match the errors against the sealed truth."""
+    z = np.asarray(z, dtype=float)
+    if z.size == 0:
+        return f"- {what}: none refitted."
+    return (f"- {what}, error against the sealed truth in reported standard errors (n={z.size} "
+            f"coefficients): RMS {np.sqrt(np.mean(z ** 2)):.2f}, |z| < 2 in "
+            f"{np.mean(np.abs(z) < 2):.2f} (a calibrated error: RMS 1, 0.95).")

@@ -41,6 +41,7 @@ from _results import (  # noqa: E402
     blind_suite,
     diagnose_suite,
     far_text,
+    g6_lines,
     machine_line,
     null_run,
     publish,
@@ -51,6 +52,7 @@ from _results import fmt_rate as _fmt  # noqa: E402
 from gyrojax import units  # noqa: E402
 from gyrojax.diagnose import bench_platform as bp  # noqa: E402
 from gyrojax.diagnose._harness import (  # noqa: E402
+    closed_loop_scores,
     oracle_detection_thresholds,
     separability,
 )
@@ -94,8 +96,7 @@ def closed_loop(args, work, design):
     rows = bp.closed_loop(work, design=design, seed=args.seed + 61,
                           progress=lambda i, n: bar.update(1))
     bar.close()
-    s = bp.closed_loop_scores(rows)
-    by = "; ".join(f"{e} {_fmt(r)}" for e, r in s["resolved_by_effect"].items())
+    s = closed_loop_scores(rows, "anisoelastic_oo")
     lines = ["## Gap diagnosis, platform design advice closed loop (`benchmarks/gap_blind_platform.py "
              "--g6-cases`)", "", machine_line(), "",
              f"{args.g6_cases} sealed seed-001 structural cases (hidden D_oo at its prior scale "
@@ -106,18 +107,7 @@ def closed_loop(args, work, design):
              "the predicted MDE (prior scales) with the closest rival effect fitted too, then "
              "alone. Closed loop: the same instrument (the sealed nominal coefficients and D_oo) "
              "run again, new noise, on the design ranked first for D_oo, diagnosed blind.", "",
-             f"- D_oo flagged (not visible on one amplitude): {_fmt(s['hidden_flagged'])}; "
-             f"advised design(s) for it: {', '.join(s['advised_designs'])}; the largest "
-             f"predicted MDE there, with the closest rival fitted: {s['max_mde_hidden']:.3g} of "
-             "the prior scale.",
-             f"- Spec §6 G6 (>= 0.90 of flagged effects with a resolving design get an advised "
-             f"design with MDE <= prior scale): flagged effects whose first-ranked design "
-             f"resolves them (MDE with the closest rival <= prior scale) {_fmt(s['resolved'])}; "
-             f"by effect: {by}. The ranking puts a resolving design first wherever the "
-             "catalogue has one; an effect below 1.00 has none among these designs.",
-             f"- Closed loop (G6: class-level top-1 >= 0.90 at prior-scale magnitude): on the "
-             f"advised design the first effect is D_oo {_fmt(s['top1_advised'])}; attributed to "
-             f"D_oo alone {_fmt(s['attributed_advised'])}."]
+             *g6_lines(s, "D_oo")]
     publish(args.out, "gap_blind_platform_g6", lines)
 
 

@@ -13,6 +13,7 @@ import json
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from ..io import load_record
@@ -235,3 +236,104 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
                                          lambda t, r: r["verdict"] in ("no-gap", "confounded"))
     out["median_diagnose_s"] = float(np.median([r["time_diagnose_s"] for _, r in rows]))
     return out
+
+
+def _first_effect(rep):
+    """The verdict's first effect, or the top posterior where the verdict names none."""
+    return (rep.verdict.get("effects") or [None])[0] or max(
+        rep.ranking, key=lambda r: r["posterior"])["name"]
+
+
+def closed_loop(case_dir, rig: str, hidden: str, rerun, truth_coefficients, *,
+                holdout: float, seed: int = 0, load=load_record, progress=None) -> list:
+    """Spec §6 G6 closed loop over the cases of ``case_dir``. Each record is diagnosed blind
+    with the design advisor on; then, as an experimenter would, the same instrument is run
+    again, new noise, under the design the advisor ranks first for ``hidden`` and that record is
+    diagnosed blind. ``rerun(record, truth, label, key) -> record`` re-simulates the sealed
+    instrument ``truth`` under the design an advice row labels (the manifest is unsealed only
+    after every record has been diagnosed); ``truth_coefficients(truth) -> dict`` reads the
+    hidden effect's sealed coefficients (display units). Returns per case: the verdict and first
+    effect on
+    the record's own design, every flagged effect's first advised design with its predicted MDE
+    over the prior scale (alone and with the closest rival fitted too), and on the advised
+    design the verdict, its effects, the first effect (or top posterior) and the refit
+    coefficients of the verdict's effects with their standard errors (display units) and,
+    where the verdict is the hidden effect alone, each coefficient's error in its standard
+    errors (``z_advised``)."""
+    from ._diagnose import diagnose
+
+    paths = sorted(Path(case_dir).glob("case_*.nc"))
+    first = []
+    for path in paths:  # blind: the manifest is not read until every record is diagnosed
+        rec = load(path)
+        rep = diagnose(rec, rig=rig, holdout=holdout)
+        advice = {}
+        for a in rep.design_advice:  # ranked per effect: the first is the advised one
+            advice.setdefault(a["effect"], a)
+        first.append((path, rec, rep.verdict, _first_effect(rep),
+                      {r["name"]: r["flag"] for r in rep.ranking if r["flag"] != "visible"},
+                      advice))
+    manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
+    key = jax.random.key(seed)
+    out = []
+    for k, (path, rec, verdict, top, flagged, advice) in enumerate(first):
+        truth = manifest[_sha(path)]
+        row = {"file": path.name, "family": truth["family"],
+               "truth": {k: v for k, v in truth.items() if isinstance(v, (str, int, float))},
+               "verdict": verdict["kind"],
+               "effects": verdict.get("effects") or [], "top": top,
+               "flagged": flagged,
+               "advised": {e: {"design": a["design"], "mde_over_prior": a["mde_over_prior"],
+                               "mde_vs_closest_rival": a["mde_vs_closest_rival"]}
+                           for e, a in advice.items()}}
+        if hidden in advice:
+            key, sub = jax.random.split(key)
+            rec2 = rerun(rec, truth, advice[hidden]["design"], sub)
+            rep2 = diagnose(rec2, rig=rig, holdout=holdout, design_advice=False)
+            eff = rep2.verdict.get("effects") or []
+            row |= {"design_advised": advice[hidden]["design"],
+                    "verdict_advised": rep2.verdict["kind"], "top_advised": _first_effect(rep2),
+                    "effects_advised": eff,
+                    "coefficients_advised": {}, "std_errors_advised": {}}
+            for rf in rep2.refits:
+                if rf["effects"] == eff:
+                    row |= {"coefficients_advised": rf["coefficients"],
+                            "std_errors_advised": rf["std_errors"]}
+            if eff == [hidden] and row["coefficients_advised"]:
+                row["z_advised"] = {k: (row["coefficients_advised"][k] - v)
+                                    / row["std_errors_advised"][k]
+                                    for k, v in truth_coefficients(truth).items()}
+        out.append(row)
+        if progress is not None:
+            progress(k + 1, len(first))
+    return out
+
+
+def closed_loop_scores(rows, hidden: str) -> dict:
+    """G6's rates. Over every flagged effect of every case: whether the design the advisor ranks
+    first resolves it, i.e. predicts an MDE within the prior scale with the closest rival effect
+    fitted too (the advisor's ranking key, so where any catalogued design resolves it the first
+    one does), per effect; for ``hidden``, on the record's own design and, over the re-run
+    cases, on its advised design (same instrument, new noise): the share whose first effect is
+    ``hidden`` (class-level top-1) and the share attributed to it alone; and every refit
+    coefficient's error in its standard errors where it was (``z_advised``)."""
+    pairs = [(e, row["advised"][e]) for row in rows for e in row["flagged"]
+             if e in row["advised"]]
+    resolved = lambda _, a: a["mde_vs_closest_rival"] <= 1.0  # noqa: E731
+    looped = [(None, r) for r in rows if "top_advised" in r]
+    return {"resolved": _rate(pairs, resolved),
+            "resolved_by_effect": {e: _rate([x for x in pairs if x[0] == e], resolved)
+                                   for e in sorted({x for x, _ in pairs})},
+            "hidden_flagged": _rate([(None, r) for r in rows], lambda _, r: hidden in r["flagged"]),
+            "advised_designs": sorted({r["advised"][hidden]["design"] for r in rows
+                                       if hidden in r["advised"]}),
+            "max_mde_hidden": max((r["advised"][hidden]["mde_vs_closest_rival"] for r in rows
+                                   if hidden in r["advised"]), default=float("nan")),
+            "top1_own": _rate([(None, r) for r in rows], lambda _, r: r["top"] == hidden),
+            "attributed_own": _rate([(None, r) for r in rows],
+                                    lambda _, r: r["verdict"] == "attributed"
+                                    and r["effects"] == [hidden]),
+            "top1_advised": _rate(looped, lambda _, r: r["top_advised"] == hidden),
+            "attributed_advised": _rate(looped, lambda _, r: r["verdict_advised"] == "attributed"
+                                        and r["effects_advised"] == [hidden]),
+            "z_advised": [z for r in rows for z in r.get("z_advised", {}).values()]}

@@ -216,14 +216,90 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = No
         else:
             p, out_term, truth = _hidden(rng, family, p, cond, design, lam)
         key, sub = jax.random.split(key)
-        from ..simulate import simulate
-
-        rec = simulate(_TRUTH_RIG, p, cond, jnp.asarray(design.ts), key=sub,
-                       noise_std=design.noise_arcsec * units.ARCSEC,
-                       attrs=dict(scheme=design.scheme, latitude_deg=design.latitude_deg))
-        rec = BenchRecord(rec.t, rec.y + jnp.asarray(out_term), rec.channels, rec.attrs)
-        sealer.add(rec, truth)
+        sealer.add(_simulate_case(p, design, sub, out_term), truth)
     return sealer.close(design)
+
+
+def _simulate_case(p, design, key, out_term=0.0):
+    """A record of the truth rig ``p`` on ``design`` (its scheme, latitude, length and noise)."""
+    from ..simulate import simulate
+
+    cond = ESGConditions.from_scheme(design.scheme, design.latitude_deg)
+    rec = simulate(_TRUTH_RIG, p, cond, jnp.asarray(design.ts), key=key,
+                   noise_std=design.noise_arcsec * units.ARCSEC,
+                   attrs=dict(scheme=design.scheme, latitude_deg=design.latitude_deg))
+    return BenchRecord(rec.t, rec.y + jnp.asarray(out_term), rec.channels, rec.attrs)
+
+
+# -- spec §6 G6: design advice, closed loop ---------------------------------------------------
+TILT_PRIOR_ARCSEC = 600.0  # the diagnosis' prior scale for rotor_tilt (10 arcmin, seed 000)
+
+
+def generate_tilt(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = None,
+                  fractions=(1.0,), schemes=None) -> list[Path]:
+    """Sealed rotor-tilt cases for the G6 closed loop: per case a scheme (``schemes``, default
+    the four, in turn), the nominal drift and initial angles drawn as in :func:`generate`, and
+    ``theta`` of size ``fraction`` x 10 arcmin (the prior scale; ``fractions`` in turn) in a
+    random direction. The manifest keeps the whole instrument (display units) so the case can
+    be run again on another design."""
+    from ..models.esg import SCHEMES
+
+    design = design or Design()
+    schemes = tuple(schemes or SCHEMES)
+    sealer = _Sealer(out_dir, seed)
+    rng = sealer.rng
+    key = jax.random.key(seed)
+    sp = _TRUTH_RIG.param_space
+    for i in range(n_cases):
+        d = dataclasses.replace(design, scheme=schemes[i % len(schemes)])
+        frac = float(fractions[(i // len(schemes)) % len(fractions)])
+        p = dict(_truth_params(rng, d))
+        phi = rng.uniform(0.0, 2 * math.pi)
+        size = frac * TILT_PRIOR_ARCSEC * units.ARCSEC
+        p["theta1"], p["theta2"] = (jnp.asarray(size * math.cos(phi)),
+                                    jnp.asarray(size * math.sin(phi)))
+        key, sub = jax.random.split(key)
+        sealer.add(_simulate_case(p, d, sub),
+                   {"family": "rotor_tilt", "scheme": d.scheme, "fraction_of_prior": frac,
+                    "instrument": {k: float(sp[k].to_display(p[k])) for k in sp.names}})
+    return sealer.close(design)
+
+
+def advised_design(label: str, design: Design) -> Design:
+    """The test an ESG advice row names, from the record's ``design``: ``"<scheme> scheme"``
+    remounts on that scheme, ``"<H> h record"`` records H hours (the labels of
+    :meth:`gyrojax.diagnose._esg.ESGProblem.designs`)."""
+    from ..models.esg import SCHEMES
+
+    words = label.split()
+    if len(words) == 2 and words[1] == "scheme" and words[0] in SCHEMES:
+        return dataclasses.replace(design, scheme=words[0])
+    if len(words) == 3 and words[1:] == ["h", "record"]:
+        return dataclasses.replace(design, hours=float(words[0]))
+    raise ValueError(f"advice design {label!r} is not an ESG design this harness knows")
+
+
+def closed_loop(case_dir, *, design: Design | None = None, seed: int = 0,
+                progress=None) -> list:
+    """Spec §6 G6 for the rotor tilt (equatorial / arbitrary alpha_2 -> theta) on the cases of
+    :func:`generate_tilt`: :func:`~gyrojax.diagnose._harness.closed_loop`, the same instrument
+    (every sealed parameter, the tilt included) run again on the design the advisor ranks first
+    for ``rotor_tilt``."""
+    from . import _harness
+
+    design = design or Design()
+    sp = _TRUTH_RIG.param_space
+
+    def rerun(rec, truth, label, key):
+        own = dataclasses.replace(design, scheme=truth["scheme"])
+        return _simulate_case(sp.make(truth["instrument"], display=True),
+                              advised_design(label, own), key)
+
+    return _harness.closed_loop(case_dir, "esg", "rotor_tilt", rerun,
+                                lambda t: {k: t["instrument"][k] for k in ("theta1", "theta2")},
+                                holdout=design.holdout,
+                                seed=seed, progress=progress,
+                                load=lambda path: load_record(path, channels=("alpha1", "alpha2")))
 
 
 def _angle_random_walk(rng, design, z):

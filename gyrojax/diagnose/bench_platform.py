@@ -28,7 +28,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -36,7 +35,6 @@ import numpy as np
 
 from .. import units
 from ..estimate.platform import _position_design
-from ..io import load_record
 from ..models.platform import COEFF_NAMES, TABLE1_DEG, PlatformRig
 from ..models.platform_schedule import (
     dwell_span,
@@ -45,8 +43,9 @@ from ..models.platform_schedule import (
     schedule_conditions,
     simulate_schedule,
 )
+from . import _harness
 from ._harness import projector, run_cases, score_cases
-from .bench import _rate, _Sealer, _sha
+from .bench import _Sealer
 
 __all__ = ["PlatformDesign", "generate", "run", "score", "MEAN_FAMILIES", "OUT_OF_LIBRARY",
            "STRUCTURAL"]
@@ -239,78 +238,18 @@ def advised_amplitudes(label: str, amplitudes) -> list:
 def closed_loop(case_dir, *, design: PlatformDesign | None = None, seed: int = 0,
                 progress=None) -> list:
     """Spec §6 G6 on the seed-001 structural cases of ``case_dir`` (hidden ``D_oo`` at its
-    prior scale on a single-amplitude test). Each record is diagnosed blind with the design
-    advisor on; then, as an experimenter would, the same instrument (the sealed truth: the
-    nominal coefficients and ``D_oo``) is run again under the design the advisor ranks first
-    for ``anisoelastic_oo`` (new noise), and that record is diagnosed blind. Returns per case:
-    every flagged effect's first advised design and its predicted MDE over the prior scale
-    (alone and with the closest rival fitted too), the verdict on the advised design and its
-    first effect (or top posterior)."""
-    from ._diagnose import diagnose
-
+    prior scale on a single-amplitude test): :func:`~gyrojax.diagnose._harness.closed_loop`,
+    the same instrument (the sealed truth: the nominal coefficients and ``D_oo``) run again on
+    the table amplitudes the advisor's first design for ``anisoelastic_oo`` names."""
     design = design or PlatformDesign()
     space = _RIG.param_space
-    paths = sorted(Path(case_dir).glob("case_*.nc"))
-    first = []
-    for path in paths:  # blind: the manifest is not read until every record is diagnosed
-        rec = load_record(path)
-        rep = diagnose(rec, rig="platform", holdout=design.holdout)
-        flagged = {r["name"]: r["flag"] for r in rep.ranking if r["flag"] != "visible"}
-        advice = {}
-        for a in rep.design_advice:  # ranked per effect: the first is the advised one
-            advice.setdefault(a["effect"], a)
+
+    def rerun(rec, truth, label, key):
         amps = json.loads(rec.conditions["schedule_json"])["table_amplitudes_g"]
-        first.append((path, rep.verdict["kind"], flagged, advice, amps))
-    manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
-    key = jax.random.key(seed)
-    out = []
-    for k, (path, kind, flagged, advice, amps) in enumerate(first):
-        truth = manifest[_sha(path)]
-        row = {"file": path.name, "family": truth["family"], "verdict": kind,
-               "flagged": flagged,
-               "advised": {e: {"design": a["design"], "mde_over_prior": a["mde_over_prior"],
-                               "mde_vs_closest_rival": a["mde_vs_closest_rival"]}
-                           for e, a in advice.items()}}
-        hidden = "anisoelastic_oo"
-        if hidden in advice:
-            amps2 = advised_amplitudes(advice[hidden]["design"], amps)
-            p = space.make(truth["nominal"] | truth["coefficients"], display=True)
-            key, sub = jax.random.split(key)
-            rec2 = simulate_schedule(p, design.schedule(amps2), sub,
-                                     noise_arcsec=design.noise_arcsec)
-            rep2 = diagnose(rec2, rig="platform", holdout=design.holdout, design_advice=False)
-            v = rep2.verdict
-            top = (v.get("effects") or [None])[0] or max(
-                rep2.ranking, key=lambda r: r["posterior"])["name"]
-            row |= {"advised_amplitudes_g": amps2, "verdict_advised": v["kind"],
-                    "top_advised": top, "effects_advised": v.get("effects") or []}
-        out.append(row)
-        if progress is not None:
-            progress(k + 1, len(first))
-    return out
+        p = space.make(truth["nominal"] | truth["coefficients"], display=True)
+        return simulate_schedule(p, design.schedule(advised_amplitudes(label, amps)), key,
+                                 noise_arcsec=design.noise_arcsec)
 
-
-def closed_loop_scores(rows, hidden: str = "anisoelastic_oo") -> dict:
-    """G6's rates. Over every flagged effect of every case: whether the design the advisor ranks
-    first resolves it, i.e. predicts an MDE within the prior scale with the closest rival effect
-    fitted too (the advisor's ranking key, so where any catalogued design resolves it the first
-    one does), per effect; over the re-simulated cases (the hidden effect's advised design,
-    same instrument, new noise): the share whose first effect is the hidden one (class-level
-    top-1), and the share attributed to it alone."""
-    pairs = [(e, row["advised"][e]) for row in rows for e in row["flagged"]
-             if e in row["advised"]]
-    resolved = lambda _, a: a["mde_vs_closest_rival"] <= 1.0  # noqa: E731
-    looped = [r for r in rows if "top_advised" in r]
-    return {"resolved": _rate(pairs, resolved),
-            "resolved_by_effect": {e: _rate([x for x in pairs if x[0] == e], resolved)
-                                   for e in sorted({x for x, _ in pairs})},
-            "hidden_flagged": _rate([(None, r) for r in rows], lambda _, r: hidden in r["flagged"]),
-            "advised_designs": sorted({r["advised"][hidden]["design"] for r in rows
-                                       if hidden in r["advised"]}),
-            "max_mde_hidden": max((r["advised"][hidden]["mde_vs_closest_rival"] for r in rows
-                                   if hidden in r["advised"]), default=float("nan")),
-            "top1_advised": _rate([(None, r) for r in looped],
-                                  lambda _, r: r["top_advised"] == hidden),
-            "attributed_advised": _rate([(None, r) for r in looped],
-                                        lambda _, r: r["verdict_advised"] == "attributed"
-                                        and r["effects_advised"] == [hidden])}
+    return _harness.closed_loop(case_dir, "platform", "anisoelastic_oo", rerun,
+                                lambda t: t["coefficients"], holdout=design.holdout, seed=seed,
+                                progress=progress)
