@@ -292,7 +292,7 @@ def g6_lines(s: dict, hidden: str) -> list[str]:
     by = "; ".join(f"{e} {fmt_rate(r)}" for e, r in s["resolved_by_effect"].items())
     return [f"- {hidden} flagged (not visible on the record's own design): "
             f"{fmt_rate(s['hidden_flagged'])}; advised design(s) for it: "
-            f"{', '.join(s['advised_designs'])}; the largest predicted MDE there, with the "
+            f"{' / '.join(s['advised_designs'])}; the largest predicted MDE there, with the "
             f"closest rival fitted: {s['max_mde_hidden']:.3g} of the prior scale.",
             f"- Spec §6 G6 (>= 0.90 of flagged effects with a resolving design get an advised "
             f"design with MDE <= prior scale): flagged effects whose first-ranked design "
@@ -304,7 +304,8 @@ def g6_lines(s: dict, hidden: str) -> list[str]:
             f"record's own design the first effect is {hidden} {fmt_rate(s['top1_own'])} "
             f"(attributed to it alone {fmt_rate(s['attributed_own'])}); on the advised design "
             f"{fmt_rate(s['top1_advised'])} (attributed to it alone "
-            f"{fmt_rate(s['attributed_advised'])}).",
+            f"{fmt_rate(s['attributed_advised'])}); over the cases whose advised design "
+            f"resolves it (the goal's cases) {fmt_rate(s['top1_advised_resolving'])}.",
             z_line(s["z_advised"], f"{hidden}'s refit coefficients on the advised design")]
 
 

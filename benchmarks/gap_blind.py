@@ -8,7 +8,7 @@ records (B1 Ljung-Box whiteness, B2 refit-all + BIC), unseals and scores. Writes
     python benchmarks/gap_blind.py        # 160 cases + 1000 nulls + 40 OOL + 60 G8 (~15 min)
     python benchmarks/gap_blind.py --cases 24 --nulls 0 --ool-cases 0 --g8-cases 0  # quick look
     python benchmarks/gap_blind.py --cases 0 --calibration-cases 400  # G4 alone (~6 min)
-    python benchmarks/gap_blind.py --cases 0 --g6-cases 80  # G6, rotor tilt (~4 min)
+    python benchmarks/gap_blind.py --cases 0 --g6-cases 80  # G6, rotor tilt and diurnal line (~6 min)
 """
 
 from __future__ import annotations
@@ -81,12 +81,14 @@ def main(argv=None):
                          "calibration (spec §6 G4), section gap_blind_calibration; with "
                          "--cases 0 alone")
     ap.add_argument("--g6-cases", type=int, default=0,
-                    help="a design-advice closed-loop run (spec §6 G6, equatorial / arbitrary "
-                         "alpha_2 -> theta): N rotor-tilt cases over the four schemes, each "
-                         "re-run on the design the advisor ranks first and diagnosed again, "
-                         "section gap_blind_g6; with --cases 0 alone")
+                    help="design-advice closed-loop runs (spec §6 G6): N rotor-tilt cases "
+                         "(equatorial / arbitrary alpha_2 -> theta) and N sidereal-day-line "
+                         "cases on 12 h records (>= 24 h -> diurnal vs ramp) over the four "
+                         "schemes, each re-run on the design the advisor ranks first and "
+                         "diagnosed again, sections gap_blind_g6 and gap_blind_g6_diurnal; "
+                         "with --cases 0 alone")
     ap.add_argument("--g6-fractions", type=float, nargs="+", default=[1.0, 0.01],
-                    help="tilt sizes of the G6 run as fractions of the prior scale (10 arcmin), "
+                    help="tilt sizes of the G6 tilt run as fractions of the prior scale (10 arcmin), "
                          "in turn (default: 1, the goal's magnitude, and 0.01)")
     ap.add_argument("--keep", help="directory to keep the cases and results in")
     ap.add_argument("--rescore", metavar="DIR",
@@ -296,45 +298,55 @@ def calibration_run(args, work):
 
 
 def g6_run(args, work):
-    """Spec §6 G6 for the rotor tilt: the advisor's first design, closed loop."""
-    design = bench.Design()
-    t0 = time.perf_counter()
-    fracs = tuple(args.g6_fractions)
-    bench.generate_tilt(work, args.g6_cases, seed=args.seed + 6, design=design, fractions=fracs)
-    t_gen = time.perf_counter() - t0
-    bar = tqdm(total=args.g6_cases, desc="G6", unit="case")
-    rows = bench.closed_loop(work, design=design, seed=args.seed + 7,
-                             progress=lambda i, n: bar.update(1))
-    bar.close()
-    lines = ["## Gap diagnosis, ESG design advice closed loop: rotor tilt (`benchmarks/"
-             "gap_blind.py --g6-cases`)", "", machine_line(), "",
-             f"{args.g6_cases} sealed rotor-tilt cases (seed {args.seed + 6}; the four schemes "
-             f"in turn, {design.hours:.0f} h, {design.sample_s:.0f} s samples, "
-             f"{design.noise_arcsec:g} arcsec noise; the nominal drift and initial angles drawn "
-             "as in the suite; theta in a random direction, its size a fraction of the prior "
-             f"scale 10 arcmin: {', '.join(f'{f:g}' for f in fracs)} in turn; generated in "
-             f"{t_gen:.0f} s, diagnosed, re-run and diagnosed again in "
-             f"{time.perf_counter() - t0 - t_gen:.0f} s). To first order theta is absorbed into "
-             "mc on the polar and vertical schemes and has no signature on the equatorial one "
-             "(spec esg-drift §8-9): what the records show of it is second order (O(m theta)) "
-             "or from the large gimbal angles. Each record is diagnosed blind with the design "
-             "advisor on (designs: the other three schemes, the record doubled), ranked by the "
-             "predicted MDE with the closest rival effect fitted too, then alone. Closed loop: "
-             "the same instrument (every sealed parameter) run again, new noise, on the design "
-             "ranked first for rotor_tilt, diagnosed blind.", ""]
-    for f in fracs:
-        sub = [r for r in rows if r["truth"]["fraction_of_prior"] == f]
-        head = "the goal's magnitude" if f == 1.0 else "below the goal's magnitude"
-        by = []
-        for scheme in dict.fromkeys(r["truth"]["scheme"] for r in sub):
-            sc = closed_loop_scores([r for r in sub if r["truth"]["scheme"] == scheme],
-                                    "rotor_tilt")
-            by.append(f"{scheme} {_fmt(sc['top1_own'])} -> {_fmt(sc['top1_advised'])}")
-        lines += [f"theta = {f:g} x 10 arcmin ({f * 600:g} arcsec; {head}):", "",
-                  *g6_lines(closed_loop_scores(sub, "rotor_tilt"), "rotor_tilt"),
-                  f"- By the record's scheme, first effect rotor_tilt on the own design -> on "
-                  f"the advised one: {'; '.join(by)}.", ""]
-    publish(args.out, "gap_blind_g6", lines)
+    """Spec §6 G6 on the ESG: the advisor's first design, closed loop, for the rotor tilt
+    (equatorial / arbitrary alpha_2 -> theta; 24 h records) and the sidereal-day line on 12 h
+    records (>= 24 h -> diurnal vs ramp)."""
+    runs = [("rotor_tilt", bench.Design(), tuple(args.g6_fractions), "gap_blind_g6",
+             "rotor tilt", "theta in a random direction, its size a fraction of the prior scale "
+             "10 arcmin", "To first order theta is absorbed into mc on the polar and vertical "
+             "schemes and has no signature on the equatorial one (spec esg-drift §8-9): what the "
+             "records show of it is second order (O(m theta)) or from the large gimbal angles."),
+            ("diurnal_line", bench.Design(hours=12.0), (1.0,), "gap_blind_g6_diurnal",
+             "sidereal-day line on 12 h records", "the line's four coefficients (sin, cos on "
+             "each gimbal angle) in a random direction, their RMS a fraction of the prior scale "
+             "5 arcsec", "Half a sidereal day of a line is near a ramp or a transient of the "
+             "drift, and the gimbal angles' own Earth-rate terms absorb much of it.")]
+    for k, (hidden, design, fracs, key, title, size, why) in enumerate(runs):
+        sub_dir = os.path.join(work, hidden)
+        t0 = time.perf_counter()
+        bench.generate_closed_loop(sub_dir, args.g6_cases, hidden, seed=args.seed + 6 + 10 * k,
+                                   design=design, fractions=fracs)
+        t_gen = time.perf_counter() - t0
+        bar = tqdm(total=args.g6_cases, desc=f"G6 {hidden}", unit="case")
+        rows = bench.closed_loop(sub_dir, hidden, design=design, seed=args.seed + 7 + 10 * k,
+                                 progress=lambda i, n: bar.update(1))
+        bar.close()
+        lines = [f"## Gap diagnosis, ESG design advice closed loop: {title} (`benchmarks/"
+                 "gap_blind.py --g6-cases`)", "", machine_line(), "",
+                 f"{args.g6_cases} sealed {hidden} cases (seed {args.seed + 6 + 10 * k}; the four "
+                 f"schemes in turn, {design.hours:.0f} h, {design.sample_s:.0f} s samples, "
+                 f"{design.noise_arcsec:g} arcsec noise; the nominal drift and initial angles "
+                 f"drawn as in the suite; {size}: {', '.join(f'{f:g}' for f in fracs)} in turn; "
+                 f"generated in {t_gen:.0f} s, diagnosed, re-run and diagnosed again in "
+                 f"{time.perf_counter() - t0 - t_gen:.0f} s). {why} Each record is diagnosed "
+                 "blind with the design advisor on (designs: each other scheme, the record "
+                 "doubled, and both), ranked by the predicted MDE with the closest rival effect "
+                 "fitted too, then alone. Closed loop: the same instrument (every sealed "
+                 f"parameter) run again, new noise, on the design ranked first for {hidden}, "
+                 "diagnosed blind.", ""]
+        for f in fracs:
+            sub = [r for r in rows if r["truth"]["fraction_of_prior"] == f]
+            by = []
+            for scheme in dict.fromkeys(r["truth"]["scheme"] for r in sub):
+                sc = closed_loop_scores([r for r in sub if r["truth"]["scheme"] == scheme],
+                                        hidden)
+                by.append(f"{scheme} {_fmt(sc['top1_own'])} -> {_fmt(sc['top1_advised'])}")
+            head = "the goal's magnitude" if f == 1.0 else "below the goal's magnitude"
+            lines += [f"{f:g} x the prior scale ({head}):", "",
+                      *g6_lines(closed_loop_scores(sub, hidden), hidden),
+                      f"- By the record's scheme, first effect {hidden} on the own design -> on "
+                      f"the advised one: {'; '.join(by)}.", ""]
+        publish(args.out, key, lines)
 
 
 if __name__ == "__main__":

@@ -659,6 +659,8 @@ def test_advised_design_reads_the_esg_advice_labels():
     d = Design(scheme="equatorial", hours=24.0)
     assert advised_design("horizontal scheme", d) == Design(scheme="horizontal", hours=24.0)
     assert advised_design("48 h record", d) == Design(scheme="equatorial", hours=48.0)
+    assert advised_design("vertical scheme, 48 h record", d) == Design(scheme="vertical",
+                                                                       hours=48.0)
     with pytest.raises(ValueError, match="second amplitude 7 g"):
         advised_design("second amplitude 7 g (table)", d)
 
@@ -670,7 +672,8 @@ def test_rotor_tilt_design_advice_closed_loop(tmp_path):
     is attributed to rotor_tilt alone, and the refit reads the sealed tilt back."""
     from gyrojax.diagnose import bench
 
-    bench.generate_tilt(tmp_path, 2, seed=31, fractions=(0.03,), schemes=("equatorial",))
+    bench.generate_closed_loop(tmp_path, 2, "rotor_tilt", seed=31, fractions=(0.03,),
+                               schemes=("equatorial",))
     rows = bench.closed_loop(tmp_path, seed=32)
     manifest = json.loads((tmp_path / "sealed" / "manifest.json").read_text())["cases"]
     truth = {t["file"]: t["instrument"] for t in manifest.values()}

@@ -329,15 +329,16 @@ class ESGProblem:
 
     # -- designs for the advisor -----------------------------------------------------------
     def designs(self):
-        """Candidate test designs: the other mounting schemes, and the record doubled."""
-        out = []
-        for s in SCHEMES:
-            if s != self.scheme:
-                out.append((f"{s} scheme", ESGConditions.from_scheme(s, self.latitude), self.t))
+        """Candidate test designs: the other mounting schemes, the record doubled, and each
+        other scheme with the record doubled."""
         dt = (self.t[-1] - self.t[0]) / (len(self.t) - 1)
-        out.append((f"{2 * (self.t[-1] - self.t[0]) / 3600:.0f} h record", self.conditions,
-                    self.t[0] + dt * np.arange(2 * len(self.t) - 1)))
-        return out
+        long_t = self.t[0] + dt * np.arange(2 * len(self.t) - 1)
+        long = f"{2 * (self.t[-1] - self.t[0]) / 3600:.0f} h record"
+        other = [(s, ESGConditions.from_scheme(s, self.latitude)) for s in SCHEMES
+                 if s != self.scheme]
+        return ([(f"{s} scheme", c, self.t) for s, c in other]
+                + [(long, self.conditions, long_t)]
+                + [(f"{s} scheme, {long}", c, long_t) for s, c in other])
 
     def display_nominal(self, params) -> dict:
         sp = self.fit_rig.param_space

@@ -315,8 +315,9 @@ def closed_loop_scores(rows, hidden: str) -> dict:
     fitted too (the advisor's ranking key, so where any catalogued design resolves it the first
     one does), per effect; for ``hidden``, on the record's own design and, over the re-run
     cases, on its advised design (same instrument, new noise): the share whose first effect is
-    ``hidden`` (class-level top-1) and the share attributed to it alone; and every refit
-    coefficient's error in its standard errors where it was (``z_advised``)."""
+    ``hidden`` (class-level top-1) and the share attributed to it alone, and the top-1 over
+    the re-run cases whose advised design resolves ``hidden`` (G6 asks it of those); and every
+    refit coefficient's error in its standard errors where it was (``z_advised``)."""
     pairs = [(e, row["advised"][e]) for row in rows for e in row["flagged"]
              if e in row["advised"]]
     resolved = lambda _, a: a["mde_vs_closest_rival"] <= 1.0  # noqa: E731
@@ -334,6 +335,10 @@ def closed_loop_scores(rows, hidden: str) -> dict:
                                     lambda _, r: r["verdict"] == "attributed"
                                     and r["effects"] == [hidden]),
             "top1_advised": _rate(looped, lambda _, r: r["top_advised"] == hidden),
+            "top1_advised_resolving": _rate(
+                [(None, r) for _, r in looped
+                 if r["advised"][hidden]["mde_vs_closest_rival"] <= 1.0],
+                lambda _, r: r["top_advised"] == hidden),
             "attributed_advised": _rate(looped, lambda _, r: r["verdict_advised"] == "attributed"
                                         and r["effects_advised"] == [hidden]),
             "z_advised": [z for r in rows for z in r.get("z_advised", {}).values()]}

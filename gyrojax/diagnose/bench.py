@@ -232,18 +232,26 @@ def _simulate_case(p, design, key, out_term=0.0):
 
 
 # -- spec §6 G6: design advice, closed loop ---------------------------------------------------
-TILT_PRIOR_ARCSEC = 600.0  # the diagnosis' prior scale for rotor_tilt (10 arcmin, seed 000)
+# the hidden effects of the closed loops and their prior scales (the diagnosis' own: 10 arcmin
+# of rotor tilt, seed 000; 5 arcsec per coefficient of the sidereal-day line)
+G6_PRIOR = {"rotor_tilt": 600.0, "diurnal_line": 5.0}  # arcsec
+_LINE_NAMES = ("alpha1_sin", "alpha1_cos", "alpha2_sin", "alpha2_cos")
 
 
-def generate_tilt(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = None,
-                  fractions=(1.0,), schemes=None) -> list[Path]:
-    """Sealed rotor-tilt cases for the G6 closed loop: per case a scheme (``schemes``, default
-    the four, in turn), the nominal drift and initial angles drawn as in :func:`generate`, and
-    ``theta`` of size ``fraction`` x 10 arcmin (the prior scale; ``fractions`` in turn) in a
-    random direction. The manifest keeps the whole instrument (display units) so the case can
-    be run again on another design."""
+def generate_closed_loop(out_dir, n_cases: int, family: str = "rotor_tilt", *, seed: int = 0,
+                         design: Design | None = None, fractions=(1.0,),
+                         schemes=None) -> list[Path]:
+    """Sealed cases for the G6 closed loop: per case a scheme (``schemes``, default the four,
+    in turn), the nominal drift and initial angles drawn as in :func:`generate`, and the hidden
+    ``family`` in a random direction at ``fraction`` of its prior scale (``fractions`` in turn):
+    ``rotor_tilt``, ``|theta| = fraction x 10 arcmin``; ``diurnal_line``, the four line
+    coefficients (sin, cos on each gimbal angle) with RMS ``fraction x 5 arcsec``. The manifest
+    keeps the whole instrument (display units) and the line so the case can be run again on
+    another design."""
     from ..models.esg import SCHEMES
 
+    if family not in G6_PRIOR:
+        raise ValueError(f"closed-loop family {family!r}; known: {sorted(G6_PRIOR)}")
     design = design or Design()
     schemes = tuple(schemes or SCHEMES)
     sealer = _Sealer(out_dir, seed)
@@ -254,51 +262,68 @@ def generate_tilt(out_dir, n_cases: int, *, seed: int = 0, design: Design | None
         d = dataclasses.replace(design, scheme=schemes[i % len(schemes)])
         frac = float(fractions[(i // len(schemes)) % len(fractions)])
         p = dict(_truth_params(rng, d))
-        phi = rng.uniform(0.0, 2 * math.pi)
-        size = frac * TILT_PRIOR_ARCSEC * units.ARCSEC
-        p["theta1"], p["theta2"] = (jnp.asarray(size * math.cos(phi)),
-                                    jnp.asarray(size * math.sin(phi)))
+        line = np.zeros(4)
+        if family == "rotor_tilt":
+            phi = rng.uniform(0.0, 2 * math.pi)
+            size = frac * G6_PRIOR[family] * units.ARCSEC
+            p["theta1"], p["theta2"] = (jnp.asarray(size * math.cos(phi)),
+                                        jnp.asarray(size * math.sin(phi)))
+        else:
+            line = rng.standard_normal(4)
+            line *= frac * G6_PRIOR[family] / np.sqrt(np.mean(line ** 2))
         key, sub = jax.random.split(key)
-        sealer.add(_simulate_case(p, d, sub),
-                   {"family": "rotor_tilt", "scheme": d.scheme, "fraction_of_prior": frac,
-                    "instrument": {k: float(sp[k].to_display(p[k])) for k in sp.names}})
+        sealer.add(_simulate_case(p, d, sub, _output_columns("diurnal_line", d.ts) @ line),
+                   {"family": family, "scheme": d.scheme, "hours": d.hours,
+                    "fraction_of_prior": frac,
+                    "instrument": {k: float(sp[k].to_display(p[k])) for k in sp.names},
+                    "line_arcsec": dict(zip(_LINE_NAMES, map(float, line)))})
     return sealer.close(design)
 
 
 def advised_design(label: str, design: Design) -> Design:
     """The test an ESG advice row names, from the record's ``design``: ``"<scheme> scheme"``
-    remounts on that scheme, ``"<H> h record"`` records H hours (the labels of
-    :meth:`gyrojax.diagnose._esg.ESGProblem.designs`)."""
+    remounts on that scheme, ``"<H> h record"`` records H hours, both comma-joined do both
+    (the labels of :meth:`gyrojax.diagnose._esg.ESGProblem.designs`)."""
     from ..models.esg import SCHEMES
 
-    words = label.split()
-    if len(words) == 2 and words[1] == "scheme" and words[0] in SCHEMES:
-        return dataclasses.replace(design, scheme=words[0])
-    if len(words) == 3 and words[1:] == ["h", "record"]:
-        return dataclasses.replace(design, hours=float(words[0]))
-    raise ValueError(f"advice design {label!r} is not an ESG design this harness knows")
+    out = design
+    for part in label.split(", "):
+        words = part.split()
+        if len(words) == 2 and words[1] == "scheme" and words[0] in SCHEMES:
+            out = dataclasses.replace(out, scheme=words[0])
+        elif len(words) == 3 and words[1:] == ["h", "record"]:
+            out = dataclasses.replace(out, hours=float(words[0]))
+        else:
+            raise ValueError(f"advice design {label!r} is not an ESG design this harness knows")
+    return out
 
 
-def closed_loop(case_dir, *, design: Design | None = None, seed: int = 0,
-                progress=None) -> list:
-    """Spec §6 G6 for the rotor tilt (equatorial / arbitrary alpha_2 -> theta) on the cases of
-    :func:`generate_tilt`: :func:`~gyrojax.diagnose._harness.closed_loop`, the same instrument
-    (every sealed parameter, the tilt included) run again on the design the advisor ranks first
-    for ``rotor_tilt``."""
+def closed_loop(case_dir, hidden: str = "rotor_tilt", *, design: Design | None = None,
+                seed: int = 0, progress=None) -> list:
+    """Spec §6 G6 on the cases of :func:`generate_closed_loop` (``hidden``: their family):
+    :func:`~gyrojax.diagnose._harness.closed_loop`, the same instrument (every sealed
+    parameter and the line) run again on the design the advisor ranks first for ``hidden``.
+    ``rotor_tilt`` is G6's "equatorial / arbitrary alpha_2 -> theta"; ``diurnal_line`` on a
+    short record, its ">= 24 h -> diurnal vs ramp"."""
     from . import _harness
 
     design = design or Design()
     sp = _TRUTH_RIG.param_space
 
     def rerun(rec, truth, label, key):
-        own = dataclasses.replace(design, scheme=truth["scheme"])
-        return _simulate_case(sp.make(truth["instrument"], display=True),
-                              advised_design(label, own), key)
+        own = dataclasses.replace(design, scheme=truth["scheme"], hours=truth["hours"])
+        d = advised_design(label, own)
+        line = np.array([truth["line_arcsec"][k] for k in _LINE_NAMES])
+        return _simulate_case(sp.make(truth["instrument"], display=True), d, key,
+                              _output_columns("diurnal_line", d.ts) @ line)
 
-    return _harness.closed_loop(case_dir, "esg", "rotor_tilt", rerun,
-                                lambda t: {k: t["instrument"][k] for k in ("theta1", "theta2")},
-                                holdout=design.holdout,
-                                seed=seed, progress=progress,
+    def coefficients(t):
+        if hidden == "rotor_tilt":
+            return {k: t["instrument"][k] for k in ("theta1", "theta2")}
+        return t["line_arcsec"]
+
+    return _harness.closed_loop(case_dir, "esg", hidden, rerun, coefficients,
+                                holdout=design.holdout, seed=seed, progress=progress,
                                 load=lambda path: load_record(path, channels=("alpha1", "alpha2")))
 
 
