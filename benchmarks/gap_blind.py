@@ -330,7 +330,8 @@ def g6_run(args, work):
                  f"generated in {t_gen:.0f} s, diagnosed, re-run and diagnosed again in "
                  f"{time.perf_counter() - t0 - t_gen:.0f} s). {why} Each record is diagnosed "
                  "blind with the design advisor on (designs: each other scheme, the record "
-                 "doubled, and both), ranked by the predicted MDE with the closest rival effect "
+                 "doubled (and four times as long under a day), and both), ranked by the "
+                 "predicted MDE with the closest rival effect "
                  "fitted too, then alone. Closed loop: the same instrument (every sealed "
                  f"parameter) run again, new noise, on the design ranked first for {hidden}, "
                  "diagnosed blind.", ""]

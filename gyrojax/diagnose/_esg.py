@@ -329,16 +329,20 @@ class ESGProblem:
 
     # -- designs for the advisor -----------------------------------------------------------
     def designs(self):
-        """Candidate test designs: the other mounting schemes, the record doubled, and each
-        other scheme with the record doubled."""
+        """Candidate test designs: the other mounting schemes; the record doubled (and, for a
+        record shorter than a day, four times as long); each other scheme with each longer
+        record."""
         dt = (self.t[-1] - self.t[0]) / (len(self.t) - 1)
-        long_t = self.t[0] + dt * np.arange(2 * len(self.t) - 1)
-        long = f"{2 * (self.t[-1] - self.t[0]) / 3600:.0f} h record"
+        hours = (self.t[-1] - self.t[0]) / 3600
         other = [(s, ESGConditions.from_scheme(s, self.latitude)) for s in SCHEMES
                  if s != self.scheme]
-        return ([(f"{s} scheme", c, self.t) for s, c in other]
-                + [(long, self.conditions, long_t)]
-                + [(f"{s} scheme, {long}", c, long_t) for s, c in other])
+        out = [(f"{s} scheme", c, self.t) for s, c in other]
+        for k in (2, 4) if hours < 23.5 else (2,):
+            long_t = self.t[0] + dt * np.arange(k * (len(self.t) - 1) + 1)
+            long = f"{k * hours:.0f} h record"
+            out += [(long, self.conditions, long_t)]
+            out += [(f"{s} scheme, {long}", c, long_t) for s, c in other]
+        return out
 
     def display_nominal(self, params) -> dict:
         sp = self.fit_rig.param_space
