@@ -68,6 +68,10 @@ class Design:
     sample_s: float = 60.0
     noise_arcsec: float = 1.0
     holdout: float = 0.25
+    # spec §6 G1's robustness suite: flicker on each gimbal angle that the white nominal noise
+    # model omits, bias-instability coefficient B (Allan deviation flat at ~0.664 B from ~2
+    # samples to ~2000), arcsec; 0 = none
+    flicker_arcsec: float = 0.0
 
     @property
     def ts(self):
@@ -216,6 +220,13 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = No
         else:
             p, out_term, truth = _hidden(rng, family, p, cond, design, lam)
         key, sub = jax.random.split(key)
+        if design.flicker_arcsec > 0:
+            from ..models.imu import _flicker
+
+            sub, kf = jax.random.split(sub)
+            out_term = out_term + np.asarray(_flicker(
+                kf, len(design.ts), design.sample_s, np.full(2, design.flicker_arcsec),
+                t0=design.sample_s)) * units.ARCSEC
         sealer.add(_simulate_case(p, design, sub, out_term), truth)
     return sealer.close(design)
 

@@ -300,11 +300,12 @@ def imu_noise(key, params, n: int, rate_hz: float, arw=0.0, vrw=0.0, noise=None)
     return out
 
 
-def _flicker(key, n, dt, b):
+def _flicker(key, n, dt, b, t0: float = 1.0):
     """Bias instability B as a sum of first-order Gauss-Markov processes with correlation times
-    one decade apart (1 s ... 10^4 s), each of variance chosen so the Allan deviation is flat at
-    about 0.664 B over the covered range (the standard GM-sum approximation of flicker noise)."""
-    taus = np.array([1.0, 10.0, 100.0, 1000.0, 10000.0])
+    one decade apart (``t0`` ... 10^4 ``t0``; default 1 s ... 10^4 s), each of variance chosen so
+    the Allan deviation is flat at about 0.664 B over the covered range, ~2 ``t0`` to ~2000
+    ``t0`` (the standard GM-sum approximation of flicker noise)."""
+    taus = t0 * np.array([1.0, 10.0, 100.0, 1000.0, 10000.0])
     # one GM per decade, equal variances: the Allan deviation is flat at ~0.75 s between ~2 s
     # and ~2000 s (measured on 2e6 samples), so s = 0.664 B / 0.75 (checked in the tests)
     s = 0.664 / 0.75 * np.asarray(b)
