@@ -32,7 +32,7 @@ from ..estimate.least_squares import trajectory_jacobian
 from ..io import load_record, save_record, write_json
 from ..models.esg import ESGConditions, ESGRig
 from ..record import BenchRecord
-from ._esg import TRANSIENT_TIMES_H
+from ._esg import ESG_LIBRARY, TRANSIENT_TIMES_H
 from ._stats import (
     _project,
     grid_log_bf,
@@ -243,9 +243,9 @@ def _simulate_case(p, design, key, out_term=0.0):
 
 
 # -- spec §6 G6: design advice, closed loop ---------------------------------------------------
-# the hidden effects of the closed loops and their prior scales (the diagnosis' own: 10 arcmin
+# the hidden effects of the closed loops at the diagnosis' own prior scales (arcsec: 10 arcmin
 # of rotor tilt, seed 000; 5 arcsec per coefficient of the sidereal-day line)
-G6_PRIOR = {"rotor_tilt": 600.0, "diurnal_line": 5.0}  # arcsec
+G6_PRIOR = {k: ESG_LIBRARY[k][1] for k in ("rotor_tilt", "diurnal_line")}
 _LINE_NAMES = ("alpha1_sin", "alpha1_cos", "alpha2_sin", "alpha2_cos")
 
 
