@@ -531,6 +531,13 @@ def test_rotor_tilt_attributed_and_heldout_gap_closes(tilt_report):
     assert cand["rotor_tilt"]["p_value"] < 1e-10 and cand["rotor_tilt"]["posterior"] > 0.99
     json.dumps(js)  # JSON-safe
     assert any(a["effect"] == "rotor_tilt" for a in rep.design_advice)
+    # the Markdown shows the best three designs per effect, the advised one first; JSON all
+    md = rep.markdown().split("## Design advice")[1]
+    rows = [x for x in md.splitlines() if x.startswith("| rotor_tilt |")]
+    tilt = [a["design"] for a in rep.design_advice if a["effect"] == "rotor_tilt"]
+    assert len(tilt) == 7 and [x.split(" | ")[1] for x in rows] == tilt[:3]
+    shown = [x for x in md.splitlines() if x.startswith("| ") and not x.startswith("| effect")]
+    assert f"{len(js['design_advice']) - len(shown)} more designs in the JSON" in md
 
 
 @pytest.mark.slow  # ~60 s: the first-order model compiles its own diagnosis

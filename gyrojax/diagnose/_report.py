@@ -11,6 +11,8 @@ from .. import units
 
 __all__ = ["GapReport"]
 
+ADVICE_SHOWN = 3  # design-advice rows per effect in the Markdown summary (the JSON has all)
+
 
 def _clean(x):
     """JSON-safe: numpy -> Python, non-finite -> None."""
@@ -209,14 +211,23 @@ class GapReport:
                              f"{rf['heldout_gap_after']:.3g} | {red} | {rf['closure']} | "
                              f"{len(rf['remaining_cells'])} |")
         if self.design_advice:
+            shown, count = [], {}  # the best ADVICE_SHOWN designs per effect
+            for a in self.design_advice:
+                count[a["effect"]] = count.get(a["effect"], 0) + 1
+                if count[a["effect"]] <= ADVICE_SHOWN:
+                    shown.append(a)
             lines += ["", "## Design advice (MDE in prior scales, alone and with the closest "
-                      "rival effect fitted too; per effect the advised design first)", "",
+                      f"rival effect fitted too; per effect the advised design first, the best "
+                      f"{ADVICE_SHOWN} shown)", "",
                       "| effect | design | MDE / prior | MDE / prior vs closest rival | "
                       "max corr. with other effects |", "|---|---|---|---|---|"]
-            for a in self.design_advice:
+            for a in shown:
                 lines.append(f"| {a['effect']} | {a['design']} | {a['mde_over_prior']:.3g} | "
                              f"{a['mde_vs_closest_rival']:.3g} | "
                              f"{a['max_correlation_with_other_effects']:.3f} |")
+            if len(shown) < len(self.design_advice):
+                lines.append(f"\n{len(self.design_advice) - len(shown)} more designs in the "
+                             "JSON report (`design_advice`).")
         return "\n".join(lines)
 
 
