@@ -253,13 +253,12 @@ def closed_loop(case_dir, rig: str, hidden: str, rerun, truth_coefficients, *,
     instrument ``truth`` under the design an advice row labels (the manifest is unsealed only
     after every record has been diagnosed); ``truth_coefficients(truth) -> dict`` reads the
     hidden effect's sealed coefficients (display units). Returns per case: the verdict and first
-    effect on
-    the record's own design, every flagged effect's first advised design with its predicted MDE
-    over the prior scale (alone and with the closest rival fitted too), and on the advised
-    design the verdict, its effects, the first effect (or top posterior) and the refit
-    coefficients of the verdict's effects with their standard errors (display units) and,
-    where the verdict is the hidden effect alone, each coefficient's error in its standard
-    errors (``z_advised``)."""
+    effect on the record's own design, every flagged effect's first advised design with its
+    predicted MDE over the prior scale (alone and with the closest rival fitted too), and on the
+    advised design the verdict, its effects, the first effect (or top posterior) and the refit
+    coefficients of the verdict's effects with their standard errors (display units) and, where
+    the verdict is the hidden effect alone, each coefficient's error in its standard errors
+    (``z_advised``)."""
     from ._diagnose import diagnose
 
     paths = sorted(Path(case_dir).glob("case_*.nc"))
@@ -276,7 +275,7 @@ def closed_loop(case_dir, rig: str, hidden: str, rerun, truth_coefficients, *,
     manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
     key = jax.random.key(seed)
     out = []
-    for k, (path, rec, verdict, top, flagged, advice) in enumerate(first):
+    for i, (path, rec, verdict, top, flagged, advice) in enumerate(first):
         truth = manifest[_sha(path)]
         row = {"file": path.name, "family": truth["family"],
                "truth": {k: v for k, v in truth.items() if isinstance(v, (str, int, float))},
@@ -305,8 +304,14 @@ def closed_loop(case_dir, rig: str, hidden: str, rerun, truth_coefficients, *,
                                     for k, v in truth_coefficients(truth).items()}
         out.append(row)
         if progress is not None:
-            progress(k + 1, len(first))
+            progress(i + 1, len(first))
     return out
+
+
+def _resolves(advice_row) -> bool:
+    """The design predicts the effect's MDE within its prior scale with the closest rival effect
+    fitted too (the advisor's ranking key)."""
+    return advice_row["mde_vs_closest_rival"] <= 1.0
 
 
 def closed_loop_scores(rows, hidden: str) -> dict:
@@ -320,7 +325,7 @@ def closed_loop_scores(rows, hidden: str) -> dict:
     refit coefficient's error in its standard errors where it was (``z_advised``)."""
     pairs = [(e, row["advised"][e]) for row in rows for e in row["flagged"]
              if e in row["advised"]]
-    resolved = lambda _, a: a["mde_vs_closest_rival"] <= 1.0  # noqa: E731
+    resolved = lambda _, a: _resolves(a)  # noqa: E731
     looped = [(None, r) for r in rows if "top_advised" in r]
     return {"resolved": _rate(pairs, resolved),
             "resolved_by_effect": {e: _rate([x for x in pairs if x[0] == e], resolved)
@@ -336,8 +341,7 @@ def closed_loop_scores(rows, hidden: str) -> dict:
                                     and r["effects"] == [hidden]),
             "top1_advised": _rate(looped, lambda _, r: r["top_advised"] == hidden),
             "top1_advised_resolving": _rate(
-                [(None, r) for _, r in looped
-                 if r["advised"][hidden]["mde_vs_closest_rival"] <= 1.0],
+                [(None, r) for _, r in looped if _resolves(r["advised"][hidden])],
                 lambda _, r: r["top_advised"] == hidden),
             "attributed_advised": _rate(looped, lambda _, r: r["verdict_advised"] == "attributed"
                                         and r["effects_advised"] == [hidden]),
