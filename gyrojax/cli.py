@@ -411,6 +411,19 @@ def cmd_diagnose(args):
     if args.rig not in RIGS:
         raise UsageError(f"--rig {args.rig!r} has no diagnosis yet; rigs with one: "
                          f"{', '.join(RIGS)}")
+    if (args.noise_model is not None or args.flicker_arcsec is not None) and args.rig != "esg":
+        raise UsageError(f"--noise-model / --flicker-arcsec are for the esg rig; the {args.rig} "
+                         "rig has one noise model (leave them out)")
+    flicker = None
+    if args.flicker_arcsec is not None:
+        from . import units
+
+        if args.noise_model == "white":
+            raise UsageError("--flicker-arcsec sets a white+flicker noise model; drop "
+                             "--noise-model white")
+        if not args.flicker_arcsec >= 0:
+            raise UsageError(f"--flicker-arcsec {args.flicker_arcsec}: give B >= 0 (arcsec)")
+        flicker = args.flicker_arcsec * units.ARCSEC
     if args.rig == "schuler":
         from ._cli_schuler import CHANNELS as SCHULER_CHANNELS
 
@@ -457,7 +470,8 @@ def cmd_diagnose(args):
                          " (default 499)")
     report = diagnose(record, rig=args.rig, effects=effects, holdout=args.holdout,
                       alpha=args.alpha, noise_std=noise, split=args.split,
-                      refit_all=args.refit_all, null_draws=args.null_draws)
+                      refit_all=args.refit_all, null_draws=args.null_draws,
+                      noise_model=args.noise_model, flicker_b=flicker)
     print(report.markdown())
     _emit_json(report.to_json(), args.json)
     if args.plot:
@@ -645,6 +659,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "its held-out gap after and reduction (the verdict is unchanged)")
     p.add_argument("--noise-arcsec", type=float,
                    help="angle noise std in arcsec (default: estimated from the residual)")
+    p.add_argument("--noise-model", choices=("white", "white+flicker"),
+                   help="esg: the gimbal angles' nominal noise model (default white; "
+                        "white+flicker: flicker as a Gauss-Markov sum at --flicker-arcsec, or "
+                        "without it at a level estimated by REML, which costs the slow effects "
+                        "much of their power)")
+    p.add_argument("--flicker-arcsec", type=float, metavar="B",
+                   help="esg: flicker level, bias-instability coefficient B in arcsec (Allan "
+                        "deviation floor 0.664 B, from the instrument's Allan test); implies "
+                        "--noise-model white+flicker")
     p.add_argument("--alpha", type=float, default=0.05,
                    help="significance level after Benjamini-Hochberg control (default 0.05)")
     p.add_argument("--null-draws", type=int, default=499,

@@ -105,6 +105,10 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     (["simulate", "--scheme", "polar", "--latitude", "50", "--out", "x.txt"], "use a .nc or .csv"),
     (["observability", "--scheme", "polar", "--latitude", "50", "--effects", "wobble"],
      "unknown effect 'wobble'"),
+    (["diagnose", "r.nc", "--rig", "imu", "--flicker-arcsec", "0.1", "--json", "x.json"],
+     "--noise-model / --flicker-arcsec are for the esg rig"),
+    (["diagnose", "r.nc", "--noise-model", "white", "--flicker-arcsec", "0.1", "--json",
+      "x.json"], "drop --noise-model white"),
 ])
 def test_cli_bad_input_exit_2_one_line_nothing_written(tmp_path, capsys, monkeypatch, argv,
                                                       match):

@@ -5,10 +5,15 @@ structural null direction ``dchi || u`` shows as "no signature", and a refit can
 the screening tested). The nominal fit starts from the integral regression of the rig's default
 ``eps``-normal-to-``u`` form; the two forms agree exactly at null effects. The nominal fit and
 every refit are one compiled Gauss-Newton over the same superset of parameters, the ones not
-fitted masked.
+fitted masked. The nominal noise model is white per channel or, on request, white + flicker
+(``flicker_b`` given, or a REML level): then every row -- tests, refits, held-out gap -- is
+whitened by the flicker model's Kalman innovations (:mod:`gyrojax.analysis.flicker`).
 """
 
 from __future__ import annotations
+
+import dataclasses
+import time
 
 import equinox as eqx
 import jax
@@ -16,6 +21,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import units
+from ..analysis.flicker import (
+    FLICKER_STD_PER_B,
+    flicker_taus,
+    innovations,
+    reml_rho,
+    rho_to_b,
+    whiten,
+)
 from ..estimate._linalg import scaled_lstsq
 from ..estimate.least_squares import trajectory_jacobian
 from ..estimate.regression import integral_regression
@@ -24,7 +37,7 @@ from ..record import BenchRecord
 from ..simulate import integrate
 from ._stats import Signature
 
-__all__ = ["ESGProblem", "ESG_LIBRARY", "SIDEREAL_DAY"]
+__all__ = ["ESGProblem", "ESG_LIBRARY", "NOISE_MODELS", "SIDEREAL_DAY"]
 
 SIDEREAL_DAY = 2 * np.pi / units.EARTH_RATE  # s
 # effect -> (family, prior scale per coefficient in display units, grid)
@@ -39,6 +52,9 @@ ESG_LIBRARY = {
 TRANSIENT_TIMES_H = tuple(float(x) for x in np.geomspace(0.25, 3.0, 8))
 _GRID_EFFECTS = ("drift_transient", "drift_step")
 _MAX_ITER = 20  # Gauss-Newton steps of the nominal fit and of each refit
+# the nominal noise model of the gimbal angles: white, or white + flicker (GM sum) at a given
+# level or one estimated by REML on the full-model residual (:mod:`gyrojax.analysis.flicker`)
+NOISE_MODELS = ("white", "white+flicker")
 
 
 @eqx.filter_jit
@@ -61,27 +77,38 @@ def _predict(rig, params, conditions, ts):
 
 
 @eqx.filter_jit
-def _masked_gauss_newton(rig, p, conditions, ts, y, w, cols, free, mask, line_on, max_iter):
-    """Gauss-Newton on the whitened rows over the rig parameters ``free`` (those with
+def _masked_gauss_newton(rig, p, conditions, ts, y, w, cols, free, mask, line_on, max_iter,
+                         rho, taus):
+    """Gauss-Newton on the whitened rows (per channel the flicker model's innovations at the
+    variance ratio ``rho``, GM correlation times ``taus``, then the weights ``w``; ``rho`` 0:
+    weighted least squares) over the rig parameters ``free`` (those with
     ``mask`` 0 held: their Jacobian columns zeroed, so the minimum-norm step leaves them) and the
     linear output coefficients ``beta`` of ``cols`` (rad per unit; held at 0 unless ``line_on``).
     A step that raises the cost is halved (up to 8 times; if none lowers it, the fit stops
     there). Stops when the step's predicted cost drop is below 1e-10 of the cost
     (``converged``), or after ``max_iter`` steps. Returns (parameters, ``beta``, converged)."""
     scales = rig.param_space.scales(free)
-    ct = cols * w[:, None] * line_on
+    n, c = ts.shape[0], rho.shape[0]
+    dts = jnp.concatenate([jnp.array([jnp.inf]), jnp.diff(ts)])
+    one = jax.vmap(lambda xc, rc: innovations(xc, dts, rc, taus)[0], in_axes=(1, 0),
+                   out_axes=1)
+
+    def wh(x):  # (n c, m) time-major rows -> whitened, weighted
+        return one(x.reshape(n, c, -1), rho).reshape(n * c, -1) * w[:, None]
+
+    ct = wh(cols) * line_on
 
     def params_at(x):
         return p | {k: p[k] + x[i] * scales[i] for i, k in enumerate(free)}
 
     def resid(x, beta):
         model = integrate(rig, params_at(x), conditions, ts, throw=False).reshape(-1)
-        return (y - model) * w - ct @ beta
+        return wh((y - model)[:, None])[:, 0] - ct @ beta
 
     def body(carry):
         x, beta, _, it, r = carry
         jac = trajectory_jacobian(rig, params_at(x), conditions, ts, free) * scales * mask
-        a = jnp.concatenate([jac * w[:, None], ct], axis=1)
+        a = jnp.concatenate([wh(jac), ct], axis=1)
         step, _, _ = scaled_lstsq(a, r)
         cost = r @ r
 
@@ -113,13 +140,28 @@ def _masked_gauss_newton(rig, p, conditions, ts, y, w, cols, free, mask, line_on
     return params_at(x), beta, done
 
 
+def _stack(jn, sigs):
+    """The nominal columns, then each signature's grid slices side by side: ``(rows, k)``."""
+    return np.concatenate([jn] + [np.concatenate(list(s.jac), axis=1) for s in sigs], axis=1)
+
+
 class ESGProblem:
     """One ESG record split into train / held-out, with the rig pieces the diagnosis needs."""
 
     rig_name = "esg"
 
     def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
-                 effects=None, order: str = "exact"):
+                 effects=None, order: str = "exact", noise_model: str | None = None,
+                 flicker_b=None):
+        noise_model = noise_model or ("white+flicker" if flicker_b is not None else "white")
+        if noise_model not in NOISE_MODELS:
+            raise ValueError(f"noise_model={noise_model!r}; the ESG's noise models are "
+                             f"{', '.join(NOISE_MODELS)}")
+        if flicker_b is not None and (noise_model != "white+flicker"
+                                      or not np.all(np.asarray(flicker_b) >= 0)):
+            raise ValueError(f"flicker_b={flicker_b!r}: a flicker level (bias-instability "
+                             "coefficient B, rad, >= 0, one or per channel) goes with "
+                             "noise_model='white+flicker'")
         c = record.conditions
         self.scheme, self.latitude = str(c["scheme"]), float(c["latitude_deg"])
         self.conditions = ESGConditions.from_scheme(self.scheme, self.latitude)
@@ -144,6 +186,14 @@ class ESGProblem:
                                  * np.arange(1, 9) / 9)
         self.lines = {"sidereal day": SIDEREAL_DAY, "half sidereal day": SIDEREAL_DAY / 2}
         self.notes: list[str] = []
+        # white, or white + flicker at a given level B or (None) one estimated by REML
+        self.noise_model = noise_model
+        self.flicker_b = None if flicker_b is None else np.broadcast_to(
+            np.asarray(flicker_b, float), (len(self.channels),)).copy()
+        self.sample_s = float(np.median(np.diff(self.t)))
+        self._rho = np.zeros(len(self.channels))
+        self.noise_fit: dict = {"model": self.noise_model}
+        self._raw_memo = None
 
     # -- nominal fit -----------------------------------------------------------------------
     def train_record(self) -> BenchRecord:
@@ -164,7 +214,99 @@ class ESGProblem:
         p, _, _ = self._gauss_newton(p, set(self.nominal_names),
                                      np.full(len(self.channels), units.ARCSEC), line_on=False,
                                      what="the nominal fit")
+        if self.noise_model == "white+flicker":
+            if self.flicker_b is None:
+                self._fit_flicker(p)
+            else:
+                self._given_flicker(p)
+            if np.any(self._rho > 0):  # the nominal fit again, on the flicker-whitened rows
+                p, _, _ = self._gauss_newton(p, set(self.nominal_names),
+                                             np.full(len(self.channels), units.ARCSEC),
+                                             line_on=False, what="the nominal fit (GLS)")
+                self.jacobians_in_fit_s = 0.0  # at the new fit the screening recomputes them
         return p
+
+    def _fit_flicker(self, params):
+        """Per channel, the flicker-to-white variance ratio by REML on the train residual of the
+        nominal fit with the nominal and *every* catalogued effect's columns (every grid value)
+        projected out, so a catalogued slow effect is not taken for flicker."""
+        n, c = self.n_train, len(self.channels)
+        t0 = time.perf_counter()
+        jn, sigs = self._raw_jacobians(params, self.conditions, self.t)
+        self.jacobians_in_fit_s = time.perf_counter() - t0  # the screening's, computed early
+        x = _stack(jn, sigs)[: n * c]
+        resid = (self.y - self.predict(params))[:n]
+        lr = np.zeros(c)
+        for ch in range(c):
+            self._rho[ch], lr[ch] = reml_rho(resid[:, ch], x[ch::c], self.t[:n], self.sample_s)
+        sigma_w = np.std(self._whiten_unit(resid, self.t[:n]), axis=0)
+        self.noise_fit |= {
+            "flicker_B_arcsec": [float(b) for b in rho_to_b(self._rho, sigma_w) / units.ARCSEC],
+            "flicker_lr": [float(v) for v in lr], "flicker_source": "REML"}
+
+    def _given_flicker(self, params):
+        """The variance ratio of a given flicker level ``B``: against the given white level,
+        or against the white part of the residual's first-difference level (the flicker's own
+        share of it, ``s^2 sum_i (1 - phi_i)``, taken off)."""
+        n = self.n_train
+        s2 = (FLICKER_STD_PER_B * self.flicker_b) ** 2
+        if self.noise_std is not None:
+            white2 = np.broadcast_to(np.asarray(self.noise_std, float) ** 2, s2.shape)
+        else:
+            from ._diagnose import first_difference_level
+
+            fd2 = first_difference_level((self.y - self.predict(params))[:n]) ** 2
+            share = np.sum(1 - np.exp(-self.sample_s / flicker_taus(self.sample_s)))
+            white2 = fd2 - s2 * share
+            if np.any(white2 <= 0.05 * fd2):
+                raise ValueError(
+                    f"the given flicker B = {self.flicker_b / units.ARCSEC} arcsec accounts for "
+                    "the residual's whole first-difference level "
+                    f"{np.sqrt(fd2) / units.ARCSEC} arcsec: give a smaller B (from an Allan "
+                    "deviation test of this instrument) or the white level too (noise_std)")
+        self._rho = s2 / white2
+        self.noise_fit |= {"flicker_B_arcsec": [float(b) for b in self.flicker_b / units.ARCSEC],
+                           "flicker_source": "given"}
+
+    def _whiten_unit(self, x, t):
+        """Per channel, the flicker model's ``L^-1`` along time of ``x`` (``(N, c, ...)``): the
+        innovations of the white + GM-sum covariance at the estimated ratio (identity where it
+        is 0)."""
+        out = np.array(x, float, copy=True)
+        for ch, rho in enumerate(self._rho):
+            if rho > 0:
+                out[:, ch] = whiten(out[:, ch], t, rho, self.sample_s)
+        return out
+
+    def _weigh(self, jac, t, sigma):
+        """Whitened rows of raw columns ``jac`` (``(N c, k)``, time-major rows)."""
+        rows, k = jac.shape
+        c = len(self.channels)
+        x = self._whiten_unit(np.asarray(jac).reshape(rows // c, c, k), t)
+        return (x / np.asarray(sigma)[None, :, None]).reshape(rows, k)
+
+    def noise_level(self, resid):
+        """White level per channel (after the flicker whitening, from first differences) and
+        its source; a given ``noise_std`` is a white model."""
+        from ._diagnose import first_difference_level
+
+        n = len(resid)
+        if self.noise_std is not None:
+            s = np.broadcast_to(np.asarray(self.noise_std, float), (resid.shape[1],)).copy()
+            dof, src = np.inf, "given"
+        else:
+            s = first_difference_level(self._whiten_unit(resid, self.t[:n]))
+            dof, src = 2 * (n - 1) / 3, "estimated from first differences of the residual"
+        if self.noise_model == "white+flicker":
+            b = ", ".join(f"{x:.3g}" for x in self.noise_fit["flicker_B_arcsec"])
+            how = ("given" if self.flicker_b is not None
+                   else "by REML on the full-model residual")
+            src += (f"; rows whitened by a white + flicker (GM sum) model, B = {b} arcsec "
+                    f"{how}")
+        return s, dof, src
+
+    def standardize(self, resid, sigma):
+        return self._whiten_unit(resid, self.t[: len(resid)]) / np.asarray(sigma)
 
     def predict(self, params: dict, extra=None) -> np.ndarray:
         """Model channels over the whole record (train + held-out) for a parameter dict of the
@@ -189,13 +331,37 @@ class ESGProblem:
 
     def jacobians(self, params, sigma, *, conditions=None, t=None):
         """Whitened Jacobians over ``t`` (default: the whole record): nominal (per Param.scale)
-        and one :class:`Signature` per library effect (per prior scale, grid slices)."""
+        and one :class:`Signature` per library effect (per prior scale, grid slices); the
+        rows whitened by the noise model (flicker innovations, then the white level)."""
         cond = conditions if conditions is not None else self.conditions
         t = self.t if t is None else t
+        jn, sigs = self._raw_jacobians(params, cond, t)
+        # one whitening pass over every column (a fixed width per library: one compilation)
+        x = self._weigh(_stack(jn, sigs), t, sigma)
+        out, k = [], jn.shape[1]
+        for sg in sigs:
+            g, m, p = sg.jac.shape
+            out.append(dataclasses.replace(
+                sg, jac=np.moveaxis(x[:, k: k + g * p].reshape(m, g, p), 1, 0)))
+            k += g * p
+        return x[:, : jn.shape[1]], out
+
+    def _raw_jacobians(self, params, cond, t):
+        """:meth:`jacobians` before the noise model's whitening (rad per scale); the record's
+        own design's are kept for the parameters last asked (the flicker fit's, then the
+        screening's)."""
+        own = cond is self.conditions and t is self.t
+        if own and self._raw_memo is not None and self._raw_memo[0] is params:
+            return self._raw_memo[1]
+        out = self._compute_raw_jacobians(params, cond, t)
+        if own:
+            self._raw_memo = (params, out)
+        return out
+
+    def _compute_raw_jacobians(self, params, cond, t):
         sp = self.screen_rig.param_space
         free = self._all_free()
         p = self._screen_params(params)
-        w = np.tile(1.0 / np.asarray(sigma), len(t))[:, None]
         # the effect columns that depend on a grid value (decay time, onset) at every grid
         # point; every other column once (at null effects the grid values do not move the
         # trajectory), spread over the grid points: one vmapped solve of ~80 tangent columns
@@ -216,7 +382,6 @@ class ESGProblem:
         jac = np.asarray(_screen_jacobians(self.screen_rig, p, cond, jnp.asarray(t), free,
                                            jnp.asarray(k_tr), jnp.asarray(t_step),
                                            jnp.asarray(basis)))
-        jac = jac * w[None]
         jg = jac[:, :, : len(gi)]
         gcol = {free[i]: k for k, i in enumerate(gi)}
         j0 = np.concatenate([jac[g, :, len(gi): len(gi) + len(fi[g * per:(g + 1) * per])]
@@ -227,7 +392,7 @@ class ESGProblem:
         for e in self.effects:
             fam, prior = ESG_LIBRARY[e]
             if e == "diurnal_line":
-                sigs.append(self._line_signature(t, sigma, prior))
+                sigs.append(self._line_signature(t, np.ones(len(self.channels)), prior))
                 continue
             names = tuple(n for n in sp.effect_names(e) if n not in ("k_tr", "t_step"))
             factor = np.array([sp[n].display_factor for n in names]) * prior
@@ -321,7 +486,7 @@ class ESGProblem:
             self.screen_rig, p, self.conditions, jnp.asarray(self.t[:n]),
             jnp.asarray(self.y[:n].reshape(-1)), jnp.asarray(np.tile(1.0 / sig_arr, n)),
             jnp.asarray(cols[: n * c]), free, jnp.asarray(mask), jnp.asarray(float(line_on)),
-            jnp.asarray(_MAX_ITER))
+            jnp.asarray(_MAX_ITER), jnp.asarray(self._rho), jnp.asarray(flicker_taus(self.sample_s)))
         if not bool(ok):
             self.notes.append(f"{what}: Gauss-Newton did not converge in {_MAX_ITER} steps; "
                               "its figures are those of the last step")

@@ -72,6 +72,13 @@ class Design:
     # model omits, bias-instability coefficient B (Allan deviation flat at ~0.664 B from ~2
     # samples to ~2000), arcsec; 0 = none
     flicker_arcsec: float = 0.0
+    # "gm": the GM sum the diagnosis' white+flicker model assumes (models.imu._flicker);
+    # "spectral": 1/f by spectral synthesis (models.imu.flicker_spectral), another shape
+    flicker_kind: str = "gm"
+
+    def __post_init__(self):
+        if self.flicker_kind not in ("gm", "spectral"):
+            raise ValueError(f"flicker_kind={self.flicker_kind!r}; use 'gm' or 'spectral'")
 
     @property
     def ts(self):
@@ -221,12 +228,15 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = No
             p, out_term, truth = _hidden(rng, family, p, cond, design, lam)
         key, sub = jax.random.split(key)
         if design.flicker_arcsec > 0:
-            from ..models.imu import _flicker
+            from ..models.imu import _flicker, flicker_spectral
 
             sub, kf = jax.random.split(sub)
-            out_term = out_term + np.asarray(_flicker(
-                kf, len(design.ts), design.sample_s, np.full(2, design.flicker_arcsec),
-                t0=design.sample_s)) * units.ARCSEC
+            b = np.full(2, design.flicker_arcsec)
+            if design.flicker_kind == "spectral":
+                fl = flicker_spectral(kf, len(design.ts), design.sample_s, b)
+            else:
+                fl = _flicker(kf, len(design.ts), design.sample_s, b, t0=design.sample_s)
+            out_term = out_term + np.asarray(fl) * units.ARCSEC
         sealer.add(_simulate_case(p, design, sub, out_term), truth)
     return sealer.close(design)
 
@@ -392,10 +402,11 @@ class _Sealer:
 
 
 def run(case_dir, *, design: Design | None = None, baselines: bool = True,
-        refit_all: bool = True, progress=None) -> list:
+        refit_all: bool = True, progress=None, noise: dict | None = None) -> list:
     """Diagnose every record in ``case_dir`` (never reading ``sealed/``); returns one result dict
     per case with the verdict, ranking summary, held-out gaps, timings and baseline answers
-    (``refit_all=False`` skips the costly B2 and keeps B1)."""
+    (``refit_all=False`` skips the costly B2 and keeps B1; ``noise``: the diagnosis' noise
+    model arguments, e.g. ``{"noise_model": "white+flicker"}``)."""
     from ._diagnose import diagnose
     from ._esg import ESGProblem
 
@@ -405,7 +416,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
     for k, path in enumerate(paths):
         rec = load_record(path, channels=("alpha1", "alpha2"))
         t0 = time.perf_counter()
-        rep = diagnose(rec, holdout=design.holdout, design_advice=False)
+        rep = diagnose(rec, holdout=design.holdout, design_advice=False, **(noise or {}))
         t_diag = time.perf_counter() - t0
         ranking = rep.ranking
         res = {

@@ -300,15 +300,35 @@ def imu_noise(key, params, n: int, rate_hz: float, arw=0.0, vrw=0.0, noise=None)
     return out
 
 
+def flicker_spectral(key, n, dt, b, *, span: int = 8):
+    """Flicker noise ``(n, len(b))`` of bias-instability coefficient ``B`` by spectral synthesis:
+    one-sided PSD ``B^2 / (pi f)`` (IEEE 952's two-sided ``B^2 / (2 pi f)``; Allan deviation
+    floor ``sqrt(2 ln 2 / pi) B = 0.664 B``) at every
+    Fourier frequency of a series ``span`` times as long (so the record also carries the power
+    below ``1 / (n dt)``), random Gaussian coefficients, a random length-``n`` piece kept. A
+    construction independent of the GM-sum model (:func:`_flicker`, and the diagnosis'
+    :mod:`gyrojax.analysis.flicker`): the robustness suite's misspecified noise."""
+    b = np.asarray(b, float)
+    m = span * n
+    f = np.fft.rfftfreq(m, dt)[1:]
+    amp = np.sqrt(m / (4 * dt) * b[None, :] ** 2 / (np.pi * f[:, None]))
+    k1, k2, k3 = jax.random.split(key, 3)
+    z = (jax.random.normal(k1, amp.shape) + 1j * jax.random.normal(k2, amp.shape)) * amp
+    z = jnp.concatenate([jnp.zeros((1, len(b))), z], axis=0)
+    x = jnp.fft.irfft(z, n=m, axis=0)
+    start = jax.random.randint(k3, (), 0, m - n + 1)
+    return jax.lax.dynamic_slice_in_dim(x, start, n, axis=0)
+
+
 def _flicker(key, n, dt, b, t0: float = 1.0):
     """Bias instability B as a sum of first-order Gauss-Markov processes with correlation times
     one decade apart (``t0`` ... 10^4 ``t0``; default 1 s ... 10^4 s), each of variance chosen so
     the Allan deviation is flat at about 0.664 B over the covered range, ~2 ``t0`` to ~2000
     ``t0`` (the standard GM-sum approximation of flicker noise)."""
-    taus = t0 * np.array([1.0, 10.0, 100.0, 1000.0, 10000.0])
-    # one GM per decade, equal variances: the Allan deviation is flat at ~0.75 s between ~2 s
-    # and ~2000 s (measured on 2e6 samples), so s = 0.664 B / 0.75 (checked in the tests)
-    s = 0.664 / 0.75 * np.asarray(b)
+    from ..analysis.flicker import FLICKER_STD_PER_B, flicker_taus
+
+    taus = flicker_taus(t0)
+    s = FLICKER_STD_PER_B * np.asarray(b)
     keys = jax.random.split(key, len(taus))
     tot = 0.0
     for kk, T in zip(keys, taus):
