@@ -595,6 +595,8 @@ def test_out_of_library_line_is_not_attributed():
     rec = _record(seed=7, output=np.stack([line, 0.6 * line], 1))
     rep = diagnose(rec, design_advice=False)
     assert rep.kind in ("unexplained", "ambiguous"), rep.markdown()
+    # the white noise model says it cannot tell this from flicker, and how to test it
+    assert any("--flicker-arcsec" in x for x in rep.verdict["notes"])
     hits = [x for x in rep.where if x["axis"] == "frequency" and x["cell"].startswith("largest")
             and x["significant"]]
     assert hits and all(abs(x["period_s"] / 3600 - 5.0) < 0.6 for x in hits)

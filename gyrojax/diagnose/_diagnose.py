@@ -451,6 +451,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
             if (r.sig.name,) not in done and r.dof > 0 and r.flag not in _CONFOUNDED_FLAGS:
                 refits.append(dict(run_refit([r])[0], screened=False))
         timings["refit_all_s"] = time.perf_counter() - t0
+    if hasattr(prob, "verdict_notes"):  # e.g. the ESG's hint at its noise model
+        prob.notes += prob.verdict_notes(verdict)
     if getattr(prob, "notes", None):
         verdict["notes"] = list(prob.notes)
 
