@@ -100,9 +100,9 @@ def library(rig: str) -> dict:
 def _problem(record, rig, holdout, noise_std, effects, order, split=None, noise_model=None,
              flicker_b=None):
     if (noise_model is not None or flicker_b is not None) and rig != "esg":
-        raise ValueError(f"noise_model={noise_model!r}: only --rig esg offers a choice of noise "
-                         "model; leave it out (the IMU fits AR prewhitening, the other rigs a "
-                         "white level)")
+        raise ValueError(f"noise_model / flicker_b with rig {rig!r}: only --rig esg offers a "
+                         "choice of noise model; leave them out (the IMU fits AR prewhitening, "
+                         "the other rigs a white level)")
     prob = _rig_problem(record, rig, holdout, noise_std, effects, order, split,
                         {"noise_model": noise_model, "flicker_b": flicker_b})
     if split is not None and not hasattr(prob, "SPLITS"):
