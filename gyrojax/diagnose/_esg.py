@@ -243,7 +243,9 @@ class ESGProblem:
         lr = np.zeros(c)
         for ch in range(c):
             self._rho[ch], lr[ch] = reml_rho(resid[:, ch], x[ch::c], self.t[:n], self.sample_s)
-        sigma_w = np.std(self._whiten_unit(resid, self.t[:n]), axis=0)
+        from ._diagnose import first_difference_level
+
+        sigma_w = first_difference_level(self._whiten_unit(resid, self.t[:n]))  # as noise_level
         self.noise_fit |= {
             "flicker_B_arcsec": [float(b) for b in rho_to_b(self._rho, sigma_w) / units.ARCSEC],
             "flicker_lr": [float(v) for v in lr], "flicker_source": "REML"}
