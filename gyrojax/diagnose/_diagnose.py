@@ -319,9 +319,6 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     e_all = standardize(resid_all).reshape(-1)
     e = e_all[rows_tr]
     timings["jacobians_s"] = time.perf_counter() - t0
-    early = getattr(prob, "jacobians_in_fit_s", 0.0)  # computed with the noise model's fit
-    timings["jacobians_s"] += early
-    timings["nominal_fit_s"] -= early
 
     t0 = time.perf_counter()
     designs = screen_designs(jn, sigs)

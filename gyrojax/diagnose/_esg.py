@@ -13,7 +13,6 @@ whitened by the flicker model's Kalman innovations (:mod:`gyrojax.analysis.flick
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import equinox as eqx
 import jax
@@ -197,7 +196,6 @@ class ESGProblem:
         self.sample_s = float(np.median(np.diff(self.t)))
         self._rho = np.zeros(len(self.channels))
         self.noise_fit: dict = {"model": self.noise_model}
-        self._raw_memo = None
 
     # -- nominal fit -----------------------------------------------------------------------
     def train_record(self) -> BenchRecord:
@@ -227,7 +225,6 @@ class ESGProblem:
                 p, _, _ = self._gauss_newton(p, set(self.nominal_names),
                                              np.full(len(self.channels), units.ARCSEC),
                                              line_on=False, what="the nominal fit (GLS)")
-                self.jacobians_in_fit_s = 0.0  # at the new fit the screening recomputes them
         return p
 
     def _fit_flicker(self, params):
@@ -235,9 +232,7 @@ class ESGProblem:
         nominal fit with the nominal and *every* catalogued effect's columns (every grid value)
         projected out, so a catalogued slow effect is not taken for flicker."""
         n, c = self.n_train, len(self.channels)
-        t0 = time.perf_counter()
         jn, sigs = self._raw_jacobians(params, self.conditions, self.t)
-        self.jacobians_in_fit_s = time.perf_counter() - t0  # the screening's, computed early
         x = _stack(jn, sigs)[: n * c]
         resid = (self.y - self.predict(params))[:n]
         lr = np.zeros(c)
@@ -364,18 +359,7 @@ class ESGProblem:
         return x[:, : jn.shape[1]], out
 
     def _raw_jacobians(self, params, cond, t):
-        """:meth:`jacobians` before the noise model's whitening (rad per scale); the record's
-        own design's are kept for the parameters last asked (the flicker fit's, then the
-        screening's)."""
-        own = cond is self.conditions and t is self.t
-        if own and self._raw_memo is not None and self._raw_memo[0] is params:
-            return self._raw_memo[1]
-        out = self._compute_raw_jacobians(params, cond, t)
-        if own:
-            self._raw_memo = (params, out)
-        return out
-
-    def _compute_raw_jacobians(self, params, cond, t):
+        """:meth:`jacobians` before the noise model's whitening (rad per scale)."""
         sp = self.screen_rig.param_space
         free = self._all_free()
         p = self._screen_params(params)

@@ -303,9 +303,9 @@ def imu_noise(key, params, n: int, rate_hz: float, arw=0.0, vrw=0.0, noise=None)
 def flicker_spectral(key, n, dt, b, *, span: int = 8):
     """Flicker noise ``(n, len(b))`` of bias-instability coefficient ``B`` by spectral synthesis:
     one-sided PSD ``B^2 / (pi f)`` (IEEE 952's two-sided ``B^2 / (2 pi f)``; Allan deviation
-    floor ``sqrt(2 ln 2 / pi) B = 0.664 B``) at every
-    Fourier frequency of a series ``span`` times as long (so the record also carries the power
-    below ``1 / (n dt)``), random Gaussian coefficients, a random length-``n`` piece kept. A
+    floor ``sqrt(2 ln 2 / pi) B = 0.664 B``) at every Fourier frequency of a series ``span``
+    times as long (so the record also carries the power below ``1 / (n dt)``), random Gaussian
+    coefficients, a random length-``n`` piece kept. A
     construction independent of the GM-sum model (:func:`_flicker`, and the diagnosis'
     :mod:`gyrojax.analysis.flicker`): the robustness suite's misspecified noise."""
     b = np.asarray(b, float)
