@@ -400,7 +400,23 @@ def _load_imu(args):
         if not -90.0 <= args.latitude <= 90.0:
             raise UsageError(f"--latitude {args.latitude} is outside [-90, 90] deg")
         record = record.with_conditions(latitude_deg=float(args.latitude))
+    runs = _table_runs(args)
+    if runs:
+        record = record.with_conditions(table_rate_s=runs)
     return record
+
+
+def _table_runs(args) -> tuple:
+    """``--table-run T0:T1:RATE`` options as the flat triples of ``table_rate_s``."""
+    runs = []
+    for text in getattr(args, "table_run", None) or ():
+        try:
+            t0, t1, rate = (float(x) for x in text.split(":"))
+        except ValueError:
+            raise UsageError(f"--table-run {text!r}: give T0:T1:RATE (s, s, deg/s), e.g. "
+                             "--table-run 120:180:10") from None
+        runs += [t0, t1, rate]
+    return tuple(runs)
 
 
 def cmd_diagnose(args):
@@ -411,6 +427,9 @@ def cmd_diagnose(args):
     if args.rig not in RIGS:
         raise UsageError(f"--rig {args.rig!r} has no diagnosis yet; rigs with one: "
                          f"{', '.join(RIGS)}")
+    if args.table_run and args.rig != "imu":
+        raise UsageError(f"--table-run is for the imu rig; the {args.rig} rig has no rate table")
+    _table_runs(args)  # checked before the record is read
     if (args.noise_model is not None or args.flicker_arcsec is not None) and args.rig != "esg":
         raise UsageError(f"--noise-model / --flicker-arcsec are for the esg rig; the {args.rig} "
                          "rig has one noise model (leave them out)")
@@ -668,6 +687,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="esg: flicker level, bias-instability coefficient B in arcsec (Allan "
                         "deviation floor 0.664 B, from the instrument's Allan test); implies "
                         "--noise-model white+flicker")
+    p.add_argument("--table-run", action="append", metavar="T0:T1:RATE",
+                   help="imu: a constant-rate table run about the vertical, from T0 to T1 s "
+                        "(from the record start) at RATE deg/s (ccw seen from above > 0); "
+                        "repeat per run (default: the record's table_rate_s, if any)")
     p.add_argument("--alpha", type=float, default=0.05,
                    help="significance level after Benjamini-Hochberg control (default 0.05)")
     p.add_argument("--null-draws", type=int, default=499,

@@ -109,6 +109,10 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
      "--noise-model / --flicker-arcsec are for the esg rig"),
     (["diagnose", "r.nc", "--noise-model", "white", "--flicker-arcsec", "0.1", "--json",
       "x.json"], "drop --noise-model white"),
+    (["diagnose", "r.nc", "--table-run", "0:60:10", "--json", "x.json"],
+     "--table-run is for the imu rig"),
+    (["diagnose", "r.nc", "--rig", "imu", "--table-run", "0:60", "--json", "x.json"],
+     "--table-run '0:60': give T0:T1:RATE"),
 ])
 def test_cli_bad_input_exit_2_one_line_nothing_written(tmp_path, capsys, monkeypatch, argv,
                                                       match):

@@ -51,6 +51,7 @@ from ._stats import (
     _f_sf,
     _orth,
     _project,
+    _visibility,
     ambiguity_set,
     bh_qvalues,
     canonical_correlation,
@@ -737,6 +738,26 @@ def _row_json(r: Screen, prob, excess, n, c, cells):
     }
 
 
+def _seen_somewhere(row, designs):
+    """Orthonormal basis (coefficients x kept) of the screened effect's directions that the
+    record's design (``row``'s no-signature and confounded directions) or at least one
+    candidate design (``(nominal basis, raw signature)`` pairs) sees: the complement of the
+    intersection of their hidden subspaces."""
+    k = row.sig.jac.shape[2]
+    hidden = [row.null_directions + row.confounded_directions]
+    for u, j in designs:
+        _, null, conf = _visibility(j, u)
+        hidden.append(null + conf)
+    if any(not h for h in hidden):
+        return np.eye(k)
+    acc = np.zeros((k, k))
+    for h in hidden:
+        q, _ = _orth(np.array(h).T)
+        acc += q @ q.T
+    w, v = np.linalg.eigh(acc)
+    return v[:, w < len(hidden) - 1e-6]
+
+
 def _mde(jt):
     """Minimum detectable effect in prior-scale units (80 % power, alpha 0.05, 1 dof) along the
     least visible direction of the projected signature."""
@@ -754,25 +775,34 @@ def _design_advice(prob, params0, sigma, flagged):
     names = set(grid)
     # problems that can evaluate one grid value per effect are told which (the screened one)
     only = {"grid": grid} if getattr(prob, "design_grid_choice", False) else {}
+    designs = []
     for label, cond, t in prob.designs():
         jn, sigs = prob.jacobians(params0, sigma, conditions=cond, t=t, **only)
         u = nominal_basis(jn)
-        proj = {s.name: _project(u, s.jac[min(grid.get(s.name, 0), s.jac.shape[0] - 1)])
-                for s in sigs}
+        raw = {s.name: s.jac[min(grid.get(s.name, 0), s.jac.shape[0] - 1)] for s in sigs}
+        designs.append((label, sigs, u, raw, {k: _project(u, v) for k, v in raw.items()}))
+    # an effect's directions that neither the record's design nor any candidate sees (no
+    # signature, or absorbed by the nominal: e.g. the accelerometer triad's rotation, which the
+    # poses absorb on any stand) are reported, and each design's MDE is over the rest
+    keep = {r.sig.name: _seen_somewhere(r, [(u, raw[r.sig.name]) for _, _, u, raw, _ in designs
+                                           if r.sig.name in raw]) for r in flagged}
+    for label, sigs, u, raw, proj in designs:
         span = {k: _orth(v)[0] for k, v in proj.items()}  # each rival's span, once per design
         for s in sigs:
             if s.name not in names:
                 continue
+            basis = keep[s.name]
+            mine = proj[s.name] @ basis
             others = [o.name for o in sigs if o.name != s.name]
             corr = float(max((canonical_correlation(proj[s.name], proj[o]) for o in others),
                              default=0.0))
-            mde = _mde(proj[s.name])
+            mde = _mde(mine)
             rows.append({"effect": s.name, "design": label, "mde_over_prior": mde,
                          "mde_vs_closest_rival": max(
-                             (_mde(_project(span[o], proj[s.name])) for o in others),
-                             default=mde),
+                             (_mde(_project(span[o], mine)) for o in others), default=mde),
                          "max_correlation_with_other_effects": corr,
-                         "separable": corr <= SEPARABLE})
+                         "separable": corr <= SEPARABLE,
+                         "unseen_dims": int(basis.shape[0] - basis.shape[1])})
     # ranked by the MDE with the closest rival effect in the model too, then by the MDE: a
     # design that makes an effect visible but leaves it aliased with a rival (the platform's
     # D_oo on a 9 g + 0 g test, where D_oo and rectification both add a bias to the vibrated

@@ -283,7 +283,8 @@ def closed_loop(case_dir, rig: str, hidden: str, rerun, truth_coefficients, *,
                "effects": verdict.get("effects") or [], "top": top,
                "flagged": flagged,
                "advised": {e: {"design": a["design"], "mde_over_prior": a["mde_over_prior"],
-                               "mde_vs_closest_rival": a["mde_vs_closest_rival"]}
+                               "mde_vs_closest_rival": a["mde_vs_closest_rival"],
+                               "unseen_dims": a.get("unseen_dims", 0)}
                            for e, a in advice.items()}}
         if hidden in advice:
             key, sub = jax.random.split(key)

@@ -37,8 +37,16 @@ from scipy import stats
 from .. import units
 from ..analysis.spectral import fit_noise_likelihood
 from ..datasets import masked
-from ..estimate.multiposition import detect_static
-from ..models.imu import IMU_CHANNELS, MEAN_EFFECTS, NOISE_EFFECTS, IMUConditions, IMURig, imu_measure
+from ..estimate.multiposition import Segment, detect_static
+from ..models.imu import (
+    IMU_CHANNELS,
+    MEAN_EFFECTS,
+    NOISE_EFFECTS,
+    IMUConditions,
+    IMURig,
+    imu_measure,
+    pose_frame,
+)
 from ..record import BenchRecord
 from ._stats import Signature, full_rate_tau_cells, quantization_score
 
@@ -61,8 +69,11 @@ _PRIOR_BY_UNIT = {"deg/h/h": 10.0, "mg/h": 1.0, "deg/h": 100.0, "mg": 5.0}
 AUX_PREFIXES = ("temp", "tilt", "supply", "aux")  # auxiliary channels: not modelled, mapped
 AUX_BINS = 5
 POSE_SCALE = 1e-2  # rad, scale of the pose terms (conditioning only)
+HRATE_SCALE = 1e-4  # rad/s, scale of a table run's horizontal Earth rate terms (conditioning)
 MIN_NOISE_PIECE_S = 100.0  # s, shortest static piece that tests bias instability / RRW
 LONG_TAU_TERMS = ("bias_instability", "rate_random_walk")  # tested on those pieces only
+TABLE_RATE_DPS = 10.0  # deg/s, the rate of the advisor's rate-table design (cw and ccw)
+TABLE_TRIM_S = 0.2  # s cut from both ends of a table run (as the static detector trims)
 
 
 def is_aux(channel: str) -> bool:
@@ -99,10 +110,16 @@ class IMUProblem:
         self.channels = tuple(record.channels)
         self.ch_idx = np.array([IMU_CHANNELS.index(c) for c in self.channels])
         self.has_accel = any(c.startswith("a") for c in self.channels)
-        self.segments = detect_static(record)
-        if not self.segments:
-            raise ValueError("no static interval found (>= 1 s still): the IMU diagnosis needs a "
-                             "static or multi-position record")
+        table = table_segments(record)
+        static = [s for s in detect_static(record)
+                  if not any(s.t0 <= tb.t1 and tb.t0 <= s.t1 for tb, _ in table)]
+        steady = sorted([(s, 0.0) for s in static] + table, key=lambda x: x[0].i0)
+        if not steady:
+            raise ValueError("no static interval found (>= 1 s still) and no rate-table run "
+                             "(conditions table_rate_s): the IMU diagnosis needs a static, "
+                             "multi-position or rate-table record")
+        self.segments = [s for s, _ in steady]
+        self.omega = np.array([w for _, w in steady])  # table rate per segment, rad/s
         self.noise_std = noise_std
         self.rate_hz = self.cond.rate_hz
         lib = list(effects) if effects is not None else list(IMU_LIBRARY)
@@ -118,15 +135,14 @@ class IMUProblem:
         self.n_train = n - int(round(holdout * n)) if holdout > 0 else n
         # poses with no train row are fitted on the held-out rows (profiled)
         self.heldout_poses = sorted(set(self.seg[self.n_train:]) - set(self.seg[: self.n_train]))
-        self.heldout_dof = 2 * len(self.heldout_poses) * self.has_accel
+        self.heldout_dof = len(self._pose_terms(self.heldout_poses))
         self.nominal_names = tuple(n for n in self.space.nominal_names()
                                    if n[1] in "ga" and _channel_of(n) in self.channels)
-        self.pose_names = tuple(f"pose{k}_{ab}" for k in range(self.n_pose) for ab in "ab") \
-            if self.has_accel else ()
+        self.pose_names = self._pose_terms(range(self.n_pose))
         self.nominal_scales = np.concatenate([self.space.scales(self.nominal_names),
-                                              np.full(len(self.pose_names), POSE_SCALE)])
+                                              [_pose_scale(n) for n in self.pose_names]])
         self.nominal_units = tuple(self.space[k].display_unit for k in self.nominal_names) + \
-            ("rad",) * len(self.pose_names)
+            tuple("rad/s" if n[-1] in "cs" else "rad" for n in self.pose_names)
         self.nominal_display_scales = self.nominal_scales / np.concatenate([
             [self.space[k].display_factor for k in self.nominal_names],
             np.ones(len(self.pose_names))])
@@ -173,9 +189,24 @@ class IMUProblem:
                 if rows.any():
                     v = self.y[rows][:, acc].mean(0)
                     u0[k] = v / np.linalg.norm(v)
-        e1 = np.cross(u0, np.where(np.abs(u0[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
-        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-        self.u0, self.e1, self.e2 = u0, e1, np.cross(u0, e1)
+        self.u0 = u0
+
+    def _pose_terms(self, poses, omega=None):
+        """Nuisance terms of the poses ``poses``: each pose's two tilts (``pose<k>_a``, ``_b``:
+        the up vector, given accelerometers) and, on a table run seen by a gyro, the
+        horizontal Earth rate's two components at the run's start (``pose<k>_c``, ``_s``: it
+        turns at minus the table rate in the body frame; a heading the stand does not
+        record)."""
+        omega = self.omega if omega is None else omega
+        gyro = any(c.startswith("w") for c in self.channels)
+        return tuple(f"pose{k}_{x}" for k in poses for x in
+                     ("ab" if self.has_accel else "") + ("cs" if gyro and omega[k] else ""))
+
+    def _geo(self, u0, omega):
+        """The compiled model's pose geometry: up vectors, tilt frames, table rates and the
+        block-mean gain of a sinusoid at the table rate (``sinc``, exact for full blocks)."""
+        e1, e2 = pose_frame(u0)
+        return (u0, e1, e2, omega, np.sinc(omega * self.block / self.rate_hz / (2 * np.pi)))
 
     # -- model -----------------------------------------------------------------------------
     def _call(self, which, names, base, t, seg, vec=None, design=None):
@@ -184,11 +215,11 @@ class IMUProblem:
         function per poses count, conditions and channels serves every name set: it takes the
         whole mean-model vector and the Jacobian's columns are selected here."""
         names = tuple(names)
-        geo = tuple(jnp.asarray(g) for g in (design or (self.u0, self.e1, self.e2)))
+        geo = tuple(jnp.asarray(g) for g in (design or self._geo(self.u0, self.omega)))
         n_pose = len(geo[0])
-        allp = _ALL_SCALAR + tuple(f"pose{k}_{ab}" for k in range(n_pose) for ab in "ab")
+        allp = _ALL_SCALAR + tuple(f"pose{k}_{x}" for k in range(n_pose) for x in "abcs")
         pose = {} if design is not None else base.get("_pose", {})
-        full = np.array([pose.get(n, 0.0) / POSE_SCALE if n.startswith("pose")
+        full = np.array([pose.get(n, 0.0) / _pose_scale(n) if n.startswith("pose")
                          else float(base[n]) / _SPACE[n].scale for n in allp])
         idx = [allp.index(n) for n in names]
         full[idx] = 0.0 if vec is None else np.asarray(vec, float)
@@ -200,7 +231,7 @@ class IMUProblem:
         return out if which == 0 else out[..., idx]
 
     def _vector(self, params, names):
-        return jnp.asarray([params["_pose"][n] / POSE_SCALE if n.startswith("pose")
+        return jnp.asarray([params["_pose"][n] / _pose_scale(n) if n.startswith("pose")
                             else params[n] / self.space[n].scale for n in names])
 
     def predict(self, params, extra=None):
@@ -253,7 +284,7 @@ class IMUProblem:
         out["_pose"] = dict(params["_pose"])
         for i, n in enumerate(names):
             if n.startswith("pose"):
-                out["_pose"][n] = float(vec[i]) * POSE_SCALE
+                out["_pose"][n] = float(vec[i]) * _pose_scale(n)
             else:
                 out[n] = float(vec[i]) * self.space[n].scale
         return out
@@ -280,9 +311,9 @@ class IMUProblem:
         return p
 
     def _fit_heldout_poses(self, p):
-        if not self.heldout_poses or not self.has_accel:
+        names = self._pose_terms(self.heldout_poses)
+        if not names:
             return p
-        names = tuple(f"pose{k}_{ab}" for k in self.heldout_poses for ab in "ab")
         return self._gn(p, names, np.arange(self.n_train, len(self.t)))
 
     # -- prewhitening ----------------------------------------------------------------------
@@ -439,36 +470,54 @@ class IMUProblem:
 
     # -- designs ---------------------------------------------------------------------------
     def designs(self):
-        """Candidate designs: the record twice as long (same poses), and 12 poses (the six
-        axis-up poses and six tilted ones) of the same total static time."""
+        """Candidate designs: the record twice as long (same poses); 12 poses (the six axis-up
+        poses and six tilted ones) of the same total static time; and the record followed by a
+        rate-table test (:data:`TABLE_DESIGN`, :func:`table_runs`: counter-clockwise and
+        clockwise at ``TABLE_RATE_DPS`` with x, y and z up in turn, twice, each run as long as
+        the record's mean pose; CIGTF's STB, spec D4), where the gyro scale factors and
+        misalignments, which a still stand sees only through the Earth rate (no signature
+        under the nominal model, which carries none), are driven by the table rate, and cw/ccw
+        tells them (odd in the rate) from biases and g-sensitivity (even)."""
         from ..models.imu import cube_poses
 
         out = [("record twice as long", ("long", None), None)]
         if self.has_accel and len(self.channels) == 6:
             ups = np.array([p.up for p in cube_poses(12, seed=1)])
             out.append(("12 poses (axes up/down + 6 tilted)", ("poses", ups), None))
+        if self.has_accel and any(c.startswith("w") for c in self.channels) \
+                and not np.any(self.omega):
+            out.append((TABLE_DESIGN, ("table", None), None))
         return out
 
     def _design_jacobians(self, params, sigma, design):
         kind, ups = design
+        nom = self._vector(params, self.nominal_names)
         if kind == "long":
             t = np.concatenate([self.t, self.t + (self.t[-1] - self.t[0]) + 1.0])
             seg = np.concatenate([self.seg, self.seg])
-            geo = None
+            geo, names = None, self.nominal_names + self.pose_names
+            vec = self._vector(params, names)
         else:
-            per = max(1, len(self.t) // len(ups))
-            seg = np.repeat(np.arange(len(ups)), per)
-            t = np.linspace(self.t[0], self.t[-1], len(seg))
-            u0 = ups / np.linalg.norm(ups, axis=1, keepdims=True)
-            e1 = np.cross(u0, np.where(np.abs(u0[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
-            e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-            geo = (u0, e1, np.cross(u0, e1))
-            params = dict(params)
-        names = self.nominal_names + (tuple(f"pose{k}_{ab}" for k in range(len(ups))
-                                            for ab in "ab") if geo else self.pose_names)
-        vec = jnp.zeros(len(names)) if geo else self._vector(params, names)
-        if geo:
-            vec = vec.at[: len(self.nominal_names)].set(self._vector(params, self.nominal_names))
+            if kind == "poses":
+                per = max(1, len(self.t) // len(ups))
+                seg = np.repeat(np.arange(len(ups)), per)
+                t = np.linspace(self.t[0], self.t[-1], len(seg))
+                u0 = ups / np.linalg.norm(ups, axis=1, keepdims=True)
+                omega = np.zeros(len(u0))
+            else:  # the record, then the table's runs
+                table_up, table_rate = table_runs()
+                step = self.block / self.rate_hz
+                per = max(1, int(np.mean([x.t1 - x.t0 for x in self.segments]) // step))
+                n_run = len(table_rate)
+                t = np.concatenate([self.t, self.t[-1] + step * (1 + np.arange(n_run * per))])
+                seg = np.concatenate([self.seg, self.n_pose + np.repeat(np.arange(n_run), per)])
+                u0 = np.concatenate([self.u0, table_up])
+                omega = np.concatenate([self.omega, table_rate])
+            geo = self._geo(u0, omega)
+            names = self.nominal_names + self._pose_terms(range(len(u0)), omega)
+            # every pose at its first guess, as the effects' columns are (``_call`` with a
+            # design): one linearisation point, so the poses absorb what they structurally can
+            vec = jnp.zeros(len(names)).at[: len(nom)].set(nom)
         jn = self._call(1, names, params, t, seg, vec, geo) / sigma[None, :, None]
         sigs = [self._signature(e, params, sigma, t, seg, lambda x: x, geo)
                 for e in self.effects if self.effect_names[e]]
@@ -605,18 +654,19 @@ def _params(vec, names, base, n_pose):
     ``base``."""
     p = dict(base)
     pose = base.get("_pose", {})
-    pa = jnp.asarray([pose.get(f"pose{k}_a", 0.0) for k in range(n_pose)])
-    pb = jnp.asarray([pose.get(f"pose{k}_b", 0.0) for k in range(n_pose)])
+    terms = {x: jnp.asarray([pose.get(f"pose{k}_{x}", 0.0) for k in range(n_pose)])
+             for x in "abcs"}
     for i, n in enumerate(names):
         if n.startswith("pose"):
-            k, ab = n[4:].split("_")
-            if ab == "a":
-                pa = pa.at[int(k)].set(vec[i] * POSE_SCALE)
-            else:
-                pb = pb.at[int(k)].set(vec[i] * POSE_SCALE)
+            k, x = n[4:].split("_")
+            terms[x] = terms[x].at[int(k)].set(vec[i] * _pose_scale(n))
         else:
             p[n] = vec[i] * _SPACE[n].scale
-    return p, pa, pb
+    return p, terms
+
+
+def _pose_scale(name):
+    return HRATE_SCALE if name[-1] in "cs" else POSE_SCALE
 
 
 # every mean-model parameter (the nominal biases and the mean effects' terms, not tau_w)
@@ -629,13 +679,57 @@ def _build(allp, n_pose, cond, ch_idx):
     base = {n: 0.0 for n in _SPACE.names}
 
     def f(vec, tau_w, t, seg, geo):
-        p, pa, pb = _params(vec, allp, base | {"tau_w": tau_w}, n_pose)
-        u0, e1, e2 = geo
-        u = u0[seg] + pa[seg][:, None] * e1[seg] + pb[seg][:, None] * e2[seg]
+        p, x = _params(vec, allp, base | {"tau_w": tau_w}, n_pose)
+        u0, e1, e2, omega, gain = geo
+        u = u0[seg] + x["a"][seg][:, None] * e1[seg] + x["b"][seg][:, None] * e2[seg]
         u = u / jnp.linalg.norm(u, axis=1, keepdims=True)
-        return imu_measure(p, u, t, cond)[:, ch]
+        # a table run turns the IMU about the vertical: body rate omega * up, plus the
+        # horizontal Earth rate turning at -omega in the body frame (its block mean: gain)
+        c, s = x["c"][seg] * gain[seg], x["s"][seg] * gain[seg]
+        cw, sw = jnp.cos(omega[seg] * t), jnp.sin(omega[seg] * t)
+        h = (c * cw + s * sw)[:, None] * e1[seg] + (s * cw - c * sw)[:, None] * e2[seg]
+        return imu_measure(p, u, t, cond, omega[seg][:, None] * u + h)[:, ch]
 
     return jax.jit(f), jax.jit(jax.jacfwd(f))
+
+
+TABLE_DESIGN = (f"the record + a rate table: ccw/cw at {TABLE_RATE_DPS:g} deg/s with x, y, z up, "
+                "twice (12 runs)")
+
+
+def table_runs():
+    """The advisor's rate-table test (spec D4): up vectors ``(12, 3)`` and table rates
+    ``(12,)`` in rad/s: x, y and z up in turn, each counter-clockwise then clockwise (seen from
+    above), the sequence twice (so that a time-ordered held-out quarter holds a whole pass)."""
+    up = np.tile(np.repeat(np.eye(3), 2, axis=0), (2, 1))
+    return up, np.radians(TABLE_RATE_DPS) * np.tile([1.0, -1.0], 6)
+
+
+def table_segments(record: BenchRecord) -> list:
+    """The record's rate-table runs from its conditions ``table_rate_s`` (flat (t0, t1,
+    rate_dps) triples, the table's commanded constant rates about the vertical): ``(Segment,
+    rate in rad/s)`` pairs, ``TABLE_TRIM_S`` cut from both ends."""
+    raw = record.conditions.get("table_rate_s")
+    if raw is None:
+        return []
+    a = np.asarray(raw, float).reshape(-1)
+    if a.size == 0 or a.size % 3:
+        raise ValueError(f"conditions table_rate_s has {a.size} numbers; give flat (t0_s, "
+                         "t1_s, rate_dps) triples, one per constant-rate table run")
+    t = np.asarray(record.t, float)
+    out = []
+    for t0, t1, r in a.reshape(-1, 3):
+        if not (np.isfinite([t0, t1, r]).all() and t1 > t0 and r != 0):
+            raise ValueError(f"table_rate_s run ({t0:g}, {t1:g}, {r:g}): need t1 > t0 and a "
+                             "finite non-zero rate in deg/s (a still pose needs no entry)")
+        idx = np.flatnonzero((t >= t0 + TABLE_TRIM_S) & (t <= t1 - TABLE_TRIM_S))
+        if idx.size < 2:
+            raise ValueError(f"table_rate_s run {t0:g}-{t1:g} s holds fewer than 2 samples of "
+                             f"the record ({t[0]:g}-{t[-1]:g} s); check its times (s from the "
+                             "record start)")
+        out.append((Segment(int(idx[0]), int(idx[-1]) + 1, float(t[idx[0]]), float(t[idx[-1]])),
+                    float(np.radians(r))))
+    return out
 
 
 def _noise_unit(e, ch):

@@ -225,6 +225,13 @@ class GapReport:
                 lines.append(f"| {a['effect']} | {a['design']} | {a['mde_over_prior']:.3g} | "
                              f"{a['mde_vs_closest_rival']:.3g} | "
                              f"{a['max_correlation_with_other_effects']:.3f} |")
+            unseen = {a["effect"]: a.get("unseen_dims", 0) for a in self.design_advice
+                      if a.get("unseen_dims", 0)}
+            if unseen:
+                lines.append("\nNo catalogued design sees " + "; ".join(
+                    f"{n} of {e}'s directions" for e, n in unseen.items()) + " (no signature, "
+                    "or absorbed by the nominal parameters on every design): the MDEs are over "
+                    "the rest.")
             if len(shown) < len(self.design_advice):
                 lines.append(f"\n{len(self.design_advice) - len(shown)} more designs in the "
                              "JSON report (`design_advice`).")

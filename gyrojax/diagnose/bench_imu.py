@@ -43,6 +43,7 @@ from ..models.imu import (
     Pose,
     cube_poses,
     imu_measure,
+    pose_frame,
     simulate_imu,
 )
 from ..record import BenchRecord
@@ -182,9 +183,7 @@ def _train_jacobian(params, design, names, n_train_frac):
         for i, n in enumerate(nominal + names):
             p[n] = params[n] + vec[i]
         da, db = vec[len(nominal) + len(names)::2], vec[len(nominal) + len(names) + 1::2]
-        e1 = np.cross(ups, np.where(np.abs(ups[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
-        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-        e2 = np.cross(ups, e1)
+        e1, e2 = pose_frame(ups)
         u = jnp.asarray(ups)[seg] + da[seg][:, None] * e1[seg] + db[seg][:, None] * e2[seg]
         u = u / jnp.linalg.norm(u, axis=1, keepdims=True)
         return imu_measure(p, u, jnp.asarray(t), cond)
@@ -421,3 +420,78 @@ def tau_band_hit(where, family, level) -> dict:
                                  else best["tau_s"] <= taus[0] * k),
                 "full_p": float(best["p"]), "full_tau_s": best["tau_s"]}
     return out
+
+
+# -- spec §6 G6: design advice, closed loop (cw/ccw rotation -> sf vs misalignment) -----------
+# the gyro coefficients of the two effects: no signature on a still stand whose nominal model
+# carries no Earth rate (the rate the gyro triad's scale and axes act on), driven by a table
+G6_PARAMS = {"scale_factor": ("sgx", "sgy", "sgz"),
+             "misalignment": ("mgxy", "mgxz", "mgyx", "mgyz", "mgzx", "mgzy")}
+
+
+def generate_closed_loop(out_dir, n_cases: int, *, seed: int = 0,
+                         design: IMUDesign | None = None, families=tuple(G6_PARAMS),
+                         fraction: float = 1.0) -> list[Path]:
+    """Sealed multi-position records for the G6 closed loop: per case a family of
+    :data:`G6_PARAMS` in turn, the nominal biases drawn as in :func:`generate`, and the hidden
+    effect's gyro coefficients in a random direction with RMS ``fraction`` x the catalogue's
+    prior scale (3000 ppm, 3 mrad). The manifest keeps the whole instrument (display units)."""
+    from ._imu import IMU_LIBRARY
+
+    design = design or IMUDesign()
+    sealer = _Sealer(out_dir, seed)
+    rng = sealer.rng
+    key = jax.random.key(seed)
+    for i in range(n_cases):
+        family = families[i % len(families)]
+        names = G6_PARAMS[family]
+        b = rng.standard_normal(len(names))
+        b *= fraction * IMU_LIBRARY[family][1] / np.sqrt(np.mean(b ** 2))
+        instrument = {k: float(_SPACE[k].to_display(v)) for k, v in _truth_params(rng).items()
+                      if k.startswith(("bg", "ba"))} | dict(zip(names, map(float, b)))
+        key, sub = jax.random.split(key)
+        sealer.add(_simulate_g6(instrument, design.all_poses, design, sub),
+                   {"family": family, "fraction_of_prior": fraction, "instrument": instrument})
+    return sealer.close(design)
+
+
+def _simulate_g6(instrument, poses, design, key):
+    rec = simulate_imu(_SPACE.make(instrument, display=True), poses, rate_hz=design.rate_hz,
+                       turn_s=design.turn_s, latitude_deg=design.latitude_deg,
+                       arw=design.arw * units.DEG / 60, vrw=design.vrw / 60, key=key)
+    attrs = {k: v for k, v in rec.conditions.items() if k != "static_s"}  # the detector's truth
+    return BenchRecord(rec.t, rec.y, rec.channels, tuple(sorted(attrs.items())))
+
+
+def advised_poses(label: str, design: IMUDesign) -> list:
+    """The poses of the test an IMU advice row names, from the record's ``design`` (the labels
+    of :meth:`gyrojax.diagnose._imu.IMUProblem.designs`)."""
+    from ._imu import TABLE_DESIGN, table_runs
+
+    if label == TABLE_DESIGN:
+        ups, rates = table_runs()
+        return design.all_poses + [Pose(tuple(map(float, u)), design.dwell_s,
+                                        float(np.degrees(r))) for u, r in zip(ups, rates)]
+    if label == "record twice as long":
+        return design.all_poses * 2
+    if label.startswith("12 poses"):
+        return cube_poses(12, design.dwell_s * len(design.all_poses) / 12, seed=1)
+    raise ValueError(f"advice design {label!r} is not an IMU design this harness knows")
+
+
+def closed_loop(case_dir, hidden: str, *, design: IMUDesign | None = None, seed: int = 0,
+                progress=None) -> list:
+    """Spec §6 G6's "cw/ccw rotation -> sf vs misalignment" on the cases of
+    :func:`generate_closed_loop` (``hidden``: their family):
+    :func:`~gyrojax.diagnose._harness.closed_loop`, the same instrument run again, new noise,
+    on the poses the advisor's first design for ``hidden`` names."""
+    from . import _harness
+
+    design = design or IMUDesign()
+
+    def rerun(rec, truth, label, key):
+        return _simulate_g6(truth["instrument"], advised_poses(label, design), design, key)
+
+    return _harness.closed_loop(case_dir, "imu", hidden, rerun,
+                                lambda t: {k: t["instrument"][k] for k in G6_PARAMS[hidden]},
+                                holdout=design.holdout, seed=seed, progress=progress)

@@ -39,7 +39,8 @@ from ..record import BenchRecord, freeze
 from ..rotations import rotvec_to_matrix
 
 __all__ = ["IMURig", "IMUConditions", "imu_measure", "simulate_imu", "IMU_CHANNELS",
-           "MEAN_EFFECTS", "NOISE_EFFECTS", "Pose", "cube_poses", "gyro_matrix", "accel_matrix"]
+           "MEAN_EFFECTS", "NOISE_EFFECTS", "Pose", "cube_poses", "gyro_matrix", "accel_matrix",
+           "pose_frame"]
 
 IMU_CHANNELS = ("wx", "wy", "wz", "ax", "ay", "az")
 AX = "xyz"
@@ -186,10 +187,14 @@ def imu_measure(params, up, t, conditions: IMUConditions, rate=None):
 
 
 class Pose(eqx.Module):
-    """A static pose: body-frame up vector (normalised) and dwell time in s."""
+    """A pose: body-frame up vector (normalised) and dwell time in s; ``rate_dps`` turns the
+    IMU at a constant table rate (deg/s) about the vertical, i.e. about its up axis (right-handed
+    about up: positive is counter-clockwise seen from above), which leaves the up vector
+    constant. The IMU sits at the table's centre (no centripetal acceleration)."""
 
     up: tuple
     dwell_s: float
+    rate_dps: float = 0.0
 
 
 def cube_poses(n: int = 12, dwell_s: float = 10.0, seed: int = 0) -> list[Pose]:
@@ -201,6 +206,16 @@ def cube_poses(n: int = 12, dwell_s: float = 10.0, seed: int = 0) -> list[Pose]:
         v = rng.normal(size=3)
         out.append(Pose(tuple(float(x) for x in v / np.linalg.norm(v)), dwell_s))
     return out
+
+
+def pose_frame(up):
+    """Two unit vectors across each up vector of ``up`` ``(n, 3)``: ``e1`` (x or, near the x
+    axis, y crossed into the plane across up) and ``e2 = up x e1``. The diagnosis' pose terms tilt
+    along them; the simulator's ``heading_deg`` counts from ``e1``."""
+    up = np.asarray(up, float)
+    e1 = np.cross(up, np.where(np.abs(up[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return e1, np.cross(up, e1)
 
 
 def _turn(u0, u1):
@@ -222,7 +237,8 @@ _rotvecs_to_matrices = jax.jit(jax.vmap(rotvec_to_matrix))
 
 def simulate_imu(params, poses, *, rate_hz: float = 100.0, turn_s: float = 2.0,
                  latitude_deg: float = float("nan"), gravity: float = units.G0,
-                 arw=0.0, vrw=0.0, key=None, noise=None) -> BenchRecord:
+                 arw=0.0, vrw=0.0, key=None, noise=None,
+                 heading_deg: float | None = None) -> BenchRecord:
     """A multi-position record: static poses joined by constant-rate turns of ``turn_s``.
 
     **Arguments:**
@@ -232,18 +248,35 @@ def simulate_imu(params, poses, *, rate_hz: float = 100.0, turn_s: float = 2.0,
       (m/s^2/sqrt(Hz)); the noise-model effects' strengths come from ``params`` (``q_g``, ``b_g``,
       ``k_g``, ``q_a``, ``b_a``, ``k_a``, ``eps_out``).
     - `key`: PRNG key (required when any noise is non-zero).
+    - `heading_deg`: where given (with ``latitude_deg``), the horizontal Earth rate
+      ``k_earth Omega cos(lat)`` is added along north, which lies at ``heading_deg`` from each
+      pose's :func:`pose_frame` ``e1`` about up at the pose's start and turns with the table
+      (at minus the table rate in the body frame); the turns between poses carry none. Off by
+      default, as in the diagnosis' model (a hand-placed stand records no heading).
 
     **Returns:** a BenchRecord with conditions ``latitude_deg``, ``gravity_mps2``, ``rate_hz``,
-    ``static_s`` (flat (t0, t1, ...) spans of the poses: the truth for the detector).
+    ``static_s`` (flat (t0, t1, ...) spans of the poses, turning ones included: the truth for
+    the detector and the harness) and, where a pose turns on the table, ``table_rate_s`` (flat
+    (t0, t1, rate_dps, ...) triples: the table's commanded rates, a test input the diagnosis
+    reads).
     """
     dt = 1.0 / rate_hz
-    ups, rates, spans, t_now = [], [], [], 0.0
+    ups, rates, spans, table, t_now = [], [], [], [], 0.0
     for k, pose in enumerate(poses):
         u = np.asarray(pose.up, float) / np.linalg.norm(pose.up)
         n_s = int(round(pose.dwell_s * rate_hz))
         ups.append(np.tile(u, (n_s, 1)))
-        rates.append(np.zeros((n_s, 3)))
+        w_k = np.tile(np.radians(pose.rate_dps) * u, (n_s, 1))
+        if heading_deg is not None and not np.isnan(latitude_deg):
+            e1, e2 = pose_frame(u[None])
+            ang = np.radians(heading_deg) - np.radians(pose.rate_dps) * np.arange(n_s) * dt
+            w_k = w_k + (float(params["k_earth"]) * units.EARTH_RATE
+                         * np.cos(np.radians(latitude_deg))
+                         * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2))
+        rates.append(w_k)
         spans += [t_now, t_now + (n_s - 1) * dt]
+        if pose.rate_dps != 0.0:
+            table += [t_now, t_now + (n_s - 1) * dt, float(pose.rate_dps)]
         t_now += n_s * dt
         if k + 1 < len(poses):
             u1 = np.asarray(poses[k + 1].up, float) / np.linalg.norm(poses[k + 1].up)
@@ -262,9 +295,11 @@ def simulate_imu(params, poses, *, rate_hz: float = 100.0, turn_s: float = 2.0,
     y = np.asarray(imu_measure(params, up, t, cond, rate))
     if key is not None:
         y = y + np.asarray(imu_noise(key, params, len(t), rate_hz, arw, vrw, noise))
-    return BenchRecord(jnp.asarray(t), jnp.asarray(y), IMU_CHANNELS, freeze({
-        "latitude_deg": latitude_deg, "gravity_mps2": gravity, "rate_hz": rate_hz,
-        "static_s": tuple(spans)}))
+    attrs = {"latitude_deg": latitude_deg, "gravity_mps2": gravity, "rate_hz": rate_hz,
+             "static_s": tuple(spans)}
+    if table:
+        attrs["table_rate_s"] = tuple(table)
+    return BenchRecord(jnp.asarray(t), jnp.asarray(y), IMU_CHANNELS, freeze(attrs))
 
 
 def imu_noise(key, params, n: int, rate_hz: float, arw=0.0, vrw=0.0, noise=None):
