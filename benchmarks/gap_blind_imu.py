@@ -52,13 +52,15 @@ SUITES = {
     "multi, design-shift": bench_imu.IMUDesign(split="design-shift"),
     "static": bench_imu.IMUDesign(kind="static"),
 }
+# spec D4: the 12-pose stand, then ccw/cw rate-table runs (`--table-cases`, its own section)
+TABLE_SUITES = {"rate table (D4)": bench_imu.IMUDesign(kind="table")}
 
 
 def main(argv=None):
     ap = blind_parser(__doc__, cases=60)
     ap.add_argument("--ool-cases", type=int, default=40,
                     help="extra out-of-library cases per multi-position suite (spec §6 G9)")
-    ap.add_argument("--null-suite", action="append", choices=list(SUITES),
+    ap.add_argument("--null-suite", action="append", choices=list(SUITES | TABLE_SUITES),
                     help="the design(s) of the null run (repeatable; default: every suite)")
     ap.add_argument("--calibration-cases", type=int, default=0,
                     help="a separate run of N static-design time_drift / warmup_transient "
@@ -71,6 +73,9 @@ def main(argv=None):
                     help="an aux-axis run: N multi-design records with a temperature channel, "
                          "30 %% nulls, the rest a bias following the temperature (out of the "
                          "catalogue)")
+    ap.add_argument("--table-cases", type=int, default=0,
+                    help="a blind suite of N cases on the rate-table design D4 (the 12 poses, "
+                         "then ccw/cw table runs), section gap_blind_imu_table")
     ap.add_argument("--g6-cases", type=int, default=0,
                     help="design-advice closed loop (spec §6 G6, cw/ccw rotation -> sf vs "
                          "misalignment): N multi-position records per family with the gyro "
@@ -82,7 +87,10 @@ def main(argv=None):
     args = ap.parse_args(argv)
     work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-imu-")
     if args.cases > 0:
-        suites(args, work)
+        suites(args, work, SUITES, args.cases)
+    if args.table_cases > 0:
+        suites(args, os.path.join(work, "table"), TABLE_SUITES, args.table_cases,
+               "gap_blind_imu_table", "--table-cases")
     if args.calibration_cases > 0:
         static_calibration(args, os.path.join(work, "calibration"))
     if args.g8_cases > 0:
@@ -91,10 +99,11 @@ def main(argv=None):
         aux_localisation(args, os.path.join(work, "aux"))
     if args.g6_cases > 0:
         g6_run(args, os.path.join(work, "g6"))
+    every = SUITES | TABLE_SUITES
     for label in (args.null_suite or list(SUITES)) if args.nulls > 0 else ():
-        k = list(SUITES).index(label)
+        k = list(every).index(label)
         null_run(bench_imu, os.path.join(work, f"nulls{k}"), args.nulls, seed=args.seed + 20 + k,
-                 design=SUITES[label], out=args.out, key=f"gap_blind_imu_nulls_{k}",
+                 design=every[label], out=args.out, key=f"gap_blind_imu_nulls_{k}",
                  title=f"Gap diagnosis, IMU null run: {label} (`benchmarks/gap_blind_imu.py "
                        "--nulls`)",
                  label=f"the {label} design (the IMU's nominal errors drawn per case)",
@@ -302,14 +311,15 @@ def aux_localisation(args, work):
     publish(args.out, "gap_blind_imu_aux", lines)
 
 
-def suites(args, work):
+def suites(args, work, which, n_cases, key="gap_blind_imu", flag=""):
     scores, meta = {}, {}
-    for k, (label, design) in enumerate(SUITES.items()):
+    first_k = list(SUITES | TABLE_SUITES).index(next(iter(which)))
+    for k, (label, design) in enumerate(which.items(), start=first_k):
         d = os.path.join(work, f"suite{k}")
         t0 = time.perf_counter()
-        bench_imu.generate(d, args.cases, seed=args.seed + k, design=design, null_fraction=0.3)
+        bench_imu.generate(d, n_cases, seed=args.seed + k, design=design, null_fraction=0.3)
         t_gen = time.perf_counter() - t0
-        bar = tqdm(total=args.cases, desc=label, unit="case")
+        bar = tqdm(total=n_cases, desc=label, unit="case")
         t0 = time.perf_counter()
         results = bench_imu.run(d, design=design, progress=lambda i, n: bar.update(1))
         bar.close()
@@ -324,7 +334,7 @@ def suites(args, work):
         scores[label] = bench_imu.score(
             d, results, separable=[e for e, v in sep.items() if v <= 0.9],
             oracle_thresholds=oracle_detection_thresholds(first, "imu", None, ORACLE_LAMBDAS))
-        if args.ool_cases > 0 and design.kind == "multi":
+        if args.ool_cases > 0 and design.kind != "static":
             od = os.path.join(work, f"suite{k}_ool")
             t0 = time.perf_counter()
             bench_imu.generate(od, args.ool_cases, seed=args.seed + 10 + k, design=design,
@@ -332,14 +342,15 @@ def suites(args, work):
             res = bench_imu.run(od, design=design)
             meta[label + " ool"] = time.perf_counter() - t0
             scores[label + " ool"] = bench_imu.score(od, res)
-    lines = ["## Gap diagnosis, blind IMU suites (`benchmarks/gap_blind_imu.py`)", "",
-             machine_line(), "",
-             f"{args.cases} sealed cases per suite (seeds {args.seed}+k, 30 % nulls). Designs: "
-             f"{json.dumps({k: dataclasses.asdict(v) for k, v in SUITES.items()})}. Rates ± "
+    cmd = "benchmarks/gap_blind_imu.py" + (" " + flag if flag else "")
+    lines = [f"## Gap diagnosis, blind IMU suites (`{cmd}`)", "", machine_line(), "",
+             f"{n_cases} sealed cases per suite (seeds {args.seed}+k, 30 % nulls). Designs: "
+             f"{json.dumps({k: dataclasses.asdict(v) for k, v in which.items()})}. Rates ± "
              "Monte Carlo standard error (n cases). top-1 = the verdict's first effect (noise "
              "effects: the first significant noise-model effect) is the hidden one; named = the "
              "hidden effect is in the verdict, the ambiguity set or the noise-model list.", "",
              ORACLE_NOTE, ""]
+    k_of = {lb: i for i, lb in enumerate(SUITES | TABLE_SUITES)}
     for label, s in scores.items():
         if label.endswith(" ool"):
             continue
@@ -354,10 +365,10 @@ def suites(args, work):
         o = scores.get(label + " ool")
         if o is not None:
             lines += [f"- Out-of-library run ({args.ool_cases} more sealed pose_step / "
-                      f"thermal_cycle cases, seed {args.seed + 10 + list(SUITES).index(label)}, "
+                      f"thermal_cycle cases, seed {args.seed + 10 + k_of[label]}, "
                       f"{meta[label + ' ool']:.0f} s): G9, {g9_text(o)}; "
                       f"not attributed at all {_fmt(o['out_of_library_honest'])}.", ""]
-    publish(args.out, "gap_blind_imu", lines)
+    publish(args.out, key, lines)
 
 
 if __name__ == "__main__":

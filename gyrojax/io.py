@@ -157,8 +157,23 @@ def _read_netcdf(path: Path):
     t = np.asarray(ds["t"].values, dtype=float)
     names = [str(v) for v in ds.data_vars if ds[v].dims == ("t",)]
     cols = [np.asarray(ds[v].values, dtype=float) for v in names]
-    attrs = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in ds.attrs.items()}
+    attrs = {k: _attr_value(v) for k, v in ds.attrs.items()}
     return t, cols, names, attrs
+
+
+def _attr_value(v):
+    """A NetCDF attribute as :func:`save_record` wrote it: a number, a string, or a list it
+    stored as JSON (spans such as ``masked_s`` or ``table_rate_s``) back as a tuple. JSON
+    objects (``schedule_json``) stay strings, for the code that parses them."""
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, str) and v.startswith("["):
+        try:
+            out = json.loads(v)
+        except ValueError:
+            return v
+        return tuple(out) if isinstance(out, list) else v
+    return v
 
 
 def atomic_write(path, write_fn):

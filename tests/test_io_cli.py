@@ -15,7 +15,8 @@ from gyrojax.io import RecordFileError, load_record, save_record
 def record():
     rig, cond, p = design("equatorial", alpha0_deg=(0, 30))
     return gj.simulate(rig, p, cond, TS_24H[:121], key=jax.random.key(0),
-                       noise_std=units.ARCSEC, attrs={"scheme": "equatorial", "latitude_deg": 55.75})
+                       noise_std=units.ARCSEC, attrs={"scheme": "equatorial", "latitude_deg": 55.75,
+                                                      "masked_s": (60.0, 120.5)})
 
 
 @pytest.mark.parametrize("suffix", [".nc", ".csv"])
@@ -27,6 +28,7 @@ def test_roundtrip(tmp_path, record, suffix):
     if suffix == ".nc":
         assert back.conditions["scheme"] == "equatorial"
         assert back.conditions["latitude_deg"] == 55.75
+        assert back.conditions["masked_s"] == (60.0, 120.5)  # a span list comes back a tuple
     assert [p.name for p in tmp_path.iterdir()] == [f"rec{suffix}"]  # no temp files left
 
 

@@ -69,12 +69,24 @@ _EFFECT_PARAMS = {
     "time_drift": ("dgx", "dgy", "dgz", "dax", "day", "daz"),
     "warmup_transient": ("wgx", "wgy", "wgz", "wax", "way", "waz"),
 }
+# on a rate table the gyro triad's scale factors and misalignments are driven too
+_TABLE_PARAMS = _EFFECT_PARAMS | {
+    "scale_factor": ("sgx", "sgy", "sgz") + _EFFECT_PARAMS["scale_factor"],
+    "misalignment": ("mgxy", "mgxz", "mgyx", "mgyz", "mgzx", "mgzy")
+    + _EFFECT_PARAMS["misalignment"],
+}
+
+
+def _effect_params(design):
+    return _TABLE_PARAMS if design.kind == "table" else _EFFECT_PARAMS
 
 
 @dataclasses.dataclass(frozen=True)
 class IMUDesign:
-    """One blind design: ``kind`` ``"multi"`` or ``"static"``; white noise densities ``arw``
-    (deg/sqrt(h)) and ``vrw`` (m/s/sqrt(h)); ``split`` ``"same-design"`` or ``"design-shift"``."""
+    """One blind design: ``kind`` ``"multi"``, ``"static"`` or ``"table"`` (spec D4: the
+    12-pose stand, then the rate-table runs of the diagnosis' advice, ccw/cw at 10 deg/s with
+    x, y and z up, twice, ``dwell_s`` each); white noise densities ``arw`` (deg/sqrt(h)) and
+    ``vrw`` (m/s/sqrt(h)); ``split`` ``"same-design"`` or ``"design-shift"``."""
 
     kind: str = "multi"
     n_poses: int = 12
@@ -91,7 +103,19 @@ class IMUDesign:
     def poses(self):
         if self.kind == "static":
             return [Pose((0.0, 0.0, 1.0), self.static_s)]
-        return cube_poses(self.n_poses, self.dwell_s, seed=3)
+        poses = cube_poses(self.n_poses, self.dwell_s, seed=3)
+        if self.kind == "table":
+            from ._imu import table_runs
+
+            ups, rates = table_runs()
+            poses += [Pose(tuple(map(float, u)), self.dwell_s, float(np.degrees(r)))
+                      for u, r in zip(ups, rates)]
+        return poses
+
+    @property
+    def span_s(self):
+        """Total time on the poses (s)."""
+        return sum(p.dwell_s for p in self.poses)
 
     @property
     def shift_poses(self):
@@ -148,15 +172,16 @@ def _remainder_lambda(params, design, term):
     greedy second step) are fitted; the transient over a grid of decay times. Returns
     the nominal-projected lambda, the remainder after the best fit (one effect or a pair), after
     the best single effect, and that effect."""
-    span = design.static_s if design.kind == "static" else design.n_poses * design.dwell_s
+    span = design.span_s
     sig = np.array([design.sigma[0]] * 3 + [design.sigma[1]] * 3)
-    names = tuple(n for v in _EFFECT_PARAMS.values() for n in v)
+    params_of = _effect_params(design)
+    names = tuple(n for v in params_of.values() for n in v)
     cols, jn, d = {}, None, None
     for tau in np.geomspace(0.02, 0.5, 6) * span:
         jn, jb, idx = _train_jacobian(dict(params) | {"tau_w": float(tau)}, design, names,
                                       design.holdout)
         k = 0
-        for fam, fn in _EFFECT_PARAMS.items():
+        for fam, fn in params_of.items():
             if fam == "warmup_transient" or fam not in cols:
                 cols.setdefault(fam, []).append(jb[:, k:k + len(fn)])
             k += len(fn)
@@ -175,6 +200,7 @@ def _train_jacobian(params, design, names, n_train_frac):
     idx, seg = idx[:n_tr], seg[:n_tr]
     t = np.asarray(rec.t)[idx]
     ups = np.array([np.asarray(p.up) / np.linalg.norm(p.up) for p in design.all_poses])
+    omega = jnp.radians(jnp.array([p.rate_dps for p in design.all_poses]))[seg]
     cond = IMUConditions(design.latitude_deg, units.G0, design.rate_hz)
     nominal = tuple(_SPACE.nominal_names())
 
@@ -186,7 +212,7 @@ def _train_jacobian(params, design, names, n_train_frac):
         e1, e2 = pose_frame(ups)
         u = jnp.asarray(ups)[seg] + da[seg][:, None] * e1[seg] + db[seg][:, None] * e2[seg]
         u = u / jnp.linalg.norm(u, axis=1, keepdims=True)
-        return imu_measure(p, u, jnp.asarray(t), cond)
+        return imu_measure(p, u, jnp.asarray(t), cond, omega[:, None] * u)
 
     n_par = len(nominal) + len(names) + 2 * len(ups)
     j = np.asarray(jax.jacfwd(model)(jnp.zeros(n_par)))
@@ -217,10 +243,9 @@ def _hidden(rng, family, p, design, lam):
     p = dict(p)
     truth = {"family": family, "lambda": float(lam) if family != "null" else 0.0}
     if family in _EFFECT_PARAMS:
-        names = _EFFECT_PARAMS[family]
+        names = _effect_params(design)[family]
         if family == "warmup_transient":
-            tau = float(rng.uniform(0.05, 0.4) * (design.static_s if design.kind == "static"
-                                                   else design.n_poses * design.dwell_s))
+            tau = float(rng.uniform(0.05, 0.4) * design.span_s)
             p["tau_w"] = tau
             truth["tau_s"] = tau
         b = rng.standard_normal(len(names))
