@@ -286,10 +286,12 @@ def test_rate_table_runs_measure_scale_factor_and_misalignment_analytically():
                                                          1 + CAL["sgz"]]), rtol=1e-12)
     prob = IMUProblem(rec)
     np.testing.assert_allclose(sorted(prob.omega), [-w, w], rtol=1e-12)
-    bad = rec.__class__(rec.t, rec.y, rec.channels, tuple(sorted(
-        (dict(rec.conditions) | {"table_rate_s": (0.0, 5.0)}).items())))
+    bad = rec.with_conditions(table_rate_s=(0.0, 5.0))
     with pytest.raises(ValueError, match="table_rate_s has 2 numbers"):
         IMUProblem(bad)
+    overlap = rec.with_conditions(table_rate_s=(0.0, 10.0, 10.0, 5.0, 15.0, -10.0))
+    with pytest.raises(ValueError, match="two table runs overlap"):
+        IMUProblem(overlap)
 
 
 def test_design_advice_closed_loop_rate_table_resolves_gyro_scale_factor_and_misalignment(

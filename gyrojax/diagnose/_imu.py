@@ -3,7 +3,11 @@
 Rows are block means of the static samples (static intervals from
 :func:`gyrojax.estimate.multiposition.detect_static`; masked spans excluded), so long records stay
 small; the turns between poses are not modelled (the poses' up vectors are nuisance parameters,
-two small-angle terms per pose about the accelerometer's first guess). Mean effects are screened
+two small-angle terms per pose about the accelerometer's first guess). Rate-table runs (spec D4:
+the record's conditions ``table_rate_s``, flat ``(t0, t1, rate_dps)`` triples, or the CLI's
+``--table-run``) are segments too: the IMU turns about the vertical at the commanded rate, and
+each run adds two nuisance terms, the horizontal Earth rate, which turns at minus the table rate
+in the body frame from a heading the stand does not record. Mean effects are screened
 on these rows exactly as for the other rigs, after **prewhitening**: an AR(p) noise model per
 channel (order by BIC, p <= 5), fitted to the residual of the nominal model plus *every* catalogued
 mean effect (so a catalogued drift is not taken for coloured noise), filters the residual and every
@@ -717,8 +721,13 @@ def table_segments(record: BenchRecord) -> list:
         raise ValueError(f"conditions table_rate_s has {a.size} numbers; give flat (t0_s, "
                          "t1_s, rate_dps) triples, one per constant-rate table run")
     t = np.asarray(record.t, float)
+    runs = a.reshape(-1, 3)
+    order = np.argsort(runs[:, 0])
+    if np.any(runs[order][1:, 0] < runs[order][:-1, 1]):
+        raise ValueError("conditions table_rate_s: two table runs overlap in time; give each "
+                         "constant-rate run once, (t0, t1, rate_dps) with t1 before the next t0")
     out = []
-    for t0, t1, r in a.reshape(-1, 3):
+    for t0, t1, r in runs:
         if not (np.isfinite([t0, t1, r]).all() and t1 > t0 and r != 0):
             raise ValueError(f"table_rate_s run ({t0:g}, {t1:g}, {r:g}): need t1 > t0 and a "
                              "finite non-zero rate in deg/s (a still pose needs no entry)")

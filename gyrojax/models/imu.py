@@ -23,7 +23,9 @@ poses absorb for the accelerometer), ``g_sensitivity`` (9 terms), ``time_drift``
 
 The IMU is algebraic on a static stand (no equations of motion), so :class:`IMURig` gives the
 parameter space and the measurement function, not a diffrax vector field; :func:`simulate_imu`
-integrates the attitude through the turns between poses exactly (piecewise-constant rates).
+integrates the attitude through the turns between poses exactly (piecewise-constant rates). A
+pose may also turn at a constant rate-table rate about the vertical (:class:`Pose`
+``rate_dps``; spec design D4): the up vector stays put and the gyros see the table rate along it.
 """
 
 from __future__ import annotations
