@@ -46,6 +46,7 @@ from ..models.imu import (
     IMU_CHANNELS,
     MEAN_EFFECTS,
     NOISE_EFFECTS,
+    THERMAL_EFFECTS,
     IMUConditions,
     IMURig,
     imu_measure,
@@ -64,12 +65,16 @@ IMU_LIBRARY = {
     "g_sensitivity": ("g", 100.0),  # deg/h/g
     "time_drift": ("trend", None),  # per channel type, below
     "warmup_transient": ("transient", None),
+    "temperature": ("thermal", None),
+    "temperature_rate": ("thermal", None),
     "quantization": ("noise", None),
     "bias_instability": ("noise", None),
     "rate_random_walk": ("noise", None),
     "outliers": ("noise", None),
 }
-_PRIOR_BY_UNIT = {"deg/h/h": 10.0, "mg/h": 1.0, "deg/h": 100.0, "mg": 5.0}
+_PRIOR_BY_UNIT = {"deg/h/h": 10.0, "mg/h": 1.0, "deg/h": 100.0, "mg": 5.0,
+                  "deg/h/degC": 10.0, "mg/degC": 1.0, "deg/h/(degC/min)": 10.0,
+                  "mg/(degC/min)": 1.0}
 AUX_PREFIXES = ("temp", "tilt", "supply", "aux")  # auxiliary channels: not modelled, mapped
 AUX_BINS = 5
 POSE_SCALE = 1e-2  # rad, scale of the pose terms (conditioning only)
@@ -128,6 +133,14 @@ class IMUProblem:
         self.rate_hz = self.cond.rate_hz
         lib = list(effects) if effects is not None else list(IMU_LIBRARY)
         self.notes = []
+        # the temperature effects act on the record's temperature channel (the first aux
+        # channel named temp*): Delta T from its train mean and dT/dt of its block means
+        self.temp_name = next((a for a in self.aux_names if a.lower().startswith("temp")), None)
+        dropped = [e for e in THERMAL_EFFECTS if e in lib] if self.temp_name is None else []
+        if dropped:
+            lib = [e for e in lib if e not in dropped]
+            self.notes.append(f"{' and '.join(dropped)} not screened: the record has no "
+                              "temperature channel (an aux channel named temp*)")
         if "earth_rate" in lib and np.isnan(self.cond.latitude_deg):
             lib.remove("earth_rate")
             self.notes.append("earth_rate not screened: the record gives no latitude "
@@ -137,6 +150,17 @@ class IMUProblem:
         self._build_rows(block_s, max_rows)
         n = len(self.t)
         self.n_train = n - int(round(holdout * n)) if holdout > 0 else n
+        self.thermal = (np.zeros(n), np.zeros(n))
+        if self.temp_name is not None:
+            temp = self.aux[:, self.aux_names.index(self.temp_name)]
+            # dT/dt: the least-squares slope of the raw temperature samples (turns included)
+            # within +-W of each row, W = max(block, 1 % of the record): a temperature moves
+            # over minutes, and its sensor's noise would swamp a two-row difference
+            t_raw = np.asarray(self.record.t, float)
+            half = max(self.block / self.rate_hz, 0.01 * (t_raw[-1] - t_raw[0]))
+            raw = self._aux_raw[:, self.aux_names.index(self.temp_name)]
+            self.thermal = (temp - temp[: self.n_train].mean(),
+                            _local_slope(t_raw, raw, self.t, half))
         # poses with no train row are fitted on the held-out rows (profiled)
         self.heldout_poses = sorted(set(self.seg[self.n_train:]) - set(self.seg[: self.n_train]))
         self.heldout_dof = len(self._pose_terms(self.heldout_poses))
@@ -213,7 +237,7 @@ class IMUProblem:
         return (u0, e1, e2, omega, np.sinc(omega * self.block / self.rate_hz / (2 * np.pi)))
 
     # -- model -----------------------------------------------------------------------------
-    def _call(self, which, names, base, t, seg, vec=None, design=None):
+    def _call(self, which, names, base, t, seg, vec=None, design=None, thermal=None):
         """Model (``which=0``) or its Jacobian in the free parameters ``names`` (``which=1``) at
         ``base`` with ``names`` set from ``vec`` (per-scale units; default zeros). One compiled
         function per poses count, conditions and channels serves every name set: it takes the
@@ -231,8 +255,19 @@ class IMUProblem:
         if key not in _COMPILED:
             _COMPILED[key] = _build(allp, *key)
         out = np.asarray(_COMPILED[key][which](jnp.asarray(full), float(base["tau_w"]),
-                                               jnp.asarray(t), jnp.asarray(seg), geo))
+                                               jnp.asarray(t), jnp.asarray(seg), geo,
+                                               self._thermal_at(t) if thermal is None
+                                               else thermal))
         return out if which == 0 else out[..., idx]
+
+    def _thermal_at(self, t):
+        """``(Delta T, dT/dt)`` at times ``t``: the record's rows where ``t`` are its rows'
+        times, else interpolated (held at the record's ends beyond it: a candidate design
+        assumes no temperature change of its own)."""
+        t = np.asarray(t, float)
+        if t.shape == self.t.shape and np.array_equal(t, self.t):
+            return tuple(jnp.asarray(x) for x in self.thermal)
+        return tuple(jnp.asarray(np.interp(t, self.t, x)) for x in self.thermal)
 
     def _vector(self, params, names):
         return jnp.asarray([params["_pose"][n] / _pose_scale(n) if n.startswith("pose")
@@ -439,7 +474,7 @@ class IMUProblem:
                 if self.effect_names[e]]
         return jn, sigs
 
-    def _signature(self, e, params, sigma, t, seg, whiten, design=None):
+    def _signature(self, e, params, sigma, t, seg, whiten, design=None, thermal=None):
         names = self.effect_names[e]
         fam, prior = IMU_LIBRARY[e]
         pri = np.array([prior if prior is not None else
@@ -449,7 +484,8 @@ class IMUProblem:
         slices = []
         for tau in taus:
             base = dict(params) | ({"tau_w": tau} if tau else {})
-            j = whiten(self._call(1, names, base, t, seg, design=design)) / sigma[None, :, None]
+            j = whiten(self._call(1, names, base, t, seg, design=design,
+                                  thermal=thermal)) / sigma[None, :, None]
             slices.append(j.reshape(-1, len(names)) * factor * pri)
         grid = tuple(x / 3600 for x in self.tau_grid_s) if e == "warmup_transient" else ()
         return Signature(e, fam, names, tuple(self.space[n].display_unit for n in names), pri,
@@ -491,11 +527,32 @@ class IMUProblem:
         if self.has_accel and any(c.startswith("w") for c in self.channels) \
                 and not np.any(self.omega):
             out.append((TABLE_DESIGN, ("table", None), None))
+        if self.temp_name is not None:
+            out.append((CYCLE_DESIGN, ("cycle", None), None))
         return out
+
+    def thermal_cycle(self, t):
+        """The temperature cycle of :data:`CYCLE_DESIGN` at times ``t``: ``(Delta T, dT/dt)``
+        of a sinusoid of period half the record and amplitude half the record's temperature
+        range (at least ``CYCLE_MIN_C``)."""
+        t = np.asarray(t, float)
+        span = self.t[-1] - self.t[0]
+        amp = max(0.5 * float(np.ptp(self.thermal[0])), CYCLE_MIN_C)
+        w = 4 * np.pi / max(span, 1e-9)
+        return amp * np.sin(w * (t - self.t[0])), amp * w * np.cos(w * (t - self.t[0]))
 
     def _design_jacobians(self, params, sigma, design):
         kind, ups = design
         nom = self._vector(params, self.nominal_names)
+        if kind == "cycle":  # the same poses and times under a temperature cycle
+            names = self.nominal_names + self.pose_names
+            thermal = tuple(jnp.asarray(x) for x in self.thermal_cycle(self.t))
+            jn = self._call(1, names, params, self.t, self.seg, self._vector(params, names),
+                            thermal=thermal) / sigma[None, :, None]
+            sigs = [self._signature(e, params, sigma, self.t, self.seg, lambda x: x,
+                                    thermal=thermal)
+                    for e in self.effects if self.effect_names[e]]
+            return jn.reshape(-1, len(names)), sigs
         if kind == "long":
             t = np.concatenate([self.t, self.t + (self.t[-1] - self.t[0]) + 1.0])
             seg = np.concatenate([self.seg, self.seg])
@@ -669,6 +726,21 @@ def _params(vec, names, base, n_pose):
     return p, terms
 
 
+def _local_slope(t, x, at, half):
+    """Least-squares slope of ``x(t)`` over the samples within ``+-half`` of each time in ``at``
+    (prefix sums: linear time). NaN samples are left out."""
+    ok = np.isfinite(x)
+    t, x = t[ok], x[ok]
+    t0 = t - t.mean()
+    c = [np.concatenate([[0.0], np.cumsum(v)]) for v in (np.ones_like(t0), t0, x, t0 * t0,
+                                                          t0 * x)]
+    i0 = np.searchsorted(t, np.asarray(at) - half, side="left")
+    i1 = np.searchsorted(t, np.asarray(at) + half, side="right")
+    n, st, sx, stt, stx = (v[i1] - v[i0] for v in c)
+    den = n * stt - st * st
+    return np.where(den > 0, (n * stx - st * sx) / np.where(den > 0, den, 1.0), 0.0)
+
+
 def _pose_scale(name):
     return HRATE_SCALE if name[-1] in "cs" else POSE_SCALE
 
@@ -682,7 +754,7 @@ def _build(allp, n_pose, cond, ch_idx):
     ch = np.asarray(ch_idx)
     base = {n: 0.0 for n in _SPACE.names}
 
-    def f(vec, tau_w, t, seg, geo):
+    def f(vec, tau_w, t, seg, geo, thermal):
         p, x = _params(vec, allp, base | {"tau_w": tau_w}, n_pose)
         u0, e1, e2, omega, gain = geo
         u = u0[seg] + x["a"][seg][:, None] * e1[seg] + x["b"][seg][:, None] * e2[seg]
@@ -692,11 +764,14 @@ def _build(allp, n_pose, cond, ch_idx):
         c, s = x["c"][seg] * gain[seg], x["s"][seg] * gain[seg]
         cw, sw = jnp.cos(omega[seg] * t), jnp.sin(omega[seg] * t)
         h = (c * cw + s * sw)[:, None] * e1[seg] + (s * cw - c * sw)[:, None] * e2[seg]
-        return imu_measure(p, u, t, cond, omega[seg][:, None] * u + h)[:, ch]
+        return imu_measure(p, u, t, cond, omega[seg][:, None] * u + h, thermal)[:, ch]
 
     return jax.jit(f), jax.jit(jax.jacfwd(f))
 
 
+CYCLE_MIN_C = 1.0  # deg C, the smallest amplitude of the advisor's temperature cycle
+CYCLE_DESIGN = ("the record under a temperature cycle (period half the record, amplitude half "
+                "its temperature range, >= 1 deg C)")
 TABLE_DESIGN = (f"the record + a rate table: ccw/cw at {TABLE_RATE_DPS:g} deg/s with x, y, z up, "
                 "twice (12 runs)")
 
@@ -762,6 +837,8 @@ def _relevant(name, channels):
     """Does effect parameter ``name`` touch a channel the record has?"""
     gyro = any(c.startswith("w") for c in channels)
     accel = any(c.startswith("a") for c in channels)
+    if name[:2] in ("tg", "rg"):
+        return gyro
     if name == "k_earth" or name[:2] in ("sg", "mg", "gs", "dg", "wg"):
         return gyro and (accel or name[:2] in ("dg", "wg"))
     return accel

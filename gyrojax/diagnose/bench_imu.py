@@ -9,7 +9,8 @@ keyed by each file's SHA-256, :func:`run` diagnoses the records without reading 
   warmup_transient), the out-of-library ``pose_step`` (an accelerometer bias that jumps at one pose
   change) and ``thermal_cycle`` (a 300-s sinusoidal gyro and accelerometer bias); with
   ``temperature=True`` every record carries a ``temp`` channel (a thermal cycle) and the
-  out-of-library ``thermal_bias`` makes one channel's bias follow it (the aux axis' check);
+  ``thermal_bias`` makes one channel's bias follow it (the catalogue's ``temperature`` effect
+  with one coefficient: the aux axis' check and the effect's attribution);
 - ``static``: one pose, 40 min at 50 Hz, for the noise-model effects (rate_random_walk,
   bias_instability, outliers, quantization) and time_drift / warmup_transient.
 
@@ -294,8 +295,9 @@ def _temperature(rng, t):
 
 
 def _thermal_bias(rng, p, temp, design, lam):
-    """Out-of-library bias following the record's temperature on one random channel, scaled so
-    that the nominal model leaves it noncentrality ``lam`` on the train samples."""
+    """A bias following the record's temperature on one random channel (the ``temperature``
+    effect with one coefficient, on the measured temperature), scaled so that the nominal model
+    leaves it noncentrality ``lam`` on the train samples."""
     ch = int(rng.integers(6))
     unit = np.zeros((temp.size, 6))
     unit[:, ch] = (temp - temp.mean()) * design.sigma[ch // 3]
@@ -312,7 +314,8 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: IMUDesign | None =
              families=None, temperature: bool = False) -> list[Path]:
     """Write ``n_cases`` blind IMU records into ``out_dir`` and the sealed manifest beside them.
     ``temperature``: every record carries a ``temp`` channel (a thermal cycle,
-    :func:`_temperature`), which the ``thermal_bias`` family (out of the catalogue) makes one
+    :func:`_temperature`), which the ``thermal_bias`` family (the ``temperature`` effect on one
+    channel) makes one
     channel's bias follow."""
     design = design or IMUDesign()
     sealer = _Sealer(out_dir, seed)
@@ -451,7 +454,9 @@ def tau_band_hit(where, family, level) -> dict:
 # the gyro coefficients of the two effects: no signature on a still stand whose nominal model
 # carries no Earth rate (the rate the gyro triad's scale and axes act on), driven by a table
 G6_PARAMS = {"scale_factor": ("sgx", "sgy", "sgz"),
-             "misalignment": ("mgxy", "mgxz", "mgyx", "mgyz", "mgzx", "mgzy")}
+             "misalignment": ("mgxy", "mgxz", "mgyx", "mgyz", "mgzx", "mgzy"),
+             "temperature": ("tgx", "tgy", "tgz")}
+G6_TEMP_NOISE_C = 0.01  # deg C, the temperature sensor's noise
 
 
 def generate_closed_loop(out_dir, n_cases: int, *, seed: int = 0,
@@ -460,8 +465,11 @@ def generate_closed_loop(out_dir, n_cases: int, *, seed: int = 0,
     """Sealed multi-position records for the G6 closed loop: per case a family of
     :data:`G6_PARAMS` in turn, the nominal biases drawn as in :func:`generate`, and the hidden
     effect's gyro coefficients in a random direction with RMS ``fraction`` x the catalogue's
-    prior scale (3000 ppm, 3 mrad). The manifest keeps the whole instrument (display units)."""
-    from ._imu import IMU_LIBRARY
+    prior scale (3000 ppm, 3 mrad, 10 deg/h/deg C). ``temperature`` records carry a ``temp``
+    channel on a ramp of 2-4 deg C over the record (warming up), where Delta T is a linear
+    function of time like the ``time_drift`` effect. The manifest keeps the whole instrument
+    (display units) and the ramp."""
+    from ._imu import _PRIOR_BY_UNIT, IMU_LIBRARY
 
     design = design or IMUDesign()
     sealer = _Sealer(out_dir, seed)
@@ -470,28 +478,57 @@ def generate_closed_loop(out_dir, n_cases: int, *, seed: int = 0,
     for i in range(n_cases):
         family = families[i % len(families)]
         names = G6_PARAMS[family]
+        prior = IMU_LIBRARY[family][1] or _PRIOR_BY_UNIT[_SPACE[names[0]].display_unit]
         b = rng.standard_normal(len(names))
-        b *= fraction * IMU_LIBRARY[family][1] / np.sqrt(np.mean(b ** 2))
+        b *= fraction * prior / np.sqrt(np.mean(b ** 2))
         instrument = {k: float(_SPACE[k].to_display(v)) for k, v in _truth_params(rng).items()
                       if k.startswith(("bg", "ba"))} | dict(zip(names, map(float, b)))
+        truth = {"family": family, "fraction_of_prior": fraction, "instrument": instrument}
+        if family == "temperature":
+            truth["ramp_c"] = float(rng.uniform(2.0, 4.0))
         key, sub = jax.random.split(key)
-        sealer.add(_simulate_g6(instrument, design.all_poses, design, sub),
-                   {"family": family, "fraction_of_prior": fraction, "instrument": instrument})
+        sealer.add(_simulate_g6(truth, design.all_poses, design, sub), truth)
     return sealer.close(design)
 
 
-def _simulate_g6(instrument, poses, design, key):
-    rec = simulate_imu(_SPACE.make(instrument, display=True), poses, rate_hz=design.rate_hz,
-                       turn_s=design.turn_s, latitude_deg=design.latitude_deg,
-                       arw=design.arw * units.DEG / 60, vrw=design.vrw / 60, key=key)
+def _g6_temperature(truth, design, label=None):
+    """The temperature (deg C, a function of time) of a ``temperature`` case on the record's
+    own test (``label`` None: the ramp over the record's poses, then held) or on the advised
+    one: :data:`~gyrojax.diagnose._imu.CYCLE_DESIGN` replaces the ramp by a cycle of period
+    half the record and amplitude half the ramp (the advisor's own assumption); other designs
+    keep the ramp, held at its end beyond it."""
+    from ._imu import CYCLE_DESIGN, CYCLE_MIN_C
+
+    if "ramp_c" not in truth:
+        return None
+    span = design.span_s + design.turn_s * (len(design.all_poses) - 1)
+    r = truth["ramp_c"]
+    if label == CYCLE_DESIGN:
+        amp = max(r / 2, CYCLE_MIN_C)
+        return lambda t: 25.0 + r / 2 + amp * np.sin(4 * np.pi * np.asarray(t) / span)
+    return lambda t: 25.0 + r * np.clip(np.asarray(t) / span, 0.0, 1.0)
+
+
+def _simulate_g6(truth, poses, design, key, label=None):
+    temp_c = _g6_temperature(truth, design, label)
+    k1, k2 = jax.random.split(key)
+    rec = simulate_imu(_SPACE.make(truth["instrument"], display=True), poses,
+                       rate_hz=design.rate_hz, turn_s=design.turn_s,
+                       latitude_deg=design.latitude_deg, arw=design.arw * units.DEG / 60,
+                       vrw=design.vrw / 60, key=k1, temperature_c=temp_c)
     attrs = {k: v for k, v in rec.conditions.items() if k != "static_s"}  # the detector's truth
-    return BenchRecord(rec.t, rec.y, rec.channels, tuple(sorted(attrs.items())))
+    y, chans = rec.y, rec.channels
+    if temp_c is not None:  # the temperature as its sensor reads it
+        temp = temp_c(np.asarray(rec.t)) + G6_TEMP_NOISE_C * np.asarray(
+            jax.random.normal(k2, (len(rec.t),)))
+        y, chans = jnp.concatenate([y, jnp.asarray(temp)[:, None]], axis=1), chans + ("temp",)
+    return BenchRecord(rec.t, y, chans, tuple(sorted(attrs.items())))
 
 
 def advised_poses(label: str, design: IMUDesign) -> list:
     """The poses of the test an IMU advice row names, from the record's ``design`` (the labels
     of :meth:`gyrojax.diagnose._imu.IMUProblem.designs`)."""
-    from ._imu import TABLE_DESIGN, table_runs
+    from ._imu import CYCLE_DESIGN, TABLE_DESIGN, table_runs
 
     if label == TABLE_DESIGN:
         ups, rates = table_runs()
@@ -501,6 +538,8 @@ def advised_poses(label: str, design: IMUDesign) -> list:
         return design.all_poses * 2
     if label.startswith("12 poses"):
         return cube_poses(12, design.dwell_s * len(design.all_poses) / 12, seed=1)
+    if label == CYCLE_DESIGN:
+        return design.all_poses
     raise ValueError(f"advice design {label!r} is not an IMU design this harness knows")
 
 
@@ -515,7 +554,7 @@ def closed_loop(case_dir, hidden: str, *, design: IMUDesign | None = None, seed:
     design = design or IMUDesign()
 
     def rerun(rec, truth, label, key):
-        return _simulate_g6(truth["instrument"], advised_poses(label, design), design, key)
+        return _simulate_g6(truth, advised_poses(label, design), design, key, label)
 
     return _harness.closed_loop(case_dir, "imu", hidden, rerun,
                                 lambda t: {k: t["instrument"][k] for k in G6_PARAMS[hidden]},

@@ -8,6 +8,7 @@ record). The measurement model (SI; ``t`` from the record start):
 
     f_meas = b_a + (I + diag(s_a) + M_a) f                + d_a t + w_a exp(-t / tau_w)
     w_meas = b_g + (I + diag(s_g) + M_g) k_E Omega_v u_k + G f + d_g t + w_g exp(-t / tau_w)
+             + k_Tg Delta T + k_Rg dT/dt              (accelerometer likewise)
 
 plus noise: white (ARW/VRW, nominal), and the noise-model effects quantization (angle/velocity
 quantization Q: a differenced white sequence), bias instability (flicker, simulated as a sum of
@@ -18,8 +19,10 @@ nuisance parameters of the fit). **Effects** (stable names, DESIGN.md): ``earth_
 1 = the full vertical Earth rate), ``scale_factor``, ``misalignment`` (6 off-diagonal terms per
 triad: the symmetric part is non-orthogonality, the antisymmetric part an axis rotation, which the
 poses absorb for the accelerometer), ``g_sensitivity`` (9 terms), ``time_drift``,
-``warmup_transient`` (decay time ``tau_w`` on a grid), ``quantization``, ``bias_instability``,
-``rate_random_walk``, ``outliers``.
+``warmup_transient`` (decay time ``tau_w`` on a grid), ``temperature`` and ``temperature_rate``
+(biases per ``Delta T`` and per ``dT/dt``, one per channel; they need the IMU's temperature:
+a ``temp*`` channel in the diagnosis, ``temperature_c`` in the simulator), ``quantization``,
+``bias_instability``, ``rate_random_walk``, ``outliers``.
 
 The IMU is algebraic on a static stand (no equations of motion), so :class:`IMURig` gives the
 parameter space and the measurement function, not a diffrax vector field; :func:`simulate_imu`
@@ -48,7 +51,9 @@ IMU_CHANNELS = ("wx", "wy", "wz", "ax", "ay", "az")
 AX = "xyz"
 OFF = ("xy", "xz", "yx", "yz", "zx", "zy")
 MEAN_EFFECTS = ("earth_rate", "scale_factor", "misalignment", "g_sensitivity", "time_drift",
-                "warmup_transient")
+                "warmup_transient", "temperature", "temperature_rate")
+THERMAL_EFFECTS = ("temperature", "temperature_rate")  # need a temperature channel
+T_REF_C = 25.0  # deg C, the reference of the temperature effect's Delta T
 NOISE_EFFECTS = ("quantization", "bias_instability", "rate_random_walk", "outliers")
 
 
@@ -83,6 +88,17 @@ def _space() -> ParameterSpace:
                  description=f"accelerometer {a} warm-up amplitude") for a in AX]
     ps += [param("tau_w", "s", "h", 600.0, null=600.0, effect="warmup_transient",
                  description="warm-up decay time (a grid in the diagnosis)")]
+    ps += [param(f"tg{a}", "rad/s/K", "deg/h/degC", dph, effect="temperature",
+                 description=f"gyro {a} bias per degree of temperature (Delta T from 25 deg C)")
+           for a in AX]
+    ps += [param(f"ta{a}", "m/s^2/K", "mg/degC", 0.1 * mg, effect="temperature",
+                 description=f"accelerometer {a} bias per degree of temperature") for a in AX]
+    ps += [param(f"rg{a}", "rad/K", "deg/h/(degC/min)", 60 * dph, effect="temperature_rate",
+                 description=f"gyro {a} bias per rate of temperature change (dT/dt)")
+           for a in AX]
+    ps += [param(f"ra{a}", "m/s/K", "mg/(degC/min)", 6 * mg, effect="temperature_rate",
+                 description=f"accelerometer {a} bias per rate of temperature change")
+           for a in AX]
     ps += [param("q_g", "rad", "arcsec", units.ARCSEC, effect="quantization",
                  description="gyro angle quantization Q (each axis)"),
            param("q_a", "m/s", "m/s", 1e-4, effect="quantization",
@@ -143,8 +159,8 @@ class IMURig(eqx.Module):
     def channels(self) -> tuple[str, ...]:
         return IMU_CHANNELS
 
-    def measure(self, params, up, t, conditions: IMUConditions, rate=None):
-        return imu_measure(params, up, t, conditions, rate)
+    def measure(self, params, up, t, conditions: IMUConditions, rate=None, thermal=None):
+        return imu_measure(params, up, t, conditions, rate, thermal)
 
 
 def _vec(params, prefix):
@@ -169,10 +185,11 @@ def accel_matrix(params):
     return _mat(params, "ma", "sa")
 
 
-def imu_measure(params, up, t, conditions: IMUConditions, rate=None):
+def imu_measure(params, up, t, conditions: IMUConditions, rate=None, thermal=None):
     """Noise-free outputs ``(n, 6)`` = ``wx wy wz ax ay az`` for body-frame up vectors ``up``
     ``(n, 3)`` (unit) at times ``t`` ``(n,)``; ``rate`` ``(n, 3)`` adds a body rotation rate
-    (turns between poses) to the Earth rate."""
+    (turns between poses) to the Earth rate; ``thermal`` ``(dT, dT/dt)``, two ``(n,)`` arrays
+    (K from the reference, K/s), drives the temperature effects (none if not given)."""
     up = jnp.asarray(up, float)
     t = jnp.asarray(t, float)[:, None]
     f = conditions.gravity * up
@@ -185,6 +202,10 @@ def imu_measure(params, up, t, conditions: IMUConditions, rate=None):
           + _vec(params, "wg") * decay)
     fm = (_vec(params, "ba") + f @ accel_matrix(params).T + _vec(params, "da") * t
           + _vec(params, "wa") * decay)
+    if thermal is not None:
+        d_t, rate_t = (jnp.asarray(x, float)[:, None] for x in thermal)
+        wm = wm + _vec(params, "tg") * d_t + _vec(params, "rg") * rate_t
+        fm = fm + _vec(params, "ta") * d_t + _vec(params, "ra") * rate_t
     return jnp.concatenate([wm, fm], axis=1)
 
 
@@ -240,7 +261,7 @@ _rotvecs_to_matrices = jax.jit(jax.vmap(rotvec_to_matrix))
 def simulate_imu(params, poses, *, rate_hz: float = 100.0, turn_s: float = 2.0,
                  latitude_deg: float = float("nan"), gravity: float = units.G0,
                  arw=0.0, vrw=0.0, key=None, noise=None,
-                 heading_deg: float | None = None) -> BenchRecord:
+                 heading_deg: float | None = None, temperature_c=None) -> BenchRecord:
     """A multi-position record: static poses joined by constant-rate turns of ``turn_s``.
 
     **Arguments:**
@@ -255,6 +276,9 @@ def simulate_imu(params, poses, *, rate_hz: float = 100.0, turn_s: float = 2.0,
       pose's :func:`pose_frame` ``e1`` about up at the pose's start and turns with the table
       (at minus the table rate in the body frame); the turns between poses carry none. Off by
       default, as in the diagnosis' model (a hand-placed stand records no heading).
+    - `temperature_c`: the IMU's temperature (deg C) as a function of time (s), where the
+      temperature effects act (``Delta T`` from ``T_REF_C`` and ``dT/dt``); the record does not
+      carry it (add a ``temp`` channel as a real test would measure it).
 
     **Returns:** a BenchRecord with conditions ``latitude_deg``, ``gravity_mps2``, ``rate_hz``,
     ``static_s`` (flat (t0, t1, ...) spans of the poses, turning ones included: the truth for
@@ -294,7 +318,11 @@ def simulate_imu(params, poses, *, rate_hz: float = 100.0, turn_s: float = 2.0,
     rate = np.concatenate(rates)
     t = np.arange(len(up)) * dt
     cond = IMUConditions(latitude_deg, gravity, rate_hz)
-    y = np.asarray(imu_measure(params, up, t, cond, rate))
+    thermal = None
+    if temperature_c is not None:
+        temp = np.asarray(temperature_c(t), float)
+        thermal = (temp - T_REF_C, np.gradient(temp, t))
+    y = np.asarray(imu_measure(params, up, t, cond, rate, thermal))
     if key is not None:
         y = y + np.asarray(imu_noise(key, params, len(t), rate_hz, arw, vrw, noise))
     attrs = {"latitude_deg": latitude_deg, "gravity_mps2": gravity, "rate_hz": rate_hz,
