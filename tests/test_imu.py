@@ -352,11 +352,9 @@ def test_cli_diagnoses_a_rate_table_csv_with_table_run_options(tmp_path, capsys)
     """A CSV carries no conditions: ``--table-run T0:T1:RATE`` gives the table's runs and the
     diagnosis attributes a hidden gyro scale factor (invisible on the still poses) with its
     refit within 4 standard errors of the truth."""
-    from gyrojax.diagnose._imu import table_runs
+    from gyrojax.diagnose.bench_imu import table_poses
 
-    ups, rates = table_runs()
-    poses = cube_poses(6, 20.0) + [Pose(tuple(map(float, u)), 20.0, float(np.degrees(r)))
-                                   for u, r in zip(ups, rates)]
+    poses = cube_poses(6, 20.0) + table_poses(20.0)
     truth = {"sgx": 2e-3, "sgy": -3e-3, "sgz": 1e-3}
     rec = simulate_imu(SPACE.make(BIAS | truth), poses, rate_hz=50.0, arw=0.3 * units.DEG / 60,
                        vrw=0.05 / 60, key=jax.random.PRNGKey(8))

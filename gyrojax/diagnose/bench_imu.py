@@ -105,13 +105,7 @@ class IMUDesign:
         if self.kind == "static":
             return [Pose((0.0, 0.0, 1.0), self.static_s)]
         poses = cube_poses(self.n_poses, self.dwell_s, seed=3)
-        if self.kind == "table":
-            from ._imu import table_runs
-
-            ups, rates = table_runs()
-            poses += [Pose(tuple(map(float, u)), self.dwell_s, float(np.degrees(r)))
-                      for u, r in zip(ups, rates)]
-        return poses
+        return poses + table_poses(self.dwell_s) if self.kind == "table" else poses
 
     @property
     def span_s(self):
@@ -139,6 +133,15 @@ class IMUDesign:
         """White per-sample std: gyro (rad/s), accelerometer (m/s^2)."""
         return (self.arw * units.DEG / 60 * math.sqrt(self.rate_hz),
                 self.vrw / 60 * math.sqrt(self.rate_hz))
+
+
+def table_poses(dwell_s: float) -> list:
+    """The advisor's rate-table runs (:func:`gyrojax.diagnose._imu.table_runs`) as poses of
+    ``dwell_s`` each."""
+    from ._imu import table_runs
+
+    ups, rates = table_runs()
+    return [Pose(tuple(map(float, u)), dwell_s, float(np.degrees(r))) for u, r in zip(ups, rates)]
 
 
 def _truth_params(rng):
@@ -450,9 +453,10 @@ def tau_band_hit(where, family, level) -> dict:
     return out
 
 
-# -- spec §6 G6: design advice, closed loop (cw/ccw rotation -> sf vs misalignment) -----------
-# the gyro coefficients of the two effects: no signature on a still stand whose nominal model
-# carries no Earth rate (the rate the gyro triad's scale and axes act on), driven by a table
+# -- spec §6 G6: design advice, closed loop (cw/ccw rotation; a temperature cycle) -------------
+# the hidden coefficients: the gyro scale factors and misalignments (no signature on a still
+# stand whose nominal model carries no Earth rate; a rate table drives them) and the gyro
+# temperature coefficients (on a warm-up ramp a time drift; a temperature cycle tells them)
 G6_PARAMS = {"scale_factor": ("sgx", "sgy", "sgz"),
              "misalignment": ("mgxy", "mgxz", "mgyx", "mgyz", "mgzx", "mgzy"),
              "temperature": ("tgx", "tgy", "tgz")}
@@ -528,12 +532,10 @@ def _simulate_g6(truth, poses, design, key, label=None):
 def advised_poses(label: str, design: IMUDesign) -> list:
     """The poses of the test an IMU advice row names, from the record's ``design`` (the labels
     of :meth:`gyrojax.diagnose._imu.IMUProblem.designs`)."""
-    from ._imu import CYCLE_DESIGN, TABLE_DESIGN, table_runs
+    from ._imu import CYCLE_DESIGN, TABLE_DESIGN
 
     if label == TABLE_DESIGN:
-        ups, rates = table_runs()
-        return design.all_poses + [Pose(tuple(map(float, u)), design.dwell_s,
-                                        float(np.degrees(r))) for u, r in zip(ups, rates)]
+        return design.all_poses + table_poses(design.dwell_s)
     if label == "record twice as long":
         return design.all_poses * 2
     if label.startswith("12 poses"):
