@@ -41,7 +41,7 @@ import zlib
 
 import numpy as np
 
-from ..analysis.observability import format_combination
+from ..analysis.observability import _pretty_basis, format_combination
 from ..record import BenchRecord
 from ._report import GapReport
 from ._stats import (
@@ -730,12 +730,21 @@ def _row_json(r: Screen, prob, excess, n, c, cells):
         "visible_fraction": r.visible_fraction, "identifiable": r.flag in
         ("visible", "weakly identifiable", "partly no signature"),
         "flag": r.flag,
-        "no_signature_directions": [format_combination(v, r.sig.names) for v in r.null_directions],
-        "confounded_directions": [format_combination(v, r.sig.names)
-                                  for v in r.confounded_directions],
+        "no_signature_directions": _named_subspace(r.null_directions, r.sig.names),
+        "confounded_directions": _named_subspace(r.confounded_directions, r.sig.names),
         "confounded_with": confounded_with, "aliases": aliases,
         "mde_over_prior": mde,
     }
+
+
+def _named_subspace(vectors, names) -> list[str]:
+    """A subspace spanned by coefficient ``vectors`` as named combinations, in reduced
+    row-echelon form: the same text for the same subspace (a 2-3 dimensional one, e.g. the
+    IMU's common rotation of both triads, has no preferred basis, and the eigenvectors that
+    find it turn with rounding)."""
+    if not vectors:
+        return []
+    return [format_combination(v, names) for v in _pretty_basis(np.array(vectors))]
 
 
 def _seen_somewhere(row, designs):

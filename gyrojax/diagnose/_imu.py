@@ -241,7 +241,7 @@ class IMUProblem:
         """Model (``which=0``) or its Jacobian in the free parameters ``names`` (``which=1``) at
         ``base`` with ``names`` set from ``vec`` (per-scale units; default zeros). One compiled
         function per poses count, conditions and channels serves every name set: it takes the
-        whole mean-model vector and the Jacobian's columns are selected here."""
+        whole mean-model vector, and the Jacobian is the tangents along ``names`` alone."""
         names = tuple(names)
         geo = tuple(jnp.asarray(g) for g in (design or self._geo(self.u0, self.omega)))
         n_pose = len(geo[0])
@@ -254,11 +254,21 @@ class IMUProblem:
         key = (n_pose, self.cond, tuple(int(i) for i in self.ch_idx))
         if key not in _COMPILED:
             _COMPILED[key] = _build(allp, *key)
-        out = np.asarray(_COMPILED[key][which](jnp.asarray(full), float(base["tau_w"]),
-                                               jnp.asarray(t), jnp.asarray(seg), geo,
-                                               self._thermal_at(t) if thermal is None
-                                               else thermal))
-        return out if which == 0 else out[..., idx]
+        model, jvps = _COMPILED[key]
+        args = (float(base["tau_w"]), jnp.asarray(t), jnp.asarray(seg), geo,
+                self._thermal_at(t) if thermal is None else thermal)
+        if which == 0:
+            return np.asarray(model(jnp.asarray(full), *args))
+        # one tangent per name, JVP_WIDTH at a time (the last chunk padded): one compilation
+        # per shape whatever the names, and no columns computed to be thrown away
+        cols = []
+        for a in range(0, max(len(idx), 1), JVP_WIDTH):
+            chunk = idx[a: a + JVP_WIDTH]
+            dirs = np.zeros((JVP_WIDTH, len(allp)))
+            dirs[np.arange(len(chunk)), chunk] = 1.0
+            cols.append(np.asarray(jvps(jnp.asarray(full), jnp.asarray(dirs), *args))
+                        [..., : len(chunk)])
+        return np.concatenate(cols, axis=-1)
 
     def _thermal_at(self, t):
         """``(Delta T, dT/dt)`` at times ``t``: the record's rows where ``t`` are its rows'
@@ -766,7 +776,15 @@ def _build(allp, n_pose, cond, ch_idx):
         h = (c * cw + s * sw)[:, None] * e1[seg] + (s * cw - c * sw)[:, None] * e2[seg]
         return imu_measure(p, u, t, cond, omega[seg][:, None] * u + h, thermal)[:, ch]
 
-    return jax.jit(f), jax.jit(jax.jacfwd(f))
+    def jvps(vec, dirs, *args):
+        """The Jacobian along the rows of ``dirs`` (one-hot: selected columns), last axis."""
+        return jax.vmap(lambda d: jax.jvp(lambda v: f(v, *args), (vec,), (d,))[1],
+                        out_axes=-1)(dirs)
+
+    return jax.jit(f), jax.jit(jvps)
+
+
+JVP_WIDTH = 32  # tangents per directional Jacobian call (the last chunk padded to it)
 
 
 CYCLE_MIN_C = 1.0  # deg C, the smallest amplitude of the advisor's temperature cycle
