@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -57,17 +58,23 @@ NOISE_MODELS = ("white", "white+flicker")
 
 
 @eqx.filter_jit
-def _screen_jacobians(rig, params, conditions, ts, free, k_tr, t_step, basis):
-    """:func:`trajectory_jacobian` along ``basis[g]`` (``k x len(free)`` directions) at the
-    ``g``-th (decay rate, onset) pair of the grid: ``(G, n c, k)``, one solve vmapped over the
-    grid. The screening puts every grid-dependent column in each ``basis[g]`` and spreads the
-    others over the grid (they do not depend on it), so one compiled solve gives all columns
-    once."""
-    def one(k, onset, dirs):
-        return trajectory_jacobian(rig, params | {"k_tr": k, "t_step": onset}, conditions, ts,
-                                   free, directions=dirs)
+def _screen_jacobians(rig, params, conditions, ts, free, vec_names, sizes):
+    """Forward sensitivities of the noise-free channels, ``(n c, k)`` in internal units, to the
+    scalar parameters ``free`` and then to every entry of the vector-valued ``vec_names`` (of
+    lengths ``sizes``): the transient's amplitudes, one per decay rate of ``params["k_tr"]``, and
+    the step's sizes, one per onset of ``params["t_step"]`` (the rig sums a transient or step
+    per entry). At null amplitudes the grid values do not move the trajectory, so one primal
+    solve (stopping at every onset) carries one tangent per column of every grid value."""
+    edges = np.cumsum([len(free), *sizes])
 
-    return jax.vmap(one)(k_tr, t_step, basis)
+    def fn(x):
+        p = dict(params) | {n: params[n] + x[i] for i, n in enumerate(free)}
+        p |= {n: params[n] + x[a:b] for n, a, b in zip(vec_names, edges[:-1], edges[1:])}
+        return integrate(rig, p, conditions, ts, adjoint=diffrax.ForwardMode(),
+                         throw=False).reshape(-1)
+
+    x0 = jnp.zeros(int(edges[-1]))
+    return jax.vmap(lambda v: jax.jvp(fn, (x0,), (v,))[1], out_axes=1)(jnp.eye(x0.size))
 
 
 @eqx.filter_jit
@@ -363,31 +370,28 @@ class ESGProblem:
         sp = self.screen_rig.param_space
         free = self._all_free()
         p = self._screen_params(params)
-        # the effect columns that depend on a grid value (decay time, onset) at every grid
-        # point; every other column once (at null effects the grid values do not move the
-        # trajectory), spread over the grid points: one vmapped solve of ~80 tangent columns
-        grid_names = {n for e in _GRID_EFFECTS if e in self.effects and e in sp.effects
-                      for n in sp.effect_names(e)}
-        gi = [i for i, n in enumerate(free) if n in grid_names]
-        fi = [i for i, n in enumerate(free) if n not in grid_names]
-        n_grid = len(TRANSIENT_TIMES_H) if gi else 1
-        per = -(-len(fi) // n_grid)
-        eye = np.eye(len(free))
-        basis = np.zeros((n_grid, len(gi) + per, len(free)))
-        for g in range(n_grid):
-            basis[g, : len(gi)] = eye[gi]
-            share = fi[g * per:(g + 1) * per]
-            basis[g, len(gi): len(gi) + len(share)] = eye[share]
-        k_tr = [1.0 / (h * 3600 * units.EARTH_RATE) for h in TRANSIENT_TIMES_H][:n_grid]
-        t_step = [h * 3600 * units.EARTH_RATE for h in self.step_grid_h][:n_grid]
-        jac = np.asarray(_screen_jacobians(self.screen_rig, p, cond, jnp.asarray(t), free,
-                                           jnp.asarray(k_tr), jnp.asarray(t_step),
-                                           jnp.asarray(basis)))
-        jg = jac[:, :, : len(gi)]
-        gcol = {free[i]: k for k, i in enumerate(gi)}
-        j0 = np.concatenate([jac[g, :, len(gi): len(gi) + len(fi[g * per:(g + 1) * per])]
-                             for g in range(n_grid)], axis=1)
-        col = {free[i]: k for k, i in enumerate(fi)}
+        # the effect columns that depend on a grid value (decay time, onset): the rig's
+        # transient amplitudes and step sizes as vectors, one entry per grid value; every
+        # other column once (at null effects the grid values do not move the trajectory)
+        grids = {"drift_transient": ("k_tr", [1.0 / (h * 3600 * units.EARTH_RATE)
+                                              for h in TRANSIENT_TIMES_H]),
+                 "drift_step": ("t_step", [h * 3600 * units.EARTH_RATE
+                                           for h in self.step_grid_h])}
+        vec = {}  # grid-dependent name -> its effect's grid length
+        for e, (gname, values) in grids.items():
+            if e in self.effects and e in sp.effects:
+                p[gname] = jnp.asarray(values)
+                for n in sp.effect_names(e):
+                    if n != gname:
+                        vec[n] = len(values)
+                        p[n] = jnp.zeros(len(values))
+        fi = tuple(n for n in free if n not in vec)
+        vnames = tuple(n for n in free if n in vec)
+        jac_all = np.asarray(_screen_jacobians(self.screen_rig, p, cond, jnp.asarray(t), fi,
+                                               vnames, tuple(vec[n] for n in vnames)))
+        col = {n: k for k, n in enumerate(fi)}
+        j0 = jac_all[:, : len(fi)]
+        start = dict(zip(vnames, len(fi) + np.cumsum([0] + [vec[n] for n in vnames[:-1]])))
         jn = j0[:, [col[n] for n in self.nominal_names]] * self.nominal_scales
         sigs = []
         for e in self.effects:
@@ -398,7 +402,8 @@ class ESGProblem:
             names = tuple(n for n in sp.effect_names(e) if n not in ("k_tr", "t_step"))
             factor = np.array([sp[n].display_factor for n in names]) * prior
             if e in _GRID_EFFECTS:
-                jac = jg[:, :, [gcol[n] for n in names]] * factor
+                jac = np.stack([jac_all[:, [start[n] + g for n in names]]
+                                for g in range(vec[names[0]])]) * factor
             else:
                 jac = j0[None, :, [col[n] for n in names]] * factor
             grid, gname, gunit = (), "", ""

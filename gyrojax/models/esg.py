@@ -189,16 +189,20 @@ class ESGRig(AbstractRig):
         return r.T @ u0, (r.T @ g0 if rotate_gravity else g0)
 
     def jump_times(self, params, conditions):
-        """The drift step's onset ``t_step`` (internal time)."""
-        return jnp.reshape(jnp.asarray(params["t_step"], dtype=float), (1,))
+        """The drift step's onset(s) ``t_step`` (internal time)."""
+        return jnp.reshape(jnp.asarray(params["t_step"], dtype=float), (-1,))
 
     def _drift(self, params, tau):
+        """The drift coefficients at internal time ``tau``. The transient's amplitudes with
+        ``k_tr``, and the step's sizes with ``t_step``, may also be vectors of one length: a sum
+        of transients (steps), one per entry (the diagnosis linearizes at every grid value of
+        the decay time and the onset in one solve)."""
         decay = jnp.exp(-params["k_tr"] * tau)
-        m = [params[n] + params[f"d{n}_0"] * decay for n in DRIFT_NAMES]
+        m = [params[n] + jnp.sum(params[f"d{n}_0"] * decay) for n in DRIFT_NAMES]
         # drift_ramp / drift_step on the case-fixed drifts; like the transient, they run from t = 0
         on = jnp.where(tau >= params["t_step"], 1.0, 0.0)
         for i, n in enumerate(("mc1", "mc2")):
-            m[4 + i] = m[4 + i] + params[f"r{n}"] * tau + params[f"s{n}"] * on
+            m[4 + i] = m[4 + i] + params[f"r{n}"] * tau + jnp.sum(params[f"s{n}"] * on)
         return m
 
     def _exact_rates(self, alpha, m, theta, u_zeta, g_zeta):
