@@ -126,19 +126,31 @@ def _tested_directions(j, jt):
     physics or round-off, and testing it would let such an effect claim any residual with an
     implausibly large coefficient. Returns ``(D (p, k), w (k,))``.
     """
+    return _directions(j, jt)[:2]
+
+
+def _directions(j, jt):
+    """:func:`_tested_directions` and :func:`_visibility` from one SVD of the raw signature
+    ``j`` and its projection ``jt``: ``(D, w, v_min, no-signature directions, confounded
+    directions)``."""
     p = j.shape[1]
-    if j.shape[0] < p:
+    if j.shape[0] < p:  # fewer rows than coefficients: pad so that vt spans all p directions
         pad = np.zeros((p - j.shape[0], p))
         j, jt = np.concatenate([j, pad]), np.concatenate([jt, pad])
-    _, s, vt = np.linalg.svd(j, full_matrices=False)
+    _, s, vt = np.linalg.svd(j, full_matrices=False)  # (p, p): never the m x m factor
     if s.size == 0 or s[0] == 0:
-        return np.zeros((p, 0)), np.zeros(0)
+        return np.zeros((p, 0)), np.zeros(0), 0.0, [vt[i] for i in range(p)], []
     keep = s > NULL_TOL * s[0]
+    null = [vt[i] for i in range(p) if not keep[i]]
     vr = vt[keep].T / s[keep]  # J vr has orthonormal columns
     b = jt @ vr
     w, evec = np.linalg.eigh((b.T @ b + (b.T @ b).T) / 2)
+    dirs = vr @ evec
     k = w >= VISIBLE_MIN
-    return vr @ evec[:, k], w[k]
+    w_vis = np.clip(w, 0.0, 1.0)
+    confounded = [dirs[:, i] / np.linalg.norm(dirs[:, i]) for i in range(len(w))
+                  if w_vis[i] < 1e-6]
+    return dirs[:, k], w[k], float(w_vis[0]), null, confounded
 
 
 def grid_log_bf(lms, dofs, lambda0) -> float:
@@ -261,25 +273,7 @@ def _visibility(j, u):
     ``(J~^T J~, J^T J)`` gives each direction's visible fraction ``1 - rho^2``. Returns
     ``(v_min, no-signature directions, structurally confounded directions (v < 1e-6))``.
     """
-    p = j.shape[1]
-    if j.shape[0] < p:  # fewer rows than coefficients: pad so that vt spans all p directions
-        j = np.concatenate([j, np.zeros((p - j.shape[0], p))])
-    _, s, vt = np.linalg.svd(j, full_matrices=False)  # (p, p): never the m x m factor
-    if s[0] == 0:
-        return 0.0, [vt[i] for i in range(p)], []
-    keep = s > NULL_TOL * s[0]
-    null = [vt[i] for i in range(p) if not keep[i]]
-    vr = vt[keep].T  # (p, r) signature-carrying coefficient directions
-    b = j @ vr
-    bt = _project(u, b)
-    # whiten by the raw information of the kept directions: b^T b = diag(s^2)
-    scale = 1.0 / s[keep]
-    m = (bt * scale).T @ (bt * scale)
-    w, evec = np.linalg.eigh((m + m.T) / 2)
-    w = np.clip(w, 0.0, 1.0)
-    dirs = vr @ (evec * scale[:, None])
-    confounded = [dirs[:, i] / np.linalg.norm(dirs[:, i]) for i in range(len(w)) if w[i] < 1e-6]
-    return float(w[0]), null, confounded
+    return _directions(j, _project(u, j))[2:]
 
 
 def visibility_flag(v: float, has_null: bool, visible_dims: int, n_confounded: int = 0) -> str:
@@ -303,7 +297,9 @@ class SignatureDesign:
       their information (:func:`_tested_directions`);
     - `bases`: per grid value, the orthonormal basis ``J~ D / sqrt(w)`` of the tested directions
       (``LM_g = |W_g^T e|^2``);
-    - `sup_null`: for grid effects, the bootstrap draws of ``sup_g LM_g`` under H0 (sorted).
+    - `sup_null`: for grid effects, the bootstrap draws of ``sup_g LM_g`` under H0 (sorted);
+    - `vis`: per grid value, :func:`_visibility`'s ``(v_min, no-signature directions,
+      confounded directions)``.
     """
 
     sig: Signature
@@ -312,6 +308,7 @@ class SignatureDesign:
     w: list
     bases: list
     sup_null: np.ndarray | None
+    vis: list
 
 
 def screen_designs(jn: np.ndarray, sigs: list[Signature], *, n_boot: int = 2000,
@@ -323,17 +320,18 @@ def screen_designs(jn: np.ndarray, sigs: list[Signature], *, n_boot: int = 2000,
     rng = np.random.default_rng(seed)
     out = []
     for sig in sigs:
-        jts, ds, ws, bases = [], [], [], []
+        jts, ds, ws, bases, vis = [], [], [], [], []
         for g in range(sig.jac.shape[0]):
             j = sig.jac[g]
             jt = _project(u, j)
-            d, w = _tested_directions(j, jt)
+            d, w, *v = _directions(j, jt)
             jts.append(jt)
             ds.append(d)
             ws.append(w)
+            vis.append(tuple(v))
             bases.append((jt @ d) / np.sqrt(w) if w.size else np.zeros((jt.shape[0], 0)))
         sup = _sup_null(bases, n_boot, rng) if len(bases) > 1 else None
-        out.append(SignatureDesign(sig, jts, ds, ws, bases, sup))
+        out.append(SignatureDesign(sig, jts, ds, ws, bases, sup, vis))
     return u, out
 
 
@@ -443,7 +441,7 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
         else:
             log_bf = float({"design": curve, "shape": shape, "zellner": zell}[prior][-1])
         p = float(_pvalue(des, lms[gi], dof))
-        v, null, conf = _visibility(sig.jac[gi], u)
+        v, null, conf = des.vis[gi]
         flag = visibility_flag(v, bool(null), sig.jac.shape[2] - len(null), len(conf))
         alias = cov_n @ (jn.T @ sig.jac[gi])
         alias_std = alias / se_n[:, None]
