@@ -571,16 +571,17 @@ def test_screening_grid_columns_equal_single_grid_value_sensitivities():
     _, sigs = prob._raw_jacobians(params, prob.conditions, prob.t)
     by = {s.name: s for s in sigs}
     sp = prob.screen_rig.param_space
-    p = prob._screen_params(params)
-    for e, gname, grid, g in (("drift_transient", "k_tr", TRANSIENT_TIMES_H, 2),
-                              ("drift_step", "t_step", prob.step_grid_h, 5)):
-        sig = by[e]
-        value = (1.0 / (grid[g] * 3600 * units.EARTH_RATE) if gname == "k_tr"
-                 else grid[g] * 3600 * units.EARTH_RATE)
-        want = np.asarray(trajectory_jacobian(prob.screen_rig, p | {gname: value},
-                                              prob.conditions, prob.t, sig.names))
-        want = want * np.array([sp[n].display_factor for n in sig.names]) * sig.prior_scale
-        assert np.abs(sig.jac[g] - want).max() < 1e-7 * np.abs(want).max(), e
+    gt, gs = 2, 5  # a decay time and an onset, both in one sensitivity solve (one compile)
+    tr, st = by["drift_transient"], by["drift_step"]
+    p = prob._screen_params(params) | {
+        "k_tr": 1.0 / (TRANSIENT_TIMES_H[gt] * 3600 * units.EARTH_RATE),
+        "t_step": prob.step_grid_h[gs] * 3600 * units.EARTH_RATE}
+    want = np.asarray(trajectory_jacobian(prob.screen_rig, p, prob.conditions, prob.t,
+                                          tr.names + st.names))
+    want = want * np.array([sp[n].display_factor for n in tr.names + st.names])
+    for sig, g, cols in ((tr, gt, want[:, : len(tr.names)]), (st, gs, want[:, len(tr.names):])):
+        cols = cols * sig.prior_scale
+        assert np.abs(sig.jac[g] - cols).max() < 1e-7 * np.abs(cols).max(), sig.name
 
 
 def test_refit_drop_equals_the_screened_score():
