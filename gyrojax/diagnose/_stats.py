@@ -115,8 +115,10 @@ def visible(u, j) -> bool:
     return bool(np.sum(_project(u, j) ** 2) >= VISIBLE_MIN * np.sum(j ** 2))
 
 
-def _tested_directions(j, jt):
-    """The coefficient directions an effect's score test uses, and their information.
+def _directions(j, jt):
+    """The coefficient directions an effect's score test uses, their information, and
+    :func:`_visibility`'s answer, from one SVD of the raw signature ``j`` and its projection
+    ``jt``.
 
     Raw-signature directions (relative singular value above ``NULL_TOL``) whose visible fraction
     ``1 - rho^2`` after the nominal projection is at least ``VISIBLE_MIN``: the generalised
@@ -124,15 +126,9 @@ def _tested_directions(j, jt):
     the visible fractions. Directions below ``VISIBLE_MIN`` are absorbed by the nominal model
     (structurally confounded); what little of them survives the projection is second-order
     physics or round-off, and testing it would let such an effect claim any residual with an
-    implausibly large coefficient. Returns ``(D (p, k), w (k,))``.
+    implausibly large coefficient. Returns ``(D (p, k), w (k,), v_min, no-signature
+    directions, confounded directions)``.
     """
-    return _directions(j, jt)[:2]
-
-
-def _directions(j, jt):
-    """:func:`_tested_directions` and :func:`_visibility` from one SVD of the raw signature
-    ``j`` and its projection ``jt``: ``(D, w, v_min, no-signature directions, confounded
-    directions)``."""
     p = j.shape[1]
     if j.shape[0] < p:  # fewer rows than coefficients: pad so that vt spans all p directions
         pad = np.zeros((p - j.shape[0], p))
@@ -294,7 +290,7 @@ class SignatureDesign:
     """The data-independent part of one signature's score test (see :func:`screen_designs`).
 
     - `jt`, `d`, `w`: per grid value, the projected Jacobian ``J~``, the tested directions and
-      their information (:func:`_tested_directions`);
+      their information (:func:`_directions`);
     - `bases`: per grid value, the orthonormal basis ``J~ D / sqrt(w)`` of the tested directions
       (``LM_g = |W_g^T e|^2``);
     - `sup_null`: for grid effects, the bootstrap draws of ``sup_g LM_g`` under H0 (sorted);
