@@ -50,7 +50,15 @@ ESG_LIBRARY = {
     "diurnal_line": ("line", 5.0),  # arcsec on each gimbal angle (pier tilt, HVAC)
 }
 TRANSIENT_TIMES_H = tuple(float(x) for x in np.geomspace(0.25, 3.0, 8))
-_GRID_EFFECTS = ("drift_transient", "drift_step")
+_GRID_PARAM = {"drift_transient": "k_tr", "drift_step": "t_step"}  # effect -> its grid parameter
+_GRID_EFFECTS = tuple(_GRID_PARAM)
+
+
+def _grid_value(effect: str, hours: float) -> float:
+    """The rig's grid parameter (internal units) at a grid value in hours: the transient's decay
+    rate ``k_tr`` from its decay time, the step's onset ``t_step``."""
+    tau = hours * 3600 * units.EARTH_RATE
+    return 1.0 / tau if effect == "drift_transient" else tau
 _MAX_ITER = 20  # Gauss-Newton steps of the nominal fit and of each refit
 # the nominal noise model of the gimbal angles: white, or white + flicker (GM sum) at a given
 # level or one estimated by REML on the full-model residual (:mod:`gyrojax.analysis.flicker`)
@@ -345,7 +353,7 @@ class ESGProblem:
         free = list(self.nominal_names)
         for e in self.effects:
             if e in sp.effects:
-                free += [n for n in sp.effect_names(e) if n not in ("k_tr", "t_step")]
+                free += [n for n in sp.effect_names(e) if n not in _GRID_PARAM.values()]
         return tuple(n for n in sp.names if n in free)
 
     def jacobians(self, params, sigma, *, conditions=None, t=None):
@@ -373,13 +381,11 @@ class ESGProblem:
         # the effect columns that depend on a grid value (decay time, onset): the rig's
         # transient amplitudes and step sizes as vectors, one entry per grid value; every
         # other column once (at null effects the grid values do not move the trajectory)
-        grids = {"drift_transient": ("k_tr", [1.0 / (h * 3600 * units.EARTH_RATE)
-                                              for h in TRANSIENT_TIMES_H]),
-                 "drift_step": ("t_step", [h * 3600 * units.EARTH_RATE
-                                           for h in self.step_grid_h])}
+        grids = {"drift_transient": TRANSIENT_TIMES_H, "drift_step": self.step_grid_h}
         vec = {}  # grid-dependent name -> its effect's grid length
-        for e, (gname, values) in grids.items():
+        for e, gname in _GRID_PARAM.items():
             if e in self.effects and e in sp.effects:
+                values = [_grid_value(e, h) for h in grids[e]]
                 p[gname] = jnp.asarray(values)
                 for n in sp.effect_names(e):
                     if n != gname:
@@ -399,7 +405,7 @@ class ESGProblem:
             if e == "diurnal_line":
                 sigs.append(self._line_signature(t, np.ones(len(self.channels)), prior))
                 continue
-            names = tuple(n for n in sp.effect_names(e) if n not in ("k_tr", "t_step"))
+            names = tuple(n for n in sp.effect_names(e) if n not in _GRID_PARAM.values())
             factor = np.array([sp[n].display_factor for n in names]) * prior
             if e in _GRID_EFFECTS:
                 jac = np.stack([jac_all[:, [start[n] + g for n in names]]
@@ -453,11 +459,9 @@ class ESGProblem:
             if sig.kind == "output":
                 line_on = True
                 continue
-            chosen |= {n for n in sp.effect_names(sig.name) if n not in ("k_tr", "t_step")}
-            if sig.name == "drift_transient":
-                p["k_tr"] = jnp.asarray(1.0 / (sig.grid[g] * 3600 * units.EARTH_RATE))
-            if sig.name == "drift_step":
-                p["t_step"] = jnp.asarray(sig.grid[g] * 3600 * units.EARTH_RATE)
+            chosen |= {n for n in sp.effect_names(sig.name) if n not in _GRID_PARAM.values()}
+            if sig.name in _GRID_PARAM:
+                p[_GRID_PARAM[sig.name]] = jnp.asarray(_grid_value(sig.name, sig.grid[g]))
         p, beta, cols = self._gauss_newton(p, chosen, sigma, line_on=line_on,
                                            what=f"the refit with {[s.name for s, _ in sig_choices]}")
         extra = (cols @ beta).reshape(self.y.shape) if line_on else None
