@@ -385,25 +385,18 @@ class IMUProblem:
     def _fit_ar(self, params, max_order: int = 5):
         """AR(p) per channel on the full-model train residual, p by BIC; stores the filters."""
         n = self.n_train
+        self._ar, self._ar_sigma, dof = ar_noise_model(
+            (self.y - self.predict(params))[:n], self.full_model_columns(params)[:n],
+            self.seg[:n], max_order)
+        self._ar_dof = float(min(dof))
+        self._mean_part = None
+
+    def full_model_columns(self, params):
+        """Raw Jacobian columns of the nominal model (biases, poses) and every catalogued mean
+        effect at ``params``: ``(rows, channels, k)``, the noise model's regressors."""
         names = self.nominal_names + self.pose_names
         jn = self._call(1, names, params, self.t, self.seg, self._vector(params, names))
-        je = self._full_effect_columns(params)
-        resid = self.y - self.predict(params)
-        self._ar, sig = [], []
-        for c in range(len(self.channels)):
-            x = np.concatenate([jn[:n, c], je[:n, c]], axis=1)
-            beta, *_ = np.linalg.lstsq(x, resid[:n, c], rcond=None)
-            r = resid[:n, c] - x @ beta
-            best = None
-            for p in range(max_order + 1):
-                phi, s2, m = _ar_fit(r, self.seg[:n], p)
-                bic = m * np.log(s2) + p * np.log(max(m, 2))
-                if best is None or bic < best[0]:
-                    best = (bic, phi, s2)
-            self._ar.append(best[1])
-            sig.append(np.sqrt(best[2]))
-        self._ar_sigma = np.array(sig)
-        self._mean_part = None
+        return np.concatenate([jn, self._full_effect_columns(params)], axis=2)
 
     def whiten(self, x):
         """Apply the per-channel AR prewhitening filters (within each pose) to ``x`` of shape
@@ -464,7 +457,7 @@ class IMUProblem:
             s = np.broadcast_to(np.asarray(self.noise_std, float), (len(self.channels),)).copy()
             return s, np.inf, "given"
         order = [len(p) for p in self._ar]
-        return self._ar_sigma, float(self.n_train - max(order) - 1), \
+        return self._ar_sigma, self._ar_dof, \
             f"AR prewhitening per channel, orders {order} (BIC), on the full-model residual"
 
     def standardize(self, resid, sigma):
@@ -860,6 +853,32 @@ def _relevant(name, channels):
     if name == "k_earth" or name[:2] in ("sg", "mg", "gs", "dg", "wg"):
         return gyro and (accel or name[:2] in ("dg", "wg"))
     return accel
+
+
+def ar_noise_model(resid, cols, seg, max_order: int = 5):
+    """Per channel: the residual of ``resid`` (``(n, c)``) after least squares on that channel's
+    columns ``cols[:, ch]`` (``(n, c, k)``), an AR(p) fit to it within the poses ``seg``, ``p <=
+    max_order`` by BIC. Returns ``(phis, sigma, dof)``: the filters, the innovation standard
+    deviations and their dof. The residual lost ``rank`` dof to the columns and ``p`` to the AR
+    fit, and the innovations' mean square is divided by what is left: the plain mean square puts
+    sigma^2 low by ``(rank + p) / n`` (3 % on the rate-table design D4), and every score test
+    on the whitened residual reads that as signal."""
+    phis, sig, dof = [], [], []
+    for ch in range(resid.shape[1]):
+        beta, _, rank, _ = np.linalg.lstsq(cols[:, ch], resid[:, ch], rcond=None)
+        r = resid[:, ch] - cols[:, ch] @ beta
+        best = None
+        for p in range(max_order + 1):
+            phi, s2, m = _ar_fit(r, seg, p)
+            bic = m * np.log(s2) + p * np.log(max(m, 2))
+            if best is None or bic < best[0]:
+                best = (bic, phi, s2, m)
+        _, phi, s2, m = best
+        free = max(m - len(phi) - int(rank), 1)
+        phis.append(phi)
+        sig.append(np.sqrt(s2 * m / free))
+        dof.append(free)
+    return phis, np.array(sig), dof
 
 
 def _ar_fit(r, seg, p):
