@@ -893,3 +893,35 @@ def test_builtin_record_gap_is_its_hidden_base_misalignment():
     assert rep.kind == "attributed" and rep.verdict["effects"] == ["base_misalignment"]
     rf = rep.refits[0]
     assert rf["reduction"] > 0.99 and rf["closure"]
+
+
+def test_remainder_after_library_equals_direct_least_squares_on_every_row():
+    """Spec §6 G9's truth side takes every fit in the coordinates of one QR; each remainder
+    equals the residual sum of squares of a least-squares fit on all rows (numpy's SVD solver),
+    the best one effect or pair of grid blocks, with a rank-deficient nominal block."""
+    from gyrojax.diagnose import bench
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    jn = rng.standard_normal((n, 8))
+    jn[:, 5] = 2 * jn[:, 4]
+    cols = {"a": [rng.standard_normal((n, 3))],
+            "b": [rng.standard_normal((n, 2)) for _ in range(3)],
+            "c": [np.c_[jn[:, :1], rng.standard_normal(n)]]}
+    d = rng.standard_normal(n) + jn[:, 0] + 3 * cols["b"][1][:, 0] + 2 * cols["a"][0][:, 1]
+
+    def rss(*blocks):
+        x = np.concatenate((jn,) + blocks, axis=1)
+        r = d - x @ np.linalg.lstsq(x, d, rcond=None)[0]
+        return float(r @ r)
+
+    single = {f: min(rss(b) for b in cols[f]) for f in cols}
+    pair = min(rss(a, b) for f, g in (("a", "b"), ("a", "c"), ("b", "c"))
+               for a in cols[f] for b in cols[g])
+    got = bench.remainder_after_library(d, jn, cols)
+    assert got["nominal_lambda"] == pytest.approx(rss(), rel=1e-10)
+    assert got["remainder_single_lambda"] == pytest.approx(min(single.values()), rel=1e-10)
+    assert got["closest_effect"] == min(single, key=single.get) == "b"
+    assert got["remainder_lambda"] == pytest.approx(min(pair, got["remainder_single_lambda"]),
+                                                    rel=1e-10)
+    assert got["remainder_lambda"] < 0.5 * got["remainder_single_lambda"]

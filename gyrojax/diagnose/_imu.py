@@ -12,6 +12,7 @@ on these rows exactly as for the other rigs, after **prewhitening**: an AR(p) no
 channel (order by BIC, p <= 5), fitted to the residual of the nominal model plus *every* catalogued
 mean effect (so a catalogued drift is not taken for coloured noise), filters the residual and every
 Jacobian column — the nominal model's colour would otherwise make every slow effect "significant".
+Its innovation variance is divided by the dof that fit leaves (:func:`ar_noise_model`).
 
 Noise-model effects are tested at the full sampling rate on the static residual of the same full
 model: ``bias_instability`` and ``rate_random_walk`` by the likelihood-ratio tests of the Whittle

@@ -26,6 +26,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg
 
 from .. import units
 from ..estimate.least_squares import trajectory_jacobian
@@ -590,10 +591,11 @@ def _rate(pairs, fn):
 
 
 def _basis(j):
-    """Orthonormal basis of the column span of ``j`` (rank-revealing QR)."""
-    q, r = np.linalg.qr(j)
-    keep = np.abs(np.diag(r)) > 1e-10 * np.abs(np.diag(r)).max()
-    return q[:, keep]
+    """Orthonormal basis of the column span of ``j`` (rank-revealing QR: column pivoting, so a
+    dependent or zero column does not turn a later column's direction)."""
+    q, r, _ = scipy.linalg.qr(j, mode="economic", pivoting=True)
+    d = np.abs(np.diag(r))
+    return q[:, : int(np.sum(d > 1e-10 * d[0]))] if d.size and d[0] > 0 else q[:, :0]
 
 
 def remainder_after_library(d, jn, cols) -> dict:
@@ -602,7 +604,20 @@ def remainder_after_library(d, jn, cols) -> dict:
     the diagnosis can make (one effect, or a pair: its greedy second step) are fitted.
     ``cols``: family -> list of column blocks (one per grid value). Returns the
     nominal-projected lambda, the remainder after the best fit (one effect or a pair), after
-    the best single effect, and that effect."""
+    the best single effect, and that effect.
+
+    Every fit below projects ``d`` on ``jn`` and a few blocks: all are taken in the coordinates
+    of one QR of ``[jn, every block, d]`` (an isometry of their span), so each fit is a small
+    dense problem instead of a QR over every train row (the same numbers to rounding)."""
+    blocks = [b for fam in cols for b in cols[fam]]
+    m = np.concatenate([jn] + blocks + [np.asarray(d)[:, None]], axis=1)
+    if m.shape[0] > m.shape[1]:
+        r = np.linalg.qr(m, mode="r")
+        k = jn.shape[1]
+        jn, d, it = r[:, :k], r[:, -1], iter(range(len(blocks)))
+        sizes = np.cumsum([k] + [b.shape[1] for b in blocks])
+        cols = {fam: [r[:, sizes[i]:sizes[i + 1]] for i in (next(it) for _ in cols[fam])]
+                for fam in cols}
 
     def left(extra):
         q = _basis(np.concatenate([jn] + list(extra), axis=1))
