@@ -18,9 +18,11 @@ from gyrojax.diagnose._stats import (
     map_design,
     map_statistics,
     nominal_basis,
+    overlapping_allan_form,
     quantization_score,
     tau_band_moments,
     white_allan_moments,
+    white_overlapping_allan_moments,
 )
 
 N, C = 600, 2
@@ -224,6 +226,20 @@ def test_white_allan_moments_match_monte_carlo():
     mean, var = white_allan_moments(k)
     assert np.mean(q) == pytest.approx(mean, rel=0.01)
     assert np.var(q) == pytest.approx(var, rel=0.04)
+
+
+def test_white_overlapping_allan_moments_match_monte_carlo():
+    """The exact null mean and variance of the fully overlapping Allan quadratic form of unit
+    white noise against 20,000 simulated records (n = 64 samples; m = 3, 16 and 32: window
+    offsets below m, from m to 2m - 1, and a single window pair)."""
+    e = np.random.default_rng(14).standard_normal((20_000, 64))
+    for m in (3, 16, 32):
+        q = np.array([overlapping_allan_form(x, m) for x in e])
+        mean, var = white_overlapping_allan_moments(64, m)
+        assert np.mean(q) == pytest.approx(mean, rel=0.015)
+        assert np.var(q) == pytest.approx(var, rel=0.05)
+    # one window pair is one squared difference of two sums of m: chi^2_1, variance 2
+    assert white_overlapping_allan_moments(64, 32) == (1.0, 2.0)
 
 
 def test_full_rate_tau_cells_null_rate_and_localisation():

@@ -712,12 +712,39 @@ def white_allan_moments(k: int) -> tuple[float, float]:
     return float(k - 1), 2.0 * ((k - 1) + 0.5 * (k - 2))
 
 
+def overlapping_allan_form(x: np.ndarray, m: int) -> float:
+    """``Q = sum_j (S_{j+m} - S_j)^2 / (2 m)`` over *every* window start ``j`` (``S_j`` the sum
+    of ``x[j:j+m]``): ``Q / (n - 2m + 1)`` is the fully overlapping Allan variance at ``tau = m
+    tau_0`` over its white-noise value ``1 / m`` (unit noise)."""
+    cs = np.concatenate([[0.0], np.cumsum(np.asarray(x, float))])
+    s = cs[m:] - cs[:-m]
+    return float(np.sum((s[m:] - s[:-m]) ** 2) / (2 * m))
+
+
+def white_overlapping_allan_moments(n: int, m: int) -> tuple[float, float]:
+    """Mean and variance of :func:`overlapping_allan_form` on ``n`` samples of unit white noise:
+    ``Q = |D z|^2`` with ``L = n - 2m + 1`` rows ``d_j`` of unit norm, whose inner products
+    depend on the offset ``k = |i - j|`` alone: ``(2m - 3k) / (2m)`` below ``m``, ``-(2m - k) /
+    (2m)`` from ``m`` to ``2m - 1``, 0 beyond. So ``E Q = L`` and ``var Q = 2 |D D'|_F^2 =
+    2 (L + 2 sum_k (L - k) c_k^2)``."""
+    big_l = n - 2 * m + 1
+    if big_l < 1:
+        raise ValueError(f"white_overlapping_allan_moments: n={n} < 2 m = {2 * m}")
+    k = np.arange(1, min(2 * m, big_l))
+    c = np.where(k < m, (2 * m - 3 * k) / (2 * m), -(2 * m - k) / (2 * m))
+    return float(big_l), 2.0 * (big_l + 2.0 * float(np.sum((big_l - k) * c * c)))
+
+
 def full_rate_tau_cells(pieces: dict, channels: tuple[str, ...], tau0: float, *,
-                        min_clusters: int = 9) -> list[dict]:
-    """Tau band x channel at the full sampling rate: the non-overlapping Allan variance of
-    residual ``pieces`` (channel index -> list of 1-D arrays, e.g. the static intervals of one
-    record, sampled every ``tau0`` s) over its value for white noise (below), at
-    ``tau = m tau0`` for ``m = 1, 2, 4, ...`` while the pieces hold ``>= min_clusters`` clusters.
+                        min_clusters: int = 9, overlapping: bool = True) -> list[dict]:
+    """Tau band x channel at the full sampling rate: the fully overlapping Allan variance
+    (``overlapping=False``: the non-overlapping one) of residual ``pieces`` (channel index ->
+    list of 1-D arrays, e.g. the static intervals of one record, sampled every ``tau0`` s) over
+    its value for white noise (below), at ``tau = m tau0`` for ``m = 1, 2, 4, ...`` while the
+    pieces hold ``>= min_clusters`` non-overlapping clusters. The overlapping form uses every
+    window start: its equivalent dof are ~2x the non-overlapping form's (2.03x at 9 clusters),
+    and a rate random walk's smallest-p cell landed within 3 octaves of the longest tau in 0.91
+    of 45 static-design cases (lambda 32-128), 0.73 with the non-overlapping form.
 
     This is the axis that localises noise-model effects whose excess lives below a gap map's
     row spacing (quantization at the shortest tau) as well as the slow ones (bias instability,
@@ -747,8 +774,13 @@ def full_rate_tau_cells(pieces: dict, channels: tuple[str, ...], tau0: float, *,
             clusters = sum(k for _, k in use)
             if clusters < min_clusters:
                 break
-            q = sum(float(allan_form(p[None, :, None] / s, m)[0, 0]) for p, _ in use)
-            mom = np.array([white_allan_moments(k) for _, k in use]).sum(0)
+            if overlapping:
+                q = sum(overlapping_allan_form(p / s, m) for p, _ in use)
+                mom = np.array([white_overlapping_allan_moments(p.size, m)
+                                for p, _ in use]).sum(0)
+            else:
+                q = sum(float(allan_form(p[None, :, None] / s, m)[0, 0]) for p, _ in use)
+                mom = np.array([white_allan_moments(k) for _, k in use]).sum(0)
             # Q / s^2 = N z'Az / z'z is independent of z'z (spherical symmetry): its mean is
             # tr A and its variance (N 2 tr A^2 - 2 (tr A)^2) / (N + 2), well below the
             # known-level 2 tr A^2 at the short bands, where Q and s^2 share their samples
