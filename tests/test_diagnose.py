@@ -919,6 +919,7 @@ def test_remainder_after_library_equals_direct_least_squares_on_every_row():
     pair = min(rss(a, b) for f, g in (("a", "b"), ("a", "c"), ("b", "c"))
                for a in cols[f] for b in cols[g])
     got = bench.remainder_after_library(d, jn, cols)
+    assert all(b.shape[0] == n for v in cols.values() for b in v)  # the caller's blocks kept
     assert got["nominal_lambda"] == pytest.approx(rss(), rel=1e-10)
     assert got["remainder_single_lambda"] == pytest.approx(min(single.values()), rel=1e-10)
     assert got["closest_effect"] == min(single, key=single.get) == "b"

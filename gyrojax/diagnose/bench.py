@@ -613,11 +613,12 @@ def remainder_after_library(d, jn, cols) -> dict:
     m = np.concatenate([jn] + blocks + [np.asarray(d)[:, None]], axis=1)
     if m.shape[0] > m.shape[1]:
         r = np.linalg.qr(m, mode="r")
-        k = jn.shape[1]
-        jn, d, it = r[:, :k], r[:, -1], iter(range(len(blocks)))
-        sizes = np.cumsum([k] + [b.shape[1] for b in blocks])
-        cols = {fam: [r[:, sizes[i]:sizes[i + 1]] for i in (next(it) for _ in cols[fam])]
-                for fam in cols}
+        edges = np.cumsum([jn.shape[1]] + [b.shape[1] for b in blocks])
+        jn, d, in_r, at = r[:, :edges[0]], r[:, -1], {}, 0
+        for fam, fam_blocks in cols.items():
+            in_r[fam] = [r[:, edges[at + i]:edges[at + i + 1]] for i in range(len(fam_blocks))]
+            at += len(fam_blocks)
+        cols = in_r
 
     def left(extra):
         q = _basis(np.concatenate([jn] + list(extra), axis=1))
