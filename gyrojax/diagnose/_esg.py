@@ -53,16 +53,17 @@ TRANSIENT_TIMES_H = tuple(float(x) for x in np.geomspace(0.25, 3.0, 8))
 _GRID_PARAM = {"drift_transient": "k_tr", "drift_step": "t_step"}  # effect -> its grid parameter
 _GRID_EFFECTS = tuple(_GRID_PARAM)
 
+_MAX_ITER = 20  # Gauss-Newton steps of the nominal fit and of each refit
+# the nominal noise model of the gimbal angles: white, or white + flicker (GM sum) at a given
+# level or one estimated by REML on the full-model residual (:mod:`gyrojax.analysis.flicker`)
+NOISE_MODELS = ("white", "white+flicker")
+
 
 def _grid_value(effect: str, hours: float) -> float:
     """The rig's grid parameter (internal units) at a grid value in hours: the transient's decay
     rate ``k_tr`` from its decay time, the step's onset ``t_step``."""
     tau = hours * 3600 * units.EARTH_RATE
     return 1.0 / tau if effect == "drift_transient" else tau
-_MAX_ITER = 20  # Gauss-Newton steps of the nominal fit and of each refit
-# the nominal noise model of the gimbal angles: white, or white + flicker (GM sum) at a given
-# level or one estimated by REML on the full-model residual (:mod:`gyrojax.analysis.flicker`)
-NOISE_MODELS = ("white", "white+flicker")
 
 
 @eqx.filter_jit
