@@ -19,8 +19,10 @@
   white ``N^2/dt``; quantization ``4 sin^2(pi f dt) Q^2/dt^2`` (a differenced white angle error);
   bias instability (flicker) ``B^2/(2 pi f dt)``; rate random walk ``K^2 dt / (4 sin^2(pi f dt))``
   — the two-sided IEEE densities divided by ``dt`` at low frequency, consistent with the Allan
-  forms above. Each term gets a likelihood-ratio test against the model without it (boundary:
-  p = P(chi2_1 > LR)/2), and its confidence interval from the observed information.
+  forms above; fitted by :func:`whittle_ml` (projected Fisher scoring, coefficients >= 0). Each
+  term gets a likelihood-ratio test against the model without it (p from the boundary law
+  P(chi2_1 > LR)/2, or with ``null_draws`` from a parametric-bootstrap law of the fitted null,
+  :func:`null_periodograms`), and its confidence interval from the observed information.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from scipy import optimize, stats
 
 __all__ = ["AllanDeviation", "allan_deviation", "equivalent_dof", "NoiseTerms",
            "fit_noise_terms", "octave_clusters", "periodogram", "fit_noise_likelihood",
-           "NoiseLikelihoodFit", "term_spectra"]
+           "NoiseLikelihoodFit", "term_spectra", "whittle_ml", "null_periodograms"]
 
 NOISE_ALPHA = {"white_pm": 2, "flicker_pm": 1, "white_fm": 0, "flicker_fm": -1, "rw_fm": -2}
 """Power-law exponent of each noise type in fractional-frequency terms. For a gyro the rate is
@@ -209,10 +211,11 @@ def periodogram(pieces, rate_hz: float, *, taper: bool = True):
 
 
 LR_ZERO = 1e-6
+"""Likelihood ratios below this are the fit's tolerance (:func:`whittle_ml`), read as 0."""
+
 NULL_SELECT_LR = 1.0
 """A nuisance term whose likelihood ratio in a bootstrap null's fit is below this is set to its
 boundary there (:func:`_selected_null`)."""
-"""Likelihood ratios below this are the fit's tolerance (:func:`whittle_ml`), read as 0."""
 
 HANN_DOF_FACTOR = 35.0 / 18.0
 """n sum(w^4) / (sum w^2)^2 for the Hann window: the Whittle log-likelihood over the tapered
@@ -247,8 +250,10 @@ class NoiseLikelihoodFit:
 
 
 def _bin_plan(f, keep: int = 256, n_bins: int = 1500):
-    """Sort order, bin starts and counts of :func:`_bin` for frequencies ``f`` (``None`` for
-    the starts: every ordinate its own bin)."""
+    """Sort order, bin starts and counts for averaging periodogram ordinates in geometrically
+    growing bins above the lowest ``keep`` frequencies (``None`` for the starts: every ordinate
+    its own bin). The Whittle sum over the original ordinates is ``sum count * (log S + I_bar /
+    S)`` to first order, at a fraction of the cost for long records."""
     order = np.argsort(f)
     n = f.size
     if n <= keep + n_bins:
@@ -264,15 +269,6 @@ def _apply_bins(plan, x):
     order, edges, counts = plan
     x = np.asarray(x)[..., order]
     return x if edges is None else np.add.reduceat(x, edges, axis=-1) / counts
-
-
-def _bin(f, pk, keep: int = 256, n_bins: int = 1500):
-    """Average periodogram ordinates in geometrically growing bins above the lowest ``keep``
-    frequencies: returns bin frequencies (mean), mean ordinates and counts. The Whittle sum over
-    the original ordinates is ``sum count * (log S + I_bar / S)`` to first order, at a fraction of
-    the cost for long records."""
-    plan = _bin_plan(f, keep, n_bins)
-    return _apply_bins(plan, f), _apply_bins(plan, pk), plan[2]
 
 
 def _whittle_nll(c, h, pn, w):
