@@ -138,3 +138,11 @@ def test_bootstrap_boundary_law_holds_the_level_where_the_boundary_law_is_conser
     boot, boundary = rej["boot"] / 300, rej["boundary"] / 300
     assert np.all((boot >= 0.025) & (boot <= 0.085)), boot
     assert boundary[1] < 0.02, boundary
+
+
+def test_noise_likelihood_bad_options_name_the_field():
+    x = np.random.default_rng(0).standard_normal(4000)
+    with pytest.raises(ValueError, match=r"unknown noise term\(s\) \['flicker'\]"):
+        spectral.fit_noise_likelihood(x, 50.0, bootstrap_terms=("flicker",))
+    with pytest.raises(ValueError, match="null_draws=-1"):
+        spectral.fit_noise_likelihood(x, 50.0, null_draws=-1)

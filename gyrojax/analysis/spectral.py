@@ -411,10 +411,13 @@ def fit_noise_likelihood(pieces, rate_hz: float, *, terms=LIK_TERMS,
     bend the spectrum, and an unbounded fit lets that misfit drive the slow terms (on the ADIS16405
     records it inflated B four-fold against the Allan fit). Give ``f_max=rate_hz / 2`` for a
     sensor known to be white up to Nyquist (and to test quantization, which lives there)."""
-    bad = [t for t in terms if t not in LIK_TERMS]
+    bad = [t for t in (*terms, *(bootstrap_terms or ())) if t not in LIK_TERMS]
     if bad:
         raise ValueError(f"unknown noise term(s) {bad}; the likelihood fit knows "
                          f"{', '.join(LIK_TERMS)}")
+    if null_draws < 0:
+        raise ValueError(f"null_draws={null_draws}: give 0 (the boundary law) or a number of "
+                         "bootstrap draws (200 is the default)")
     if isinstance(pieces, np.ndarray) and pieces.ndim == 1:
         pieces = [pieces]
     f_max = rate_hz / 10 if f_max is None else f_max
