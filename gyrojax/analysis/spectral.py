@@ -497,17 +497,12 @@ def _selected_null(h, pn, w, rest, c_rest, nll_rest):
     threshold trades the two (docs/notes.md: on 150 tuning records each, rejection at 0.05 of
     the rate random walk's null test with white noise / with a weak bias instability was
     0.047 / 0.067 at a threshold of 1, 0.053 / 0.107 at 2.71, 0.053 / 0.167 at ``log n``)."""
-    kappa2 = NULL_SELECT_LR
     white = LIK_TERMS.index("angle_random_walk")
-    keep = list(rest)
-    for j, i in enumerate(rest):
-        if i == white or c_rest[j] <= 0:
-            if c_rest[j] <= 0:
-                keep.remove(i)
-            continue
+    keep = [i for j, i in enumerate(rest) if c_rest[j] > 0]
+    for i in [i for i in keep if i != white]:
         others = [x for x in rest if x != i]
         _, n_wo, _ = whittle_ml(h[:, others], pn, w, c_rest[[rest.index(x) for x in others]])
-        if (n_wo[0] - nll_rest) * 2 / HANN_DOF_FACTOR < kappa2:
+        if (n_wo[0] - nll_rest) * 2 / HANN_DOF_FACTOR < NULL_SELECT_LR:
             keep.remove(i)
     null = np.zeros(h.shape[1])
     if keep == list(rest):
