@@ -15,7 +15,11 @@ host devices, ``XLA_FLAGS=--xla_force_host_platform_device_count``, can deadlock
 batched LAPACK: docs/notes.md.) The scipy loop runs in one process; the table also gives the
 ratio per core against an ideal one-process-per-core scipy pool.
 
-Run:  python benchmarks/esg_montecarlo.py [--quick] [--out benchmarks/RESULTS.md]
+``--accelerator`` instead times the same trial on ``jax.devices()[0]`` (a GPU where JAX has one)
+at several chunk sizes, the regression vmapped over the chunk, into the section
+``esg_accelerator``: extra figures, gyrojax targets the CPU.
+
+Run:  python benchmarks/esg_montecarlo.py [--quick] [--accelerator] [--out benchmarks/RESULTS.md]
 """
 
 from __future__ import annotations
@@ -220,11 +224,11 @@ def bench_montecarlo(ns, scipy_trials):
     return rows, scipy_rate, agree, scipy_trials, adaptive
 
 
-def time_monte_carlo(one, n, devices=None, before_timing=None):
-    """(trials/s, compile s) of ``n`` trials in chunks of 512 on ``devices`` (default: all);
-    ``before_timing`` is called between the compile and the timed run."""
+def time_monte_carlo(one, n, devices=None, before_timing=None, chunk=512):
+    """(trials/s, compile s) of ``n`` trials in chunks of ``chunk`` on ``devices`` (default:
+    all); ``before_timing`` is called between the compile and the timed run."""
     dn = draws(n, seed=2, noise=False)
-    chunk = min(n, 512)
+    chunk = min(n, chunk)
     t0 = time.perf_counter()
     monte_carlo(one, jax.tree.map(lambda x: x[:chunk], dn), chunk_size=chunk, devices=devices,
                 vectorized=True)  # compile
@@ -331,6 +335,59 @@ def bench_gauss_newton(n_fits):
     return gj_rate, gj_batched_rate, sp_rate, compile_s, agree, n_sp
 
 
+def bench_accelerator(ns, configs, scipy_trials):
+    """The Monte Carlo on ``jax.devices()[0]`` (a GPU where there is one) at each ``(chunk,
+    identify_batch)`` of ``configs`` for each N of ``ns``; the scipy loop on this machine's CPU
+    in the same run. Rows ``(chunk, identify_batch, n, trials/s, compile s)``; scipy trials/s;
+    the max drift difference (deg/h) between the two on the same draws."""
+    cond = gj.ESGConditions.from_scheme(SCHEME, LAT)
+    chi, lat = np.asarray(cond.chi), LAT * units.DEG
+    d = draws(scipy_trials + 1, seed=1)
+    m, a0 = np.full(6, 0.01), np.array([0.0, 30 * units.DEG])
+    np_regression(np_simulate(m, d["theta"][-1], d["dchi"][-1], a0, chi, lat), chi, lat)
+    t0 = time.perf_counter()
+    est_np = [np_regression(np_simulate(m, d["theta"][i], d["dchi"][i], a0, chi, lat)
+                            + d["noise"][i], chi, lat) for i in range(scipy_trials)]
+    scipy_rate = scipy_trials / (time.perf_counter() - t0)
+    dev = jax.devices()[:1]
+    est_gj = monte_carlo(gyrojax_trial_fn(), jax.tree.map(lambda x: x[:scipy_trials], d),
+                         chunk_size=scipy_trials, devices=dev, vectorized=True)
+    agree = float(np.max(np.abs(np.asarray(est_gj)[:, :6] - np.array(est_np)[:, :6]))
+                  * units.EARTH_RATE_DEG_PER_HOUR)
+    rows = []
+    for chunk, batch in configs:
+        one = gyrojax_trial_fn(identify_batch=batch)
+        for n in ns:
+            if any(r[0] == min(chunk, n) and r[1] == min(batch, chunk, n) and r[2] == n
+                   for r in rows):
+                continue  # a larger chunk clipped to a small N: a configuration already timed
+            rate, compile_s = time_monte_carlo(one, n, devices=dev, chunk=chunk)
+            rows.append((min(chunk, n), min(batch, chunk, n), n, rate, compile_s))
+            print(f"chunk {min(chunk, n)} identify batch {min(batch, chunk, n)} N {n}: {rate:,.0f} trials/s "
+                  f"({rate / scipy_rate:,.0f}x scipy), compile {compile_s:.1f} s", flush=True)
+    return rows, scipy_rate, agree
+
+
+def accelerator_section(rows, scipy_rate, agree, scipy_trials):
+    dev = jax.devices()[0]
+    lines = [
+        "## ESG Monte Carlo on an accelerator (extra: `benchmarks/esg_montecarlo.py "
+        "--accelerator`)", "",
+        f"{machine_line()} Device kind: {dev.device_kind}. The same trial as the table above "
+        "(exact model on the fixed Dopri8 grid, 1 arcsec noise, 11-column regression) on one "
+        "accelerator; the scipy loop on the same machine's CPU in the same run. gyrojax targets "
+        "the CPU: these figures are extra, not the baseline.", "",
+        "| chunk | regression sub-batch | N trials | gyrojax trials/s | scipy loop trials/s | "
+        "ratio | compile s |", "|---|---|---|---|---|---|---|"]
+    for chunk, batch, n, rate, compile_s in rows:
+        lines.append(f"| {chunk:,} | {batch:,} | {n:,} | {rate:,.0f} | {scipy_rate:,.1f} | "
+                     f"{rate / scipy_rate:,.0f}x | {compile_s:.1f} |")
+    lines += ["", f"scipy loop timed on {scipy_trials} trials; max difference of the drift "
+              f"estimates between the two implementations on the same draws: {agree:.1e} deg/h.",
+              ""]
+    return lines
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
@@ -338,9 +395,20 @@ def main(argv=None):
     ap.add_argument("--all-cores-probe", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--barrier", help=argparse.SUPPRESS)
     ap.add_argument("--processes", type=int, default=1, help=argparse.SUPPRESS)
+    ap.add_argument("--accelerator", action="store_true",
+                    help="time the Monte Carlo on jax.devices()[0] (e.g. a GPU) at several chunk "
+                         "sizes instead, into the section 'esg_accelerator' (extra figures)")
     args = ap.parse_args(argv)
     if args.all_cores_probe:  # a subprocess of all_cores_run
         _probe(args.all_cores_probe, args.barrier, args.processes)
+        return
+    if args.accelerator:
+        ns = (1_000, 10_000) if args.quick else (1_000, 10_000, 100_000)
+        configs = (((512, 8), (2_000, 2_000)) if args.quick else
+                   ((512, 8), (512, 512), (10_000, 10_000), (25_000, 25_000)))
+        sc = 5 if args.quick else 30
+        rows, srate, agree = bench_accelerator(ns, configs, sc)
+        publish(args.out, "esg_accelerator", accelerator_section(rows, srate, agree, sc))
         return
     ns = (1, 100) if args.quick else (1, 100, 10_000)
     rows, srate, agree, nsc, adaptive = bench_montecarlo(ns, scipy_trials=5 if args.quick else 30)
