@@ -34,6 +34,8 @@ calibration is what is being checked; the held-out gap is corrected for those do
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -611,24 +613,50 @@ class IMUProblem:
         n = self.n_train
         pieces = {c: [] for c in range(len(self.channels))}
         nominal = {c: [] for c in range(len(self.channels))}
+        where = []  # (sample indices, block rows) of each piece, the same for every channel
+        for k, s in enumerate(self.segments):
+            rows = np.flatnonzero(self.seg == k)
+            idx = np.arange(s.i0, s.i1)
+            idx = idx[(~bad[idx]) & (t_all[idx] <= t_split)]
+            if rows.size >= 2 and idx.size >= 64:
+                where.append((idx, rows))
+        columns = {}
         for c in range(len(self.channels)):
-            x = np.concatenate([jn[:n, c], je[:n, c]], axis=1)
-            beta, *_ = np.linalg.lstsq(x, resid_rows[:n, c], rcond=None)
-            fitted_rows = pred[:, c] + np.concatenate([jn[:, c], je[:, c]], axis=1) @ beta
-            for k, s in enumerate(self.segments):
-                rows = np.flatnonzero(self.seg == k)
-                if rows.size < 2:
-                    continue
-                idx = np.arange(s.i0, s.i1)
-                idx = idx[(~bad[idx]) & (t_all[idx] <= t_split)]
-                if idx.size < 64:
-                    continue
+            x = np.concatenate([jn[:, c], je[:, c]], axis=1)
+            beta, *_ = np.linalg.lstsq(x[:n], resid_rows[:n, c], rcond=None)
+            fitted_rows = pred[:, c] + x @ beta
+            for idx, rows in where:
                 pieces[c].append(y_all[idx, c] - np.interp(t_all[idx], self.t[rows],
                                                            fitted_rows[rows]))
                 nominal[c].append(y_all[idx, c] - np.interp(t_all[idx], self.t[rows],
                                                             pred[rows, c]))
+            # the columns those fits removed, for the noise tests' bootstrap (noise_screen):
+            # the full model's (nominal + effects) and the nominal model's, non-zero ones only
+            used = np.any(x[:n] != 0, axis=0)
+            columns[c] = (x[:, used], np.flatnonzero(used) < jn.shape[2])
         self._residuals = (params, pieces, nominal)
+        self._removed = (where, columns)
         return pieces, nominal
+
+    def _removed_at(self, c, long_only: bool = True):
+        """The columns the full and the nominal fit removed from channel ``c``'s static pieces
+        (:meth:`_static_residuals`), at the pieces' samples: two lists of ``(n_i, m)`` arrays,
+        over the pieces of at least ``MIN_NOISE_PIECE_S`` (``long_only``) or all."""
+        where, columns = self._removed
+        x, is_nominal = columns[c]
+        t_all = np.asarray(self.record.t, float)
+        full, nom = [], []
+        for idx, rows in where:
+            if long_only and idx.size < MIN_NOISE_PIECE_S * self.rate_hz:
+                continue
+            # np.interp of every column at once: the same brackets and weights for all
+            tr, ts = self.t[rows], np.clip(t_all[idx], self.t[rows][0], self.t[rows][-1])
+            j = np.clip(np.searchsorted(tr, ts, side="right") - 1, 0, rows.size - 2)
+            w = ((ts - tr[j]) / (tr[j + 1] - tr[j]))[:, None]
+            at = x[rows[j]] * (1 - w) + x[rows[j + 1]] * w
+            full.append(at)
+            nom.append(at[:, is_nominal])
+        return full, nom
 
     def _long(self, pcs):
         return [x for x in pcs if x.size >= MIN_NOISE_PIECE_S * self.rate_hz]
@@ -660,9 +688,11 @@ class IMUProblem:
             long_full = self._long(pieces[c])
             long_nom = self._long(nominal[c])
             if long_full:
+                at = functools.cache(lambda c=c: self._removed_at(c))
                 fits[c], fits_nom[c] = (fit_noise_likelihood(
                     x, self.rate_hz, null_draws=NOISE_NULL_DRAWS, seed=c,
-                    bootstrap_terms=LONG_TAU_TERMS) for x in (long_full, long_nom))
+                    bootstrap_terms=LONG_TAU_TERMS, removed=lambda k=k: at()[k])
+                    for k, x in enumerate((long_full, long_nom)))
         longest = max((x.size for pcs in pieces.values() for x in pcs), default=0) / self.rate_hz
         for e in self.noise_effects:
             per = {}
