@@ -193,13 +193,25 @@ def blind_parser(doc: str, *, cases: int):
     return ap
 
 
+def work_dir(args, prefix: str) -> str:
+    """``--keep``'s directory, or a temporary one removed when the script exits (a 1000-null
+    run writes several GB of sealed records; left behind, they filled the disk)."""
+    import atexit
+    import shutil
+    import tempfile
+
+    if args.keep:
+        return args.keep
+    work = tempfile.mkdtemp(prefix=prefix)
+    atexit.register(shutil.rmtree, work, ignore_errors=True)
+    return work
+
+
 def one_design_main(args, harness, design, suite, *, name: str, title: str, label: str):
     """A one-design blind script's run: the suite (``suite(args, work, design)``) when
     ``--cases`` > 0, then ``--nulls`` sealed nulls (seed + 1) as section
     ``gap_blind_<name>_nulls``, in ``--keep`` or a temporary directory."""
-    import tempfile
-
-    work = args.keep or tempfile.mkdtemp(prefix=f"gyrojax-blind-{name}-")
+    work = work_dir(args, f"gyrojax-blind-{name}-")
     if args.cases > 0:
         suite(args, work, design)
     if args.nulls > 0:

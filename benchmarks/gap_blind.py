@@ -20,7 +20,6 @@ import dataclasses
 import json
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -35,6 +34,7 @@ from _results import (  # noqa: E402
     g9_text,
     machine_line,
     publish,
+    work_dir,
 )
 from _results import fmt_rate as _fmt  # noqa: E402
 from tqdm import tqdm  # noqa: E402
@@ -118,7 +118,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if (args.calibration_cases > 0 or args.g6_cases > 0 or args.flicker_nulls > 0
             or args.flicker_power > 0):
-        work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-")
+        work = work_dir(args, "gyrojax-blind-")
         if args.calibration_cases > 0:
             calibration_run(args, os.path.join(work, "calibration"))
         if args.g6_cases > 0:
@@ -135,7 +135,7 @@ def main(argv=None):
         with open(os.path.join(work, "run_meta.json")) as fh:
             meta = json.load(fh)
     else:
-        work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-")
+        work = work_dir(args, "gyrojax-blind-")
         t0 = time.perf_counter()
         bench.generate(work, args.cases, seed=args.seed, design=design, null_fraction=0.3)
         t_gen = time.perf_counter() - t0

@@ -18,7 +18,6 @@ import dataclasses
 import json
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -35,6 +34,7 @@ from _results import (  # noqa: E402
     null_run,
     publish,
     suite_lines,
+    work_dir,
 )
 from _results import fmt_rate as _fmt  # noqa: E402
 from tqdm import tqdm  # noqa: E402
@@ -87,7 +87,7 @@ def main(argv=None):
                     help="null run: diagnose the sealed nulls already in --keep DIR when their "
                          "manifest has the same design, seed and number (no regeneration)")
     args = ap.parse_args(argv)
-    work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-imu-")
+    work = work_dir(args, "gyrojax-blind-imu-")
     if args.cases > 0:
         suites(args, work, SUITES, args.cases)
     if args.table_cases > 0:

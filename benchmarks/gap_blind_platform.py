@@ -29,7 +29,6 @@ import dataclasses
 import json
 import os
 import sys
-import tempfile
 
 sys.path.insert(0, os.path.dirname(__file__))
 
@@ -46,6 +45,7 @@ from _results import (  # noqa: E402
     null_run,
     publish,
     suite_lines,
+    work_dir,
 )
 from _results import fmt_rate as _fmt  # noqa: E402
 
@@ -72,7 +72,7 @@ def main(argv=None):
                          "cases (hidden D_oo on one amplitude), each re-run on the design the "
                          "advisor ranks first and diagnosed again")
     args = ap.parse_args(argv)
-    work = args.keep or tempfile.mkdtemp(prefix="gyrojax-blind-platform-")
+    work = work_dir(args, "gyrojax-blind-platform-")
     design = bp.PlatformDesign()
     if args.cases > 0:
         suite(args, work, design)
