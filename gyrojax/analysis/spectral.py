@@ -424,7 +424,7 @@ def null_periodograms(lengths, rate_hz: float, f_max: float, coef, draws: int, r
     warm-up exponential) takes out the lowest ordinates' power, which is where a rate random
     walk lives: its test's law on such residuals is far from the law on raw noise (on white
     records with a bias, a ramp and six exponentials removed, its likelihood ratio was positive
-    in 2 % of records, not 25 %), so the draws remove them too: ``X_k - Q_k beta``."""
+    in 4 % of 1000 records, not 25 %), so the draws remove them too: ``X_k - Q_k beta``."""
     coef = np.asarray(coef, float)
     zs, ns = [], []
     for n in lengths:
