@@ -529,16 +529,19 @@ def fit_noise_likelihood(pieces, rate_hz: float, *, terms=LIK_TERMS,
         else list(bootstrap_terms)
     lengths = [len(x) for x in pieces]
 
-    @functools.cache
-    def removed_law():  # prepared once, and only where a bootstrap needs it
-        cols = removed() if callable(removed) else removed
+    def checked(cols):
         if len(cols) != len(pieces) or any(len(c) != n for c, n in zip(cols, lengths)):
             raise ValueError(f"removed: one (n_i, m) array per piece with n_i its length; got "
                              f"{[np.shape(c) for c in cols]} for pieces of {lengths}")
-        return removed_columns(cols, rate_hz, f_max)
+        return cols
+
+    @functools.cache
+    def removed_law():  # prepared once, and only where a bootstrap needs it
+        return removed_columns(checked(removed() if callable(removed) else removed), rate_hz,
+                               f_max)
 
     if removed is not None and not callable(removed):
-        removed_law()  # a wrong shape is refused whatever the ratios
+        checked(removed)  # a wrong shape is refused whatever the ratios
     lr, p, ci = {}, {}, {}
     info = _whittle_information(h[:, idx], c[0], pn[0], wk) / HANN_DOF_FACTOR
     pos = c[0] > 0
