@@ -193,27 +193,29 @@ def gyrojax_trial_fn(identify_batch=8, fixed_grid=True):
     return staged(measure, identify, batch_size=identify_batch)
 
 
-def bench_montecarlo(ns, scipy_trials):
+def scipy_baseline(one, scipy_trials):
+    """The scipy loop's trials/s, timed once on ``scipy_trials`` trials (its cost is linear in
+    N) after one untimed trial (imports, first-call caches: counting them would flatter
+    gyrojax), and the max drift difference (deg/h) between it and ``one`` on the same draws."""
     cond = gj.ESGConditions.from_scheme(SCHEME, LAT)
     chi, lat = np.asarray(cond.chi), LAT * units.DEG
-    one = gyrojax_trial_fn()
-    # scipy baseline, timed once on a subset (cost linear in N) after one untimed trial (imports,
-    # first-call caches: counting them would flatter gyrojax)
     d = draws(scipy_trials + 1, seed=1)
-    m = np.full(6, 0.01)
-    a0 = np.array([0.0, 30 * units.DEG])
+    m, a0 = np.full(6, 0.01), np.array([0.0, 30 * units.DEG])
     np_regression(np_simulate(m, d["theta"][-1], d["dchi"][-1], a0, chi, lat), chi, lat)
     t0 = time.perf_counter()
-    est_np = []
-    for i in range(scipy_trials):
-        y = np_simulate(m, d["theta"][i], d["dchi"][i], a0, chi, lat)
-        est_np.append(np_regression(y + d["noise"][i], chi, lat))
+    est_np = [np_regression(np_simulate(m, d["theta"][i], d["dchi"][i], a0, chi, lat)
+                            + d["noise"][i], chi, lat) for i in range(scipy_trials)]
     scipy_rate = scipy_trials / (time.perf_counter() - t0)
-    # agreement check on the same draws
     est_gj = monte_carlo(one, jax.tree.map(lambda x: x[:scipy_trials], d),
                          chunk_size=scipy_trials, devices=jax.devices()[:1], vectorized=True)
     agree = float(np.max(np.abs(np.asarray(est_gj)[:, :6] - np.array(est_np)[:, :6]))
                   * units.EARTH_RATE_DEG_PER_HOUR)
+    return scipy_rate, agree
+
+
+def bench_montecarlo(ns, scipy_trials):
+    one = gyrojax_trial_fn()
+    scipy_rate, agree = scipy_baseline(one, scipy_trials)
     rows = []
     for n in ns:
         rate, compile_s = time_monte_carlo(one, n, devices=jax.devices()[:1])
@@ -340,20 +342,8 @@ def bench_accelerator(ns, configs, scipy_trials):
     identify_batch)`` of ``configs`` for each N of ``ns``; the scipy loop on this machine's CPU
     in the same run. Rows ``(chunk, identify_batch, n, trials/s, compile s)``; scipy trials/s;
     the max drift difference (deg/h) between the two on the same draws."""
-    cond = gj.ESGConditions.from_scheme(SCHEME, LAT)
-    chi, lat = np.asarray(cond.chi), LAT * units.DEG
-    d = draws(scipy_trials + 1, seed=1)
-    m, a0 = np.full(6, 0.01), np.array([0.0, 30 * units.DEG])
-    np_regression(np_simulate(m, d["theta"][-1], d["dchi"][-1], a0, chi, lat), chi, lat)
-    t0 = time.perf_counter()
-    est_np = [np_regression(np_simulate(m, d["theta"][i], d["dchi"][i], a0, chi, lat)
-                            + d["noise"][i], chi, lat) for i in range(scipy_trials)]
-    scipy_rate = scipy_trials / (time.perf_counter() - t0)
+    scipy_rate, agree = scipy_baseline(gyrojax_trial_fn(), scipy_trials)
     dev = jax.devices()[:1]
-    est_gj = monte_carlo(gyrojax_trial_fn(), jax.tree.map(lambda x: x[:scipy_trials], d),
-                         chunk_size=scipy_trials, devices=dev, vectorized=True)
-    agree = float(np.max(np.abs(np.asarray(est_gj)[:, :6] - np.array(est_np)[:, :6]))
-                  * units.EARTH_RATE_DEG_PER_HOUR)
     rows = []
     for chunk, batch in configs:
         one = gyrojax_trial_fn(identify_batch=batch)
