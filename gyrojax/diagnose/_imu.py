@@ -638,16 +638,16 @@ class IMUProblem:
         self._removed = (where, columns)
         return pieces, nominal
 
-    def _removed_at(self, c, long_only: bool = True):
+    def _removed_at(self, c):
         """The columns the full and the nominal fit removed from channel ``c``'s static pieces
-        (:meth:`_static_residuals`), at the pieces' samples: two lists of ``(n_i, m)`` arrays,
-        over the pieces of at least ``MIN_NOISE_PIECE_S`` (``long_only``) or all."""
+        (:meth:`_static_residuals`), at the samples of the pieces :meth:`_long` keeps: two lists
+        of ``(n_i, m)`` arrays."""
         where, columns = self._removed
         x, is_nominal = columns[c]
         t_all = np.asarray(self.record.t, float)
         full, nom = [], []
         for idx, rows in where:
-            if long_only and idx.size < MIN_NOISE_PIECE_S * self.rate_hz:
+            if not self._is_long(idx.size):
                 continue
             # np.interp of every column at once: the same brackets and weights for all
             tr, ts = self.t[rows], np.clip(t_all[idx], self.t[rows][0], self.t[rows][-1])
@@ -658,8 +658,11 @@ class IMUProblem:
             nom.append(at[:, is_nominal])
         return full, nom
 
+    def _is_long(self, n_samples):
+        return n_samples >= MIN_NOISE_PIECE_S * self.rate_hz
+
     def _long(self, pcs):
-        return [x for x in pcs if x.size >= MIN_NOISE_PIECE_S * self.rate_hz]
+        return [x for x in pcs if self._is_long(x.size)]
 
     def full_rate_tau_cells(self, params):
         """The gap map's full-rate tau band (:func:`~._stats.full_rate_tau_cells`) of the
