@@ -668,12 +668,15 @@ class IMUProblem:
         """The gap map's full-rate tau band (:func:`~._stats.full_rate_tau_cells`) of the
         full-model residual on the static pieces that test the slow noise terms (>=
         ``MIN_NOISE_PIECE_S``): where in tau the noise departs from white, down to one sample
-        (reported, not decided on)."""
+        (reported, not decided on). Its white reference has the full mean fit's columns removed,
+        as the residual has (their slow columns lower the longest cells' white mean by up to
+        ~20 %)."""
         done = getattr(self, "_residuals", None)
         pieces = done[1] if done is not None and done[0] is params else \
             self._static_residuals(params)[0]
         return full_rate_tau_cells({c: self._long(p) for c, p in pieces.items()}, self.channels,
-                                   1.0 / self.rate_hz)
+                                   1.0 / self.rate_hz,
+                                   removed={c: self._removed_at(c)[0] for c in pieces})
 
     # -- noise-model effects ---------------------------------------------------------------
     def noise_screen(self, params, alpha: float = 0.05):
