@@ -55,8 +55,9 @@ def g8_text(s) -> str:
     """Spec §6 G8 from a score's ``g8_*`` entries (:func:`gyrojax.diagnose.bench.
     localisation_scores`)."""
     return (f"drift_step onset within 5 % of the record (1.2 h, one window of the map's finest "
-            f"level) of the truth {_fmt(s['g8_step_onset'])} (the onset grid has 8 values over "
-            f"the train span); drift_transient decay time within one step of its grid "
+            f"level) of the truth {_fmt(s['g8_step_onset'])} (the onset grid: one value every 5 "
+            f"% of the record over the train span, at least 8); drift_transient decay time "
+            f"within one step of its grid "
             f"{_fmt(s['g8_transient_decay'])}; diurnal_line on the sidereal-day line "
             f"{_fmt(s['g8_line'])} (G8: >= 0.90, >= 0.95), the other families' gaps on that "
             f"line too {_fmt(s['g8_line_other_families'])}")
