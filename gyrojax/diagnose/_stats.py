@@ -738,7 +738,7 @@ def white_overlapping_allan_moments(n: int, m: int) -> tuple[float, float]:
 class _RemovedSpan:
     """The span of the columns a least-squares fit removed from a set of pieces (coefficients
     shared over the pieces), for the white moments of :func:`overlapping_allan_form`: an
-    orthonormal basis ``U`` (rank by SVD at 1e-10) and the traces of
+    orthonormal basis ``U`` (:func:`nominal_basis`) and the traces of
     :func:`projected_overlapping_allan_traces` per cluster size, computed once.
     :meth:`of` reuses a span already prepared when the new columns span it (the channels of one
     record often share their bias, drift and warm-up columns)."""
@@ -766,12 +766,7 @@ class _RemovedSpan:
                     sv = np.linalg.svd(c, compute_uv=False)
                     if np.sum(sv > 1e-10 * sv[0]) == span.dim:
                         return span
-        u = np.zeros((len(x), 0))
-        if x.shape[1]:  # QR, then the rank from the SVD of the small R
-            q, r = np.linalg.qr(x)
-            ur, sv, _ = np.linalg.svd(r)
-            u = q @ ur[:, sv > 1e-10 * sv[0]]
-        span = cls(u, list(sizes))
+        span = cls(nominal_basis(x) if x.shape[1] else np.zeros((len(x), 0)), list(sizes))
         known.append(span)
         return span
 
