@@ -21,6 +21,12 @@ of N sealed nulls (spec §6 G1 asks for >= 1000 per design) as the section
         --null-split design-shift                                  # G1 on the other split
     python benchmarks/gap_blind_platform.py --cases 24 --g7-cases 12   # quick look
     python benchmarks/gap_blind_platform.py --cases 0 --g7-cases 0 --g6-cases 40  # G6 (~10 min)
+    python benchmarks/gap_blind_platform.py --nominal-terms f,i,o,s --cases 240  # K = 22 (G10)
+
+``--nominal-terms f,i,o,s`` runs a separate suite on the first-order nominal model (bias and g
+terms, 12 coefficients): each of the 18 g^2 coefficients it leaves out is a catalogue effect of
+its own, so the diagnosis screens 22 effects (spec §6 G10's K >= 20), with B2 refit-all + BIC
+timed on every record beside the screening. Section ``gap_blind_platform_first_order``.
 """
 
 from __future__ import annotations
@@ -71,15 +77,92 @@ def main(argv=None):
                     help="a design-advice closed-loop run (spec §6 G6): N seed-001 structural "
                          "cases (hidden D_oo on one amplitude), each re-run on the design the "
                          "advisor ranks first and diagnosed again")
+    ap.add_argument("--nominal-terms", metavar="TERMS",
+                    help="run the K >= 20 suite on this nominal instead (e.g. f,i,o,s: each "
+                         "g^2 coefficient an effect of its own; section "
+                         "gap_blind_platform_first_order)")
     args = ap.parse_args(argv)
     work = work_dir(args, "gyrojax-blind-platform-")
     design = bp.PlatformDesign()
+    if args.nominal_terms:
+        terms = tuple(t.strip() for t in args.nominal_terms.split(",") if t.strip())
+        return many_effects(args, work, dataclasses.replace(design, nominal_terms=terms))
     if args.cases > 0:
         suite(args, work, design)
     if args.nulls > 0:
         nulls(args, work, dataclasses.replace(design, split=args.null_split))
     if args.g6_cases > 0:
         closed_loop(args, os.path.join(work, "g6"), design)
+
+
+def many_effects(args, work, design):
+    """Spec §6 G10 with K >= 20: the suite on a smaller nominal (every coefficient it leaves
+    out an effect of its own), B2 refit-all timed on every record beside the screening."""
+    import functools
+    import time
+    import types
+
+    from gyrojax.diagnose import diagnose
+
+    terms = ",".join(design.nominal_terms)
+    fams = bp.mean_families(design)
+    t0 = time.perf_counter()
+    paths = bp.generate(work, args.cases, seed=args.seed + 70, design=design)
+    t_gen = time.perf_counter() - t0
+    harness = types.SimpleNamespace(run=functools.partial(bp.run, baselines=True,
+                                                          refit_all=False))
+    results, t_run = diagnose_suite(harness, work, design, f"platform K={len(fams)}")
+    full = load_record(paths[0])
+    sigma = np.full(3, units.ARCSEC)
+    sep = separability(full, "platform", sigma, nominal_terms=design.nominal_terms)
+    separable = sorted(e for e, v in sep.items() if v <= 0.9)
+    thresholds = oracle_detection_thresholds(full, "platform", sigma, ORACLE_LAMBDAS,
+                                             nominal_terms=design.nominal_terms)
+    s = bp.score(work, results, separable=separable, oracle_thresholds=thresholds,
+                 design=design)
+    # the reference case: one in-library record diagnosed whole (design advice on), after JIT
+    rec = load_record(paths[1])
+    diagnose(rec, rig="platform", nominal_terms=design.nominal_terms)
+    t1 = time.perf_counter()
+    rep = diagnose(rec, rig="platform", nominal_terms=design.nominal_terms)
+    t_ref = time.perf_counter() - t1
+    c = s["cost"]
+    b2 = ", ".join(f"{lam} {_fmt(b['b2_top1'])}" for lam, b in s["by_lambda"].items())
+    lines = ["## Gap diagnosis, platform D2 with a first-order nominal: K = "
+             f"{len(fams)} effects (`benchmarks/gap_blind_platform.py --nominal-terms {terms}`)",
+             "", machine_line(), "",
+             f"Design D2 (Table 1 positions at 0, 9, 7 g) with the nominal model carrying the "
+             f"terms {terms} for every gyro ({len(design.nominal_names())} coefficients, drawn "
+             f"per case); the catalogue: each of the {len(fams) - 4} coefficients left out as an "
+             "effect of its own (D_ii_y: which gyro needs which term) and base_misalignment, "
+             "warmup_transient, drift_ramp, vibration_rectification. "
+             f"{args.cases} sealed cases (seed {args.seed + 70}, 30 % nulls; the hidden "
+             "coefficient or effect at lambda 8/16/32/64; out of library readout_line, "
+             f"readout_step), generated in {t_gen:.0f} s, diagnosed in {t_run:.0f} s (median "
+             f"{s['median_diagnose_s']:.2f} s per case, B2 included). Separability on D2: "
+             f"{len(separable)} of {len(sep)} visible effects at canonical correlation <= 0.9 "
+             f"({', '.join(separable) or 'none'}); the closest pairs "
+             + ", ".join(f"{e} {v:.3f}" for e, v in sorted(sep.items(), key=lambda x: -x[1])[:4])
+             + ".", "", ORACLE_NOTE, ""]
+    lines += suite_lines(s, "readout_line, readout_step")
+    lines += [f"- B2 refit-all + BIC top-1 by lambda: {b2}.",
+              f"- Cost per case (median, spec §6 G10 with K = {c['n_effects']}): screening "
+              f"(Jacobians, score tests and the gap map) {c['median_screen_s']:.2f} s, the null "
+              f"calibration of the BH level {c['median_calibration_s']:.2f} s more; B2 "
+              f"refit-all {c['median_refit_all_s']:.2f} s ({c['n_refits']} refits: every "
+              "effect, the transient at each of its 8 decay times), "
+              f"{c['median_refit_all_s'] / c['median_screen_s']:.2f}x the screening. The "
+              "platform's refits are linear least squares on the (S22) design, one projection "
+              "each like a score test, so screening saves nothing here: G10's 10x is a saving "
+              "over nonlinear refits (ESG: 11.7x with 6 effects, `gap_blind`). Top-1 agreement "
+              "of screening (top posterior) with the refits' answer (the same design prior's "
+              "Bayes factor with each refit's estimate in place of the one-step one) at lambda "
+              f">= 32: {_fmt(s['screen_refit_agreement'])} (G10: >= 0.98).",
+              f"- Reference case (3 channels, {c['n_effects']} effects, design advice on): one "
+              f"in-library record diagnosed whole in {t_ref:.1f} s after compilation (G10: "
+              f"<= 60 s); verdict {rep.verdict['kind']} "
+              f"{', '.join(rep.verdict.get('effects') or [])}.", ""]
+    publish(args.out, "gap_blind_platform_first_order", lines)
 
 
 def closed_loop(args, work, design):

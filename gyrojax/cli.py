@@ -427,6 +427,12 @@ def cmd_diagnose(args):
     if args.rig not in RIGS:
         raise UsageError(f"--rig {args.rig!r} has no diagnosis yet; rigs with one: "
                          f"{', '.join(RIGS)}")
+    nominal_terms = None
+    if args.nominal_terms is not None:
+        if args.rig != "platform":
+            raise UsageError(f"--nominal-terms is for the platform rig; the {args.rig} rig has "
+                             "one nominal model (leave it out)")
+        nominal_terms = tuple(t.strip() for t in args.nominal_terms.split(",") if t.strip())
     if args.table_run and args.rig != "imu":
         raise UsageError(f"--table-run is for the imu rig; the {args.rig} rig has no rate table")
     _table_runs(args)  # checked before the record is read
@@ -490,7 +496,8 @@ def cmd_diagnose(args):
     report = diagnose(record, rig=args.rig, effects=effects, holdout=args.holdout,
                       alpha=args.alpha, noise_std=noise, split=args.split,
                       refit_all=args.refit_all, null_draws=args.null_draws,
-                      noise_model=args.noise_model, flicker_b=flicker)
+                      noise_model=args.noise_model, flicker_b=flicker,
+                      nominal_terms=nominal_terms)
     print(report.markdown())
     _emit_json(report.to_json(), args.json)
     if args.plot:
@@ -665,8 +672,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "temperature_rate (with a temp* channel), quantization, "
                         "bias_instability, rate_random_walk, outliers; platform: "
                         "anisoelastic_oo, base_misalignment, warmup_transient, drift_ramp, "
-                        "vibration_rectification; schuler: drift_ramp, drift_transient, "
-                        "drift_step, accelerometer_ramp, g_sensitivity, "
+                        "vibration_rectification (with --nominal-terms: every coefficient left "
+                        "out, e.g. D_ii_y, instead of anisoelastic_oo); schuler: drift_ramp, "
+                        "drift_transient, drift_step, accelerometer_ramp, g_sensitivity, "
                         "accelerometer_cross_axis, accelerometer_tilt)")
     p.add_argument("--holdout", type=float, default=0.25,
                    help="fraction of the record (its end) held out for the before/after gap "
@@ -674,6 +682,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split", choices=("same-design", "design-shift"),
                    help="held-out plan (platform: same-design = the end of every dwell, the "
                         "default; design-shift = the last vibration amplitude's run, whole)")
+    p.add_argument("--nominal-terms", metavar="TERMS",
+                   help="platform: comma-separated drift-law terms the nominal model carries "
+                        "for every gyro, from f,i,o,s,ii,oo,ss,io,is,os (default all but oo, "
+                        "seed 001's model; f,i,o,s = the first-order model); every coefficient "
+                        "left out is screened as an effect of its own")
     p.add_argument("--refit-all", action="store_true",
                    help="also refit every other catalogued effect, so each candidate carries "
                         "its held-out gap after and reduction (the verdict is unchanged)")

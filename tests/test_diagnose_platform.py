@@ -88,6 +88,47 @@ def test_two_amplitudes_attribute_d_oo_and_null(records):
     assert null.verdict["heldout_gap_before"] < null.verdict["heldout_null_band"][1]
 
 
+def test_first_order_nominal_screens_each_left_out_coefficient(tmp_path, capsys):
+    """A first-order nominal (f, i, o, s: 12 coefficients) on a two-amplitude test whose only
+    g^2 term is D_ii_y: the catalogue is the 18 left-out coefficients as effects of their own
+    plus the four non-drift-law effects (22), and the diagnosis names D_ii_y alone, its refit
+    within 3 standard errors of the generating value, the held-out gap closed. B2 refit-all
+    (the generic harness baseline) refits the same catalogue (one refit per effect, every grid
+    value of the transient) and picks D_ii_y too. Bad nominal terms: a clear error, exit 2."""
+    from gyrojax.diagnose._diagnose import _problem, library
+    from gyrojax.diagnose._platform import FIRST_ORDER_TERMS
+    from gyrojax.diagnose.bench import refit_all_baseline
+
+    sets = sum([["--set", f"{k}=0"] for k in TRUE_TABLE2
+                if len(k.split("_")[1]) == 2 and k != "D_ii_y"], [])
+    path = tmp_path / "ii_y.nc"
+    assert main(["simulate", "--rig", "platform", "--out", str(path), "--seed", "5"]
+                + sets) == 0
+    rec = load_record(path)
+    lib = library("platform", nominal_terms=FIRST_ORDER_TERMS)
+    assert len(lib) == 22 and "anisoelastic_oo" not in lib and lib["D_io_z"] == "g2"
+    rep = diagnose(rec, rig="platform", nominal_terms=FIRST_ORDER_TERMS)
+    assert len(rep.nominal) == 12 and "D_ii_y" not in rep.nominal
+    assert {r["name"] for r in rep.ranking} == set(lib)
+    v = rep.verdict
+    assert v["kind"] == "attributed" and v["effects"] == ["D_ii_y"], v
+    assert v["heldout_gap_after"] < v["heldout_null_band"][1] < v["heldout_gap_before"]
+    refit = next(rf for rf in rep.refits if rf["effects"] == ["D_ii_y"])
+    se = refit["std_errors"]["D_ii_y"]
+    assert abs(refit["coefficients"]["D_ii_y"] - TRUE_TABLE2["D_ii_y"]) < 3 * se, (refit, se)
+    prob = _problem(rec, "platform", 0.25, None, None, "exact", nominal_terms=FIRST_ORDER_TERMS)
+    b2 = refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]))
+    assert b2["b2_choice"] == b2["b2_lr_choice"] == "D_ii_y"
+    assert b2["n_refits"] == 21 + 8  # 21 one-shot effects, the transient at its 8 decay times
+    for argv, field in ((["--nominal-terms", "f,i,x"], "'x'"),
+                        (["--nominal-terms", "i,o,s"], "lack 'f'")):
+        capsys.readouterr()
+        assert main(["diagnose", "--rig", "platform", str(path)] + argv) == 2
+        assert field in capsys.readouterr().err
+    with pytest.raises(ValueError, match="only --rig platform"):
+        library("esg", nominal_terms=FIRST_ORDER_TERMS)
+
+
 def test_position_axis_finds_a_drift_offset_at_one_dwell(records):
     """A drift-rate offset of 0.02 deg/h on alpha during one dwell (position 5 of the 9 g run),
     outside the catalogue, added to the null record: the map's position axis flags that dwell

@@ -80,14 +80,19 @@ def _check_effects(effects, library, rig):
                          f"{', '.join(library)}")
 
 
-def library(rig: str) -> dict:
-    """The diagnosis catalogue of ``rig``: effect name -> family."""
+def library(rig: str, nominal_terms=None) -> dict:
+    """The diagnosis catalogue of ``rig``: effect name -> family (platform: for the nominal
+    model of ``nominal_terms``, :func:`~gyrojax.diagnose._platform.platform_library`)."""
+    if nominal_terms is not None and rig != "platform":
+        raise ValueError(_NOMINAL_TERMS_RIG.format(rig=rig))
     if rig == "esg":
         from ._esg import ESG_LIBRARY as lib
     elif rig == "imu":
         from ._imu import IMU_LIBRARY as lib
     elif rig == "platform":
-        from ._platform import PLATFORM_LIBRARY as lib
+        from ._platform import platform_library
+
+        lib = platform_library(nominal_terms)
     elif rig == "schuler":
         from ._schuler import SCHULER_LIBRARY as lib
     elif rig == "gyrotheodolite":
@@ -98,14 +103,20 @@ def library(rig: str) -> dict:
     return {k: v[0] for k, v in lib.items()}
 
 
+_NOMINAL_TERMS_RIG = ("nominal_terms with rig {rig!r}: only --rig platform offers a choice of "
+                      "nominal model (its drift-law terms); leave it out")
+
+
 def _problem(record, rig, holdout, noise_std, effects, order, split=None, noise_model=None,
-             flicker_b=None):
+             flicker_b=None, nominal_terms=None):
+    if nominal_terms is not None and rig != "platform":
+        raise ValueError(_NOMINAL_TERMS_RIG.format(rig=rig))
     if (noise_model is not None or flicker_b is not None) and rig != "esg":
         raise ValueError(f"noise_model / flicker_b with rig {rig!r}: only --rig esg offers a "
                          "choice of noise model; leave them out (the IMU fits AR prewhitening, "
                          "the other rigs a white level)")
     prob = _rig_problem(record, rig, holdout, noise_std, effects, order, split,
-                        {"noise_model": noise_model, "flicker_b": flicker_b})
+                        {"noise_model": noise_model, "flicker_b": flicker_b}, nominal_terms)
     if split is not None and not hasattr(prob, "SPLITS"):
         raise ValueError(f"split={split!r}: --rig {rig} has one held-out split "
                          f"({getattr(prob, 'split_kind', 'the record end, time-ordered')}); "
@@ -113,7 +124,8 @@ def _problem(record, rig, holdout, noise_std, effects, order, split=None, noise_
     return prob
 
 
-def _rig_problem(record, rig, holdout, noise_std, effects, order, split, noise_kw=None):
+def _rig_problem(record, rig, holdout, noise_std, effects, order, split, noise_kw=None,
+                 nominal_terms=None):
     if rig == "esg":
         from ._esg import ESG_LIBRARY, ESGProblem
 
@@ -128,10 +140,11 @@ def _rig_problem(record, rig, holdout, noise_std, effects, order, split, noise_k
         return ESGProblem(record, holdout=holdout, noise_std=noise_std, effects=effects,
                           order=order, **(noise_kw or {}))
     if rig == "platform":
-        from ._platform import PLATFORM_LIBRARY, PlatformProblem
+        from ._platform import PlatformProblem, platform_library
 
-        _check_effects(effects, PLATFORM_LIBRARY, rig)
+        _check_effects(effects, platform_library(nominal_terms), rig)
         return PlatformProblem(record, holdout=holdout, noise_std=noise_std, effects=effects,
+                               nominal_terms=nominal_terms,
                                **({"split": split} if split is not None else {}))
     if rig == "schuler":
         from ._schuler import SCHULER_LIBRARY, SchulerProblem
@@ -237,7 +250,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
              max_refits: int = 3, prior: str = "design", order: str = "exact",
              library_share: float = 0.5, split: str | None = None,
              refit_all: bool = False, null_draws: int = 499,
-             noise_model: str | None = None, flicker_b=None) -> GapReport:
+             noise_model: str | None = None, flicker_b=None,
+             nominal_terms=None) -> GapReport:
     """Diagnose the gap between the rig's nominal model and ``record``.
 
     **Arguments:**
@@ -279,6 +293,10 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
       have one noise model each (leave it ``None``).
     - `flicker_b`: the flicker's bias-instability coefficient B (rad; one, or per channel;
       Allan deviation floor 0.664 B); implies ``noise_model="white+flicker"``.
+    - `nominal_terms`: platform only: the drift-law terms the nominal model carries for every
+      gyro (default all but ``oo``, seed 001's model; e.g. ``("f", "i", "o", "s")``, the
+      first-order model). Every coefficient left out is then screened as an effect of its own
+      (``D_ii_y``), beside the catalogue's non-drift-law effects.
 
     **Returns:** a :class:`GapReport` (``.to_json()``, ``.markdown()``).
     """
@@ -291,7 +309,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         record = record.with_conditions(**dict(conditions))
     _check_record(record, holdout)
     prob = _problem(record, rig, holdout, noise_std, effects, order, split, noise_model,
-                    flicker_b)
+                    flicker_b, nominal_terms)
     n, c = prob.n_train, len(prob.channels)
     params0 = prob.fit_nominal()
     pred0 = prob.predict(params0)

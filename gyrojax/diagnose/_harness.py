@@ -28,6 +28,7 @@ from .bench import (
     oracle_power,
     plain_bh_far,
     ratio_rate,
+    refit_all_baseline,
 )
 
 __all__ = ["run_cases", "score_cases", "projector", "separability",
@@ -41,7 +42,7 @@ def projector(jn):
     return lambda a: a - q @ (q.T @ a)
 
 
-def separability(record, rig: str, sigma, split=None) -> dict:
+def separability(record, rig: str, sigma, split=None, nominal_terms=None) -> dict:
     """Largest canonical correlation of each visible catalogue effect with another on the train
     rows of ``split``, after the nominal parameters are projected out, maximised over the
     effects' grids (a transient with a decay time near the record length looks like a ramp);
@@ -50,7 +51,7 @@ def separability(record, rig: str, sigma, split=None) -> dict:
     diagnosis's, e.g. the IMU's AR prewhitening)."""
     from ._stats import _project, canonical_correlation, nominal_basis, visible
 
-    jn, sigs = _train_jacobians(record, rig, sigma, split)
+    jn, sigs = _train_jacobians(record, rig, sigma, split, nominal_terms)
     u = nominal_basis(jn)
     vis = [s for s in sigs if visible(u, s.jac[0])]  # the diagnosis' threshold
     return {a.name: max(canonical_correlation(_project(u, ja), _project(u, jb))
@@ -58,12 +59,13 @@ def separability(record, rig: str, sigma, split=None) -> dict:
             for a in vis}
 
 
-def _train_jacobians(record, rig, sigma, split):
+def _train_jacobians(record, rig, sigma, split, nominal_terms=None):
     """The whitened nominal Jacobian and the catalogue's signatures on the train rows of
     ``split``, at the nominal fit of ``record`` (``sigma``: see :func:`separability`)."""
     from ._diagnose import _noise_level, _problem, _train_slice
 
-    prob = _problem(record, rig, 0.25, None, None, "exact", split)
+    prob = _problem(record, rig, 0.25, None, None, "exact", split,
+                    nominal_terms=nominal_terms)
     params0 = prob.fit_nominal()
     if sigma is None:
         resid = (prob.y - prob.predict(params0))[: prob.n_train]
@@ -75,7 +77,7 @@ def _train_jacobians(record, rig, sigma, split):
 
 def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
                                 alpha: float = 0.05, n_draws: int = 20_000,
-                                seed: int = 0) -> dict:
+                                seed: int = 0, nominal_terms=None) -> dict:
     """Null thresholds of the Bayes-oracle detector (:func:`~gyrojax.diagnose.bench.
     oracle_detect_statistic`) on the design of ``record``: per noncentrality, the ``1 - alpha``
     quantile of the statistic under the linearised null, from ``n_draws`` draws of the residual
@@ -87,7 +89,7 @@ def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
     run: the reference for spec §6 G2's detection power."""
     from ._stats import design_log_bf, screen_designs
 
-    jn, sigs = _train_jacobians(record, rig, sigma, split)
+    jn, sigs = _train_jacobians(record, rig, sigma, split, nominal_terms)
     _, designs = screen_designs(jn, sigs, n_boot=0)
     span = np.concatenate([jt for des in designs for jt in des.jt], axis=1)
     q, s, _ = np.linalg.svd(span, full_matrices=False)
@@ -101,20 +103,26 @@ def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
 
 
 def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool = False,
-              progress=None, split_for=None) -> list:
+              progress=None, split_for=None, baselines: bool = False,
+              diagnose_kw: dict | None = None) -> list:
     """Diagnose every case blind. ``refit_all``: refit every catalogued effect alone as well
     (the scorer's oracle is then the hidden effect's own refit, spec §6 G7). ``split_for``:
     ``(record, split) -> split`` where a record's own design decides (a one-amplitude platform
-    test has no design shift)."""
-    from ._diagnose import diagnose
+    test has no design shift). ``baselines``: also run B2 refit-all + BIC on each record
+    (:func:`~gyrojax.diagnose.bench.refit_all_baseline`: its answers, wall time and refit count,
+    beside the screening's time). ``diagnose_kw``: more arguments of the diagnosis (e.g. the
+    platform's ``nominal_terms``)."""
+    from ._diagnose import _problem, diagnose
 
     results = []
     paths = sorted(Path(case_dir).glob("case_*.nc"))
     for k, path in enumerate(paths):
         rec = load_record(path)
         t0 = time.perf_counter()
-        rep = diagnose(rec, rig=rig, holdout=holdout, design_advice=False,
-                       split=split_for(rec, split) if split_for else split, refit_all=refit_all)
+        rec_split = split_for(rec, split) if split_for else split
+        rep = diagnose(rec, rig=rig, holdout=holdout, design_advice=False, split=rec_split,
+                       refit_all=refit_all, **(diagnose_kw or {}))
+        t_diag = time.perf_counter() - t0
         v = rep.verdict
         results.append({
             "sha": _sha(path), "file": path.name, "verdict": v["kind"],
@@ -131,9 +139,17 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
                                      if rf["effects"] == (v.get("effects") or [])), None),
             "single_refits": {rf["effects"][0]: rf["heldout_gap_after"] for rf in rep.refits
                               if len(rf["effects"]) == 1},
-            "time_diagnose_s": time.perf_counter() - t0,
+            "time_diagnose_s": t_diag,
+            "time_screen_s": rep.timings.get("screening_s", 0.0)
+            + rep.timings.get("jacobians_s", 0.0),
+            "time_calibration_s": rep.timings.get("calibration_s", 0.0),
+            "time_refit_all_in_report_s": rep.timings.get("refit_all_s"),
             **multiplicity_fields(rep),
         })
+        if baselines:
+            prob = _problem(rec, rig, holdout, None, None, "exact", rec_split,
+                            nominal_terms=(diagnose_kw or {}).get("nominal_terms"))
+            results[-1] |= refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]))
         if progress is not None:
             progress(k + 1, len(paths))
     return results
@@ -194,6 +210,8 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
             "oracle_efficiency": ratio_rate(sub_mean, top, oracle),
             "oracle_power": oracle_power(sub_mean, lam, oracle_thresholds),
             "calibration": calibration(sub_mean),
+            "b2_top1": (_rate(sub_mean, lambda t, r: r["b2_choice"] == t["family"])
+                        if all("b2_choice" in r for _, r in sub_mean) else None),
         }
     out["calibration"] = calibration([(t, r) for t, r in lib if t["family"] in mean_families])
     out["by_family"] = {f: _rate([(t, r) for t, r in lib if t["family"] == f], top)
@@ -235,6 +253,19 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
         out["structural_silent"] = _rate([(t, r) for t, r in rows if t["family"] in structural],
                                          lambda t, r: r["verdict"] in ("no-gap", "confounded"))
     out["median_diagnose_s"] = float(np.median([r["time_diagnose_s"] for _, r in rows]))
+    b2 = [r for _, r in rows if "time_refit_all_s" in r]
+    if b2:  # spec §6 G10: screening against B2 refit-all on the same records
+        out["cost"] = {"median_screen_s": float(np.median([r["time_screen_s"] for r in b2])),
+                       "median_calibration_s": float(np.median(
+                           [r["time_calibration_s"] for r in b2])),
+                       "median_refit_all_s": float(np.median(
+                           [r["time_refit_all_s"] for r in b2])),
+                       "n_refits": int(np.median([r["n_refits"] for r in b2])),
+                       "n_effects": int(np.median([len(r["ranking"]) for r in b2]))}
+        strong = [(t, r) for t, r in mean_lib if t["lambda"] >= 32 and r.get("b2_lr_choice")]
+        out["screen_refit_agreement"] = _rate(
+            strong, lambda t, r: max(r["posterior"], key=r["posterior"].get)
+            == r["b2_lr_choice"])
     return out
 
 

@@ -49,6 +49,7 @@ from .. import units
 from ..estimate.platform import _position_design, kappa_from_accelerometers
 from ..models.platform import (
     COEFF_NAMES,
+    TERMS,
     PlatformRig,
     drift_regressor,
     kinematic_matrix,
@@ -67,7 +68,7 @@ from ..models.platform_schedule import (
 from ..record import BenchRecord
 from ._stats import Signature
 
-__all__ = ["PlatformProblem", "PLATFORM_LIBRARY"]
+__all__ = ["PlatformProblem", "PLATFORM_LIBRARY", "platform_library", "FIRST_ORDER_TERMS"]
 
 CHANNELS = ("alpha", "beta", "gamma")
 LABELS = ("position", "amplitude")
@@ -87,7 +88,45 @@ _SI = {"anisoelastic_oo": units.DEG_PER_HOUR, "base_misalignment": units.ARCSEC,
        "vibration_rectification": units.DEG_PER_HOUR}
 _GRID_EFFECTS = ("warmup_transient",)
 N_GRID = 8
+NOMINAL_TERMS = tuple(t for t in TERMS if t != "oo")
 NOMINAL = tuple(n for n in COEFF_NAMES if not n.startswith("D_oo"))
+FIRST_ORDER_TERMS = ("f", "i", "o", "s")  # bias and the g-sensitive terms, no g^2 terms
+
+
+def _coefficient_effect(name: str):
+    """``(family, prior, unit)`` of one drift coefficient screened as an effect: the g terms
+    (deg/h/g) and the g^2 terms (deg/h/g^2) at the rig's prior scales."""
+    term = name.split("_")[1]
+    return ("g", 1.0, "deg/h/g") if len(term) == 1 else ("g2", 0.03, "deg/h/g^2")
+
+
+def platform_library(nominal_terms=None) -> dict:
+    """The catalogue the diagnosis screens for a nominal model of ``nominal_terms`` (drift-law
+    terms of :data:`~gyrojax.models.platform.TERMS` carried for every gyro; default all but
+    ``oo``, seed 001's model): effect -> ``(family, prior scale per coefficient)``. The default
+    keeps seed 001's grouping (:data:`PLATFORM_LIBRARY`, ``D_oo`` of the three gyros as one
+    effect); any other nominal screens every coefficient it leaves out as an effect of its
+    own (``D_ii_y``: which gyro needs which term) beside the four non-drift-law effects."""
+    terms = _check_terms(nominal_terms)
+    if terms == NOMINAL_TERMS:
+        return dict(PLATFORM_LIBRARY)
+    out = {n: _coefficient_effect(n)[:2] for n in COEFF_NAMES if n.split("_")[1] not in terms}
+    return out | {k: v for k, v in PLATFORM_LIBRARY.items() if k != "anisoelastic_oo"}
+
+
+def _check_terms(nominal_terms) -> tuple:
+    """The nominal's terms in canonical order; a clear error for an unknown or missing one."""
+    if nominal_terms is None:
+        return NOMINAL_TERMS
+    terms = tuple(str(t).strip() for t in nominal_terms)
+    bad = [t for t in terms if t not in TERMS]
+    if bad:
+        raise ValueError(f"nominal_terms {bad} unknown; the platform drift law's terms are "
+                         f"{', '.join(TERMS)} (e.g. f,i,o,s: the first-order model)")
+    if "f" not in terms:
+        raise ValueError(f"nominal_terms {list(terms)} lack 'f': every platform nominal "
+                         "carries the gyro biases D_f; add f")
+    return tuple(t for t in TERMS if t in terms)
 
 
 @eqx.filter_jit
@@ -136,7 +175,8 @@ class PlatformProblem:
               "design-shift": "design shift: the last vibration amplitude's run held out"}
 
     def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
-                 effects=None, order=None, blocks: int = 50, split: str = "same-design"):
+                 effects=None, order=None, blocks: int = 50, split: str = "same-design",
+                 nominal_terms=None):
         if split not in self.SPLITS:
             raise ValueError(f"split={split!r} for --rig platform; use one of "
                              f"{', '.join(self.SPLITS)}")
@@ -162,16 +202,23 @@ class PlatformProblem:
         self.angles = jnp.asarray(data[..., :3])
         self.n_blocks = int(blocks)
         self.noise_std = noise_std
-        self.effects = tuple(effects) if effects is not None else tuple(PLATFORM_LIBRARY)
+        self.terms = _check_terms(nominal_terms)
+        self.library = platform_library(self.terms)
+        self.effects = tuple(effects) if effects is not None else tuple(self.library)
+        unknown = [e for e in self.effects if e not in self.library]
+        if unknown:
+            raise ValueError(f"effects {unknown} are not in the platform catalogue for nominal "
+                             f"terms {','.join(self.terms)}; use some of "
+                             f"{', '.join(self.library)}")
         self.channels = CHANNELS
         self.lines = {}
         self.rig = PlatformRig()
         space = self.rig.param_space
-        self.nominal_names = NOMINAL
-        self.nominal_scales = space.scales(NOMINAL)  # the rig's Param scales (SI)
-        self.nominal_units = tuple(space[n].display_unit for n in NOMINAL)
+        self.nominal_names = tuple(n for n in COEFF_NAMES if n.split("_")[1] in self.terms)
+        self.nominal_scales = space.scales(self.nominal_names)  # the rig's Param scales (SI)
+        self.nominal_units = tuple(space[n].display_unit for n in self.nominal_names)
         self.nominal_display_scales = self.nominal_scales / np.array(
-            [space[n].display_factor for n in NOMINAL])
+            [space[n].display_factor for n in self.nominal_names])
         self.record = record
         n_dw = len(self.amps) * len(s["positions_deg"])
         self.dwell_s = dwell_span(s)
@@ -241,6 +288,9 @@ class PlatformProblem:
     def _effect_cols(self, cols, name, g=0):
         """(N, 3, k) SI columns of one effect (grid index ``g``)."""
         base = 30
+        if name in COEFF_NAMES:
+            i = COEFF_NAMES.index(name)
+            return cols[:, :, i:i + 1]
         if name == "anisoelastic_oo":
             return cols[:, :, [COEFF_NAMES.index(f"D_oo_{ax}") for ax in "xyz"]]
         if name == "base_misalignment":
@@ -256,6 +306,8 @@ class PlatformProblem:
         raise KeyError(name)
 
     def _effect_names(self, name):
+        if name in COEFF_NAMES:
+            return (name,)
         return {"anisoelastic_oo": tuple(f"D_oo_{ax}" for ax in "xyz"),
                 "base_misalignment": ("dchi_x", "dchi_y", "dchi_z"),
                 "warmup_transient": ("dm_x", "dm_y", "dm_z"),
@@ -263,7 +315,14 @@ class PlatformProblem:
                 "vibration_rectification": ("rect_x", "rect_y", "rect_z")}[name]
 
     def _nominal_cols(self, cols):
-        return cols[:, :, [COEFF_NAMES.index(n) for n in NOMINAL]]
+        return cols[:, :, [COEFF_NAMES.index(n) for n in self.nominal_names]]
+
+    @staticmethod
+    def _unit_si(name):
+        """Display unit and SI factor of one effect's coefficients."""
+        if name in COEFF_NAMES:
+            return _coefficient_effect(name)[2], units.DEG_PER_HOUR
+        return _UNITS[name], _SI[name]
 
     # -- the diagnosis interface --------------------------------------------------------------
     def _theta(self, params):
@@ -273,9 +332,10 @@ class PlatformProblem:
         """Least squares of the nominal coefficients on the train rows; the catalogue's columns
         are then rebuilt at the fit (the base misalignment's gravity part depends on it)."""
         m = self.n_train
-        a = self._nominal_cols(self._cols)[:m].reshape(-1, len(NOMINAL)) * self.nominal_scales
+        k = len(self.nominal_names)
+        a = self._nominal_cols(self._cols)[:m].reshape(-1, k) * self.nominal_scales
         x, *_ = np.linalg.lstsq(a, self.y[:m].reshape(-1), rcond=None)
-        params = dict(zip(NOMINAL, x * self.nominal_scales))
+        params = dict(zip(self.nominal_names, x * self.nominal_scales))
         _, _, self._cols = self._design(self.angles, self.conds, self.amps, self._theta(params))
         return params
 
@@ -347,7 +407,7 @@ class PlatformProblem:
         return z
 
     def predict(self, params: dict, extra=None) -> np.ndarray:
-        v = np.array([params[n] for n in NOMINAL])
+        v = np.array([params[n] for n in self.nominal_names])
         pred = np.einsum("nck,k->nc", self._nominal_cols(self._cols), v)
         return pred if extra is None else pred + extra
 
@@ -363,16 +423,17 @@ class PlatformProblem:
         jn = (self._nominal_cols(cols) * w).reshape(n * 3, -1) * self.nominal_scales
         sigs = []
         for e in self.effects:
-            fam, prior = PLATFORM_LIBRARY[e]
-            f = prior * _SI[e]
+            fam, prior = self.library[e]
+            unit, si = self._unit_si(e)
+            f = prior * si
             gs = range(N_GRID) if e in _GRID_EFFECTS else range(1)
             jac = np.stack([(self._effect_cols(cols, e, g) * w).reshape(n * 3, -1) * f
                             for g in gs])
             grid, gname, gunit = ((tuple(x / 3600 for x in self.taus), "decay time", "h")
                                   if e in _GRID_EFFECTS else ((), "", ""))
             names = self._effect_names(e)
-            sigs.append(Signature(e, fam, names, (_UNITS[e],) * 3, np.full(3, prior), jac,
-                                  grid, gname, gunit))
+            sigs.append(Signature(e, fam, names, (unit,) * len(names),
+                                  np.full(len(names), prior), jac, grid, gname, gunit))
         return jn, sigs
 
     def refit(self, params0: dict, sig_choices, sigma):
@@ -385,17 +446,18 @@ class PlatformProblem:
         w = (1.0 / np.asarray(sigma))[None, :, None]
         k = cols.shape[2]
         scale = np.concatenate([self.nominal_scales] + [
-            np.full(3, PLATFORM_LIBRARY[s.name][1] * _SI[s.name]) for s, _ in sig_choices])
+            np.full(len(s.names), self.library[s.name][1] * self._unit_si(s.name)[1])
+            for s, _ in sig_choices])
         a = (cols[:m] * w).reshape(-1, k) * scale
         b = (self.y[:m] * w[:, :, 0]).reshape(-1)
         x, *_ = np.linalg.lstsq(a, b, rcond=None)
         x = x * scale
         pred = np.einsum("nck,k->nc", cols, x)
-        p = dict(zip(NOMINAL, x[:len(NOMINAL)]))
-        coeffs, i = {}, len(NOMINAL)
+        p = dict(zip(self.nominal_names, x[:len(self.nominal_names)]))
+        coeffs, i = {}, len(self.nominal_names)
         for sig, _ in sig_choices:
             for nm in sig.names:
-                coeffs[nm] = float(x[i] / _SI[sig.name])
+                coeffs[nm] = float(x[i] / self._unit_si(sig.name)[1])
                 i += 1
         return pred, coeffs, p
 
@@ -425,4 +487,4 @@ class PlatformProblem:
 
     def display_nominal(self, params) -> dict:
         space = self.rig.param_space
-        return {k: float(space[k].to_display(params[k])) for k in NOMINAL}
+        return {k: float(space[k].to_display(params[k])) for k in self.nominal_names}

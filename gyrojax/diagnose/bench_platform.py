@@ -16,6 +16,12 @@ scale on a single-amplitude test, which has no signature: scored as silent); and
 the library omits: ``readout_line`` (a 20-min thermal line on the gamma pick-off) and
 ``readout_step`` (a slip of the alpha pick-off inside one dwell).
 
+``PlatformDesign(nominal_terms=...)`` gives the diagnosis (and the generator's nominal draws) a
+smaller nominal model, e.g. :data:`~gyrojax.diagnose._platform.FIRST_ORDER_TERMS` (bias and g
+terms, 12 coefficients): every coefficient it leaves out is then a catalogue effect of its own
+(:func:`~gyrojax.diagnose._platform.platform_library`, 22 effects for the first-order model) and a
+case family, hidden one coefficient at a time (:func:`mean_families`).
+
 Magnitudes: the noncentrality ``lambda`` of the effect's noise-free change of the record on the
 train rows (block means of every dwell, each centred by its train part, whitened by the block
 noise), with the nominal coefficients projected out through the estimator's own regression
@@ -45,16 +51,16 @@ from ..models.platform_schedule import (
 )
 from . import _harness
 from ._harness import projector, run_cases, score_cases
+from ._platform import NOMINAL, _check_terms, platform_library
 from .bench import _Sealer
 
 __all__ = ["PlatformDesign", "generate", "run", "score", "MEAN_FAMILIES", "OUT_OF_LIBRARY",
-           "STRUCTURAL"]
+           "STRUCTURAL", "mean_families"]
 
 MEAN_FAMILIES = ("anisoelastic_oo", "base_misalignment", "warmup_transient", "drift_ramp",
                  "vibration_rectification")
 STRUCTURAL = ("anisoelastic_oo_one_amplitude",)
 OUT_OF_LIBRARY = ("readout_line", "readout_step")
-NOMINAL = tuple(n for n in COEFF_NAMES if not n.startswith("D_oo"))
 _PARAMS = {"anisoelastic_oo": "D_oo", "base_misalignment": "dchi", "warmup_transient": "dm",
            "drift_ramp": "ramp", "vibration_rectification": "rect"}
 _RIG = PlatformRig()
@@ -71,6 +77,14 @@ class PlatformDesign:
     holdout: float = 0.25
     blocks: int = 50  # the diagnosis's default block count per dwell
     split: str = "same-design"  # or "design-shift": the last amplitude's run held out
+    nominal_terms: tuple | None = None  # the diagnosis' nominal model (None: all but D_oo)
+
+    def nominal_names(self) -> tuple:
+        """The nominal coefficients the cases draw and the diagnosis fits."""
+        if self.nominal_terms is None:
+            return NOMINAL
+        terms = _check_terms(self.nominal_terms)
+        return tuple(n for n in COEFF_NAMES if n.split("_")[1] in terms)
 
     def schedule(self, amplitudes=None) -> dict:
         return load_schedule({"positions_deg": TABLE1_DEG.tolist(),
@@ -94,6 +108,16 @@ def _reduce(x, n_blocks, k_train):
     return b[:k_train], np.array([len(g) for g in groups[:k_train]])
 
 
+def mean_families(design: PlatformDesign | None = None) -> tuple:
+    """The in-library case families of ``design``: the catalogue the diagnosis screens (the
+    default nominal: :data:`MEAN_FAMILIES`; a smaller one: each coefficient it leaves out, and
+    the four non-drift-law effects)."""
+    design = design or PlatformDesign()
+    if design.nominal_terms is None:
+        return MEAN_FAMILIES
+    return tuple(platform_library(design.nominal_terms))
+
+
 class _TrainRows:
     """The truth side's train rows of a test: its whitening and the nominal projector."""
 
@@ -109,9 +133,10 @@ class _TrainRows:
                 _, f = _position_design(ts, jnp.asarray(y0[a, p]), c)
                 fb, sizes = _reduce(np.asarray(f), design.blocks, self.k_train)
                 cols.append(fb * np.sqrt(sizes)[:, None, None])
-        idx = [COEFF_NAMES.index(n) for n in NOMINAL]
-        scales = _RIG.param_space.scales(NOMINAL)
-        jn = np.concatenate(cols)[:, :, idx].reshape(-1, len(NOMINAL)) * scales
+        nominal = design.nominal_names()
+        idx = [COEFF_NAMES.index(n) for n in nominal]
+        scales = _RIG.param_space.scales(nominal)
+        jn = np.concatenate(cols)[:, :, idx].reshape(-1, len(nominal)) * scales
         self.sigma = design.noise_arcsec * units.ARCSEC
         self.proj = projector(jn / self.sigma)
         self.y0 = y0
@@ -136,24 +161,32 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: PlatformDesign | N
     space = _RIG.param_space
     s = design.schedule()
     span = len(s["table_amplitudes_g"]) * len(s["positions_deg"]) * dwell_span(s)
-    fams = list(families or (MEAN_FAMILIES + STRUCTURAL + OUT_OF_LIBRARY))
+    means = mean_families(design)
+    structural = STRUCTURAL if design.nominal_terms is None else ()
+    fams = list(families or (means + structural + OUT_OF_LIBRARY))
+    unknown = [f for f in fams if f not in means + structural + OUT_OF_LIBRARY]
+    if unknown:
+        raise ValueError(f"families {unknown} are not case families of this design; use some of "
+                         f"{', '.join(means + structural + OUT_OF_LIBRARY)}")
     key = jax.random.key(seed)
     for i in range(n_cases):
         family, lam = sealer.draw(i, fams, lambdas, null_fraction)
-        nominal = {k: float(space[k].scale * rng.standard_normal()) for k in NOMINAL}
+        nominal = {k: float(space[k].scale * rng.standard_normal())
+                   for k in design.nominal_names()}
         p = space.make(nominal)
         truth = {"family": family, "lambda": lam if family not in ("null",) + STRUCTURAL
                  else 0.0}
         sched, out_term = s, None
-        if family in MEAN_FAMILIES:
+        if family in means:
             rows = _TrainRows(design, s, p)
-            names = tuple(f"{_PARAMS[family]}_{ax}" for ax in "xyz")
+            names = ((family,) if family in COEFF_NAMES
+                     else tuple(f"{_PARAMS[family]}_{ax}" for ax in "xyz"))
             if family == "warmup_transient":
                 p["tau_w"] = jnp.asarray(float(np.exp(rng.uniform(np.log(span / 30),
                                                                   np.log(span / 3)))))
                 truth["tau_w_min"] = float(p["tau_w"]) / 60.0
             sc = space.scales(names)
-            d = rng.standard_normal(3) * sc
+            d = rng.standard_normal(len(names)) * sc
             unit = p | {k: jnp.asarray(v) for k, v in zip(names, d, strict=True)}
             lam1 = float(np.sum(rows.whitened(_noise_free(unit, s) - rows.y0) ** 2))
             coef = d * np.sqrt(lam / lam1)
@@ -201,13 +234,18 @@ def _ool_shape(rng, family, s, shape):
     return out
 
 
-def run(case_dir, *, design: PlatformDesign | None = None, progress=None) -> list:
+def run(case_dir, *, design: PlatformDesign | None = None, progress=None,
+        baselines: bool = False, refit_all: bool = True) -> list:
     """Diagnose every record in ``case_dir`` (never reading ``sealed/``) with the design's
-    split, refitting every catalogue effect as well (the scorer's oracle). Records on one
-    amplitude (the structural cases) have no design shift and keep the same-design split."""
+    split and nominal, refitting every catalogue effect as well (the scorer's oracle). Records
+    on one amplitude (the structural cases) have no design shift and keep the same-design
+    split. ``baselines``: B2 refit-all + BIC per record as well (spec §6 G10's comparison);
+    ``refit_all=False``: no refit of every effect inside the diagnosis (no G7 oracle)."""
     design = design or PlatformDesign()
-    return run_cases(case_dir, "platform", design.holdout, split=design.split, refit_all=True,
-                     progress=progress, split_for=_split_for)
+    kw = {} if design.nominal_terms is None else {"nominal_terms": design.nominal_terms}
+    return run_cases(case_dir, "platform", design.holdout, split=design.split, refit_all=refit_all,
+                     progress=progress, split_for=_split_for, baselines=baselines,
+                     diagnose_kw=kw)
 
 
 def _split_for(record, split):
@@ -215,9 +253,10 @@ def _split_for(record, split):
     return split if len(amps) > 1 else "same-design"
 
 
-def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
+def score(case_dir, results, separable=None, oracle_thresholds=None,
+          design: PlatformDesign | None = None) -> dict:
     """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`)."""
-    return score_cases(case_dir, results, MEAN_FAMILIES, (), OUT_OF_LIBRARY,
+    return score_cases(case_dir, results, mean_families(design), (), OUT_OF_LIBRARY,
                        structural=STRUCTURAL, separable=separable,
                        oracle_thresholds=oracle_thresholds)
 
