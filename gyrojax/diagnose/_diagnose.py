@@ -342,6 +342,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     t0 = time.perf_counter()
     designs = screen_designs(jn, sigs)
     rows = screen(e, jn, sigs, prior=prior, designs=designs)
+    timings["library_scores_s"] = time.perf_counter() - t0  # the score tests alone (G10)
     nuisance = getattr(prob, "nuisance_dof", 0)  # train dof of terms outside the Jacobian
     # the test positions' offset signatures and the columns fitted outside the Jacobian
     map_kw = dict(noise_dof=noise_dof, lines=prob.lines,

@@ -143,6 +143,8 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
             "time_screen_s": rep.timings.get("screening_s", 0.0)
             + rep.timings.get("jacobians_s", 0.0),
             "time_calibration_s": rep.timings.get("calibration_s", 0.0),
+            "time_library_scores_s": rep.timings.get("library_scores_s", 0.0)
+            + rep.timings.get("jacobians_s", 0.0),
             "time_refit_all_in_report_s": rep.timings.get("refit_all_s"),
             **multiplicity_fields(rep),
         })
@@ -256,6 +258,8 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
     b2 = [r for _, r in rows if "time_refit_all_s" in r]
     if b2:  # spec §6 G10: screening against B2 refit-all on the same records
         out["cost"] = {"median_screen_s": float(np.median([r["time_screen_s"] for r in b2])),
+                       "median_library_scores_s": float(np.median(
+                           [r["time_library_scores_s"] for r in b2])),
                        "median_calibration_s": float(np.median(
                            [r["time_calibration_s"] for r in b2])),
                        "median_refit_all_s": float(np.median(
