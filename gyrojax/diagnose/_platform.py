@@ -9,7 +9,10 @@ means of the centred angles (``blocks`` per dwell; exact for a linear model, the
 white), so a 14 x 2 x 100 s test at 40 Hz gives 2,800 x 3 rows.
 
 Nominal model: the 30 coefficients less the ``D_oo`` (quadrature anisoelastic) terms, the model
-a single amplitude can fit (spec seed 001). Catalogue (drift terms in the platform frame, each
+a single amplitude can fit (spec seed 001); ``nominal_terms`` picks another (e.g.
+:data:`FIRST_ORDER_TERMS`, bias and g terms), and every coefficient it leaves out is then
+screened as an effect of its own (:func:`platform_library`) in place of ``anisoelastic_oo``.
+Catalogue (drift terms in the platform frame, each
 with a null value, entering the angles through the kinematics of (S12)):
 
 - ``anisoelastic_oo``: ``D_oo_x,y,z`` (deg/h/g^2). On one amplitude it is absorbed exactly as
