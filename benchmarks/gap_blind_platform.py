@@ -86,7 +86,18 @@ def main(argv=None):
     design = bp.PlatformDesign()
     if args.nominal_terms:
         terms = tuple(t.strip() for t in args.nominal_terms.split(",") if t.strip())
-        return many_effects(args, work, dataclasses.replace(design, nominal_terms=terms))
+        design = dataclasses.replace(design, nominal_terms=terms)
+        if args.cases > 0:
+            many_effects(args, work, design)
+        if args.nulls > 0:
+            null_run(bp, os.path.join(work, "nulls"), args.nulls, seed=args.seed + 71,
+                     design=design, out=args.out, key="gap_blind_platform_first_order_nulls",
+                     title="Gap diagnosis, platform D2 null run, first-order nominal "
+                           f"(`benchmarks/gap_blind_platform.py --nominal-terms {args.nominal_terms} "
+                           "--cases 0 --nulls N`)",
+                     label="design D2 with the first-order nominal (12 coefficients drawn per "
+                           f"case, {len(bp.mean_families(design))} effects screened)")
+        return
     if args.cases > 0:
         suite(args, work, design)
     if args.nulls > 0:
@@ -143,7 +154,7 @@ def many_effects(args, work, design):
              f"{len(separable)} of {len(sep)} visible effects at canonical correlation <= 0.9 "
              f"({', '.join(separable) or 'none'}); the closest pairs "
              + ", ".join(f"{e} {v:.3f}" for e, v in sorted(sep.items(), key=lambda x: -x[1])[:4])
-             + ".", "", ORACLE_NOTE, ""]
+             + ".", "", f"- Nulls: {far_text(s)}.", "", ORACLE_NOTE, ""]
     lines += suite_lines(s, "readout_line, readout_step")
     lines += [f"- B2 refit-all + BIC top-1 by lambda: {b2}.",
               f"- Cost per case (median, spec §6 G10 with K = {c['n_effects']}): the library's "
