@@ -131,7 +131,7 @@ def many_effects(args, work, design):
                                              nominal_terms=design.nominal_terms)
     s = bp.score(work, results, separable=separable, oracle_thresholds=thresholds,
                  design=design)
-    # the reference case: one in-library record diagnosed whole (design advice on), after JIT
+    # the reference case: one record of the suite diagnosed whole (design advice on), after JIT
     rec = load_record(paths[1])
     diagnose(rec, rig="platform", nominal_terms=design.nominal_terms)
     t1 = time.perf_counter()
@@ -173,7 +173,7 @@ def many_effects(args, work, design):
               "Bayes factor with each refit's estimate in place of the one-step one) at lambda "
               f">= 32: {_fmt(s['screen_refit_agreement'])} (G10: >= 0.98).",
               f"- Reference case (3 channels, {c['n_effects']} effects, design advice on): one "
-              f"in-library record diagnosed whole in {t_ref:.1f} s after compilation (G10: "
+              f"record of the suite diagnosed whole in {t_ref:.1f} s after compilation (G10: "
               f"<= 60 s); verdict {rep.verdict['kind']} "
               f"{', '.join(rep.verdict.get('effects') or [])}.", ""]
     publish(args.out, "gap_blind_platform_first_order", lines)
