@@ -117,6 +117,12 @@ def platform_library(nominal_terms=None) -> dict:
     return out | {k: v for k, v in PLATFORM_LIBRARY.items() if k != "anisoelastic_oo"}
 
 
+def nominal_coefficients(nominal_terms=None) -> tuple:
+    """The drift coefficients a nominal of ``nominal_terms`` fits, in canonical order."""
+    terms = _check_terms(nominal_terms)
+    return tuple(n for n in COEFF_NAMES if n.split("_")[1] in terms)
+
+
 def _check_terms(nominal_terms) -> tuple:
     """The nominal's terms in canonical order; a clear error for an unknown or missing one."""
     if nominal_terms is None:
@@ -217,7 +223,7 @@ class PlatformProblem:
         self.lines = {}
         self.rig = PlatformRig()
         space = self.rig.param_space
-        self.nominal_names = tuple(n for n in COEFF_NAMES if n.split("_")[1] in self.terms)
+        self.nominal_names = nominal_coefficients(self.terms)
         self.nominal_scales = space.scales(self.nominal_names)  # the rig's Param scales (SI)
         self.nominal_units = tuple(space[n].display_unit for n in self.nominal_names)
         self.nominal_display_scales = self.nominal_scales / np.array(

@@ -51,7 +51,7 @@ from ..models.platform_schedule import (
 )
 from . import _harness
 from ._harness import projector, run_cases, score_cases
-from ._platform import NOMINAL, _check_terms, platform_library
+from ._platform import NOMINAL, nominal_coefficients, platform_library
 from .bench import _Sealer
 
 __all__ = ["PlatformDesign", "generate", "run", "score", "MEAN_FAMILIES", "OUT_OF_LIBRARY",
@@ -81,10 +81,7 @@ class PlatformDesign:
 
     def nominal_names(self) -> tuple:
         """The nominal coefficients the cases draw and the diagnosis fits."""
-        if self.nominal_terms is None:
-            return NOMINAL
-        terms = _check_terms(self.nominal_terms)
-        return tuple(n for n in COEFF_NAMES if n.split("_")[1] in terms)
+        return NOMINAL if self.nominal_terms is None else nominal_coefficients(self.nominal_terms)
 
     def schedule(self, amplitudes=None) -> dict:
         return load_schedule({"positions_deg": TABLE1_DEG.tolist(),
