@@ -137,6 +137,28 @@ def suite_lines(s: dict, ool_label: str) -> list[str]:
         ""]
 
 
+def g10_text(s, refits: str) -> str:
+    """Spec §6 G10 from a score's ``cost`` block and screening/refit agreement (runs with B2
+    refit-all timed on every record): the library's score tests and the whole screening stage
+    against refit-all, per case (median). ``refits``: what each refit is."""
+    c = s["cost"]
+    return (f"Cost per case (median, spec §6 G10 with K = {c['n_effects']}): the library's "
+            f"screening (Jacobians and the {c['n_effects']} score tests) "
+            f"{c['median_library_scores_s'] * 1e3:.0f} ms against B2 refit-all "
+            f"{c['median_refit_all_s'] * 1e3:.0f} ms ({c['n_refits']} refits, {refits}): "
+            f"{c['median_refit_all_s'] / c['median_library_scores_s']:.1f}x; the whole "
+            f"screening stage with the gap map {c['median_screen_s'] * 1e3:.0f} ms "
+            f"({c['median_refit_all_s'] / c['median_screen_s']:.1f}x), the null calibration "
+            f"of the BH level {c['median_calibration_s'] * 1e3:.0f} ms more. Top-1 agreement "
+            "of screening (top posterior) with the refits' answer (the same design prior's "
+            "Bayes factor with each refit's estimate in place of the one-step one) at lambda "
+            f">= 32: {fmt_rate(s['screen_refit_agreement'])} (G10: >= 0.98)"
+            + ("" if s.get("screen_refit_agreement_classes") is None else
+               f"; up to effects the design cannot tell apart (projected canonical correlation "
+               f">= 0.98, spec §4.2 stage 3: either answer is the other's) "
+               f"{fmt_rate(s['screen_refit_agreement_classes'])}"))
+
+
 def g9_text(s) -> str:
     """Spec §6 G9 from a score's ``ool_*`` entries (:func:`gyrojax.diagnose.bench.ool_scores`):
     the strong cases, the confident misattributions and how far outside the catalogue's span

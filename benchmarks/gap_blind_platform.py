@@ -47,6 +47,7 @@ from _results import (  # noqa: E402
     diagnose_suite,
     far_text,
     g6_lines,
+    g10_text,
     machine_line,
     null_run,
     publish,
@@ -157,21 +158,11 @@ def many_effects(args, work, design):
              + ".", "", f"- Nulls: {far_text(s)}.", "", ORACLE_NOTE, ""]
     lines += suite_lines(s, "readout_line, readout_step")
     lines += [f"- B2 refit-all + BIC top-1 by lambda: {b2}.",
-              f"- Cost per case (median, spec §6 G10 with K = {c['n_effects']}): the library's "
-              f"screening (Jacobians and the {c['n_effects']} score tests) "
-              f"{c['median_library_scores_s'] * 1e3:.0f} ms against B2 refit-all "
-              f"{c['median_refit_all_s'] * 1e3:.0f} ms ({c['n_refits']} refits: every effect, "
-              "the transient at each of its 8 decay times): "
-              f"{c['median_refit_all_s'] / c['median_library_scores_s']:.1f}x; the whole "
-              f"screening stage with the gap map {c['median_screen_s'] * 1e3:.0f} ms "
-              f"({c['median_refit_all_s'] / c['median_screen_s']:.2f}x), the null calibration "
-              f"of the BH level {c['median_calibration_s'] * 1e3:.0f} ms more. The platform's "
-              "refits are linear least squares on the (S22) design, each about one projection "
-              "like a score test, so screening saves little here: G10's 10x is a saving over "
-              "nonlinear refits (ESG: 11.7x with 6 effects, `gap_blind`). Top-1 agreement "
-              "of screening (top posterior) with the refits' answer (the same design prior's "
-              "Bayes factor with each refit's estimate in place of the one-step one) at lambda "
-              f">= 32: {_fmt(s['screen_refit_agreement'])} (G10: >= 0.98).",
+              f"- {g10_text(s, 'every effect, the transient at each of its 8 decay times')}. "
+              "The platform's refits are linear least squares on the (S22) design, each about "
+              "one projection like a score test, so screening saves little here: G10's 10x is "
+              "a saving over nonlinear refits (ESG: 11.7x with 6 effects, `gap_blind`; the IMU "
+              "per coefficient, `gap_blind_imu_per_coefficient`).",
               f"- Reference case (3 channels, {c['n_effects']} effects, design advice on): one "
               f"record of the suite diagnosed whole in {t_ref:.1f} s after compilation (G10: "
               f"<= 60 s); verdict {rep.verdict['kind']} "

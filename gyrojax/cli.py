@@ -435,6 +435,10 @@ def cmd_diagnose(args):
         nominal_terms = tuple(t.strip() for t in args.nominal_terms.split(",") if t.strip())
     if args.table_run and args.rig != "imu":
         raise UsageError(f"--table-run is for the imu rig; the {args.rig} rig has no rate table")
+    if args.per_coefficient and args.rig != "imu":
+        raise UsageError(f"--per-coefficient is for the imu rig; the {args.rig} rig screens its "
+                         "catalogue as listed (platform: choose coefficients with "
+                         "--nominal-terms)")
     _table_runs(args)  # checked before the record is read
     if (args.noise_model is not None or args.flicker_arcsec is not None) and args.rig != "esg":
         raise UsageError(f"--noise-model / --flicker-arcsec are for the esg rig; the {args.rig} "
@@ -497,7 +501,7 @@ def cmd_diagnose(args):
                       alpha=args.alpha, noise_std=noise, split=args.split,
                       refit_all=args.refit_all, null_draws=args.null_draws,
                       noise_model=args.noise_model, flicker_b=flicker,
-                      nominal_terms=nominal_terms)
+                      nominal_terms=nominal_terms, per_coefficient=args.per_coefficient)
     print(report.markdown())
     _emit_json(report.to_json(), args.json)
     if args.plot:
@@ -687,6 +691,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "for every gyro, from f,i,o,s,ii,oo,ss,io,is,os (default all but oo, "
                         "seed 001's model; f,i,o,s = the first-order model); every coefficient "
                         "left out is screened as an effect of its own")
+    p.add_argument("--per-coefficient", action="store_true",
+                   help="imu: screen every coefficient of a many-coefficient effect as an effect "
+                        "of its own (g_sensitivity:gsxy, misalignment:mgxy, ...; K = 40 on six "
+                        "channels, 25 on three gyros): which term of the error model, not only "
+                        "which family")
     p.add_argument("--refit-all", action="store_true",
                    help="also refit every other catalogued effect, so each candidate carries "
                         "its held-out gap after and reduction (the verdict is unchanged)")

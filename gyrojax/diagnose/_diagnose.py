@@ -55,6 +55,7 @@ from ._stats import (
     ambiguity_set,
     bh_qvalues,
     canonical_correlation,
+    effect_family_name,
     gap_map_cells,
     lag_cells,
     library_pvalues,
@@ -108,15 +109,20 @@ _NOMINAL_TERMS_RIG = ("nominal_terms with rig {rig!r}: only --rig platform offer
 
 
 def _problem(record, rig, holdout, noise_std, effects, order, split=None, noise_model=None,
-             flicker_b=None, nominal_terms=None):
+             flicker_b=None, nominal_terms=None, per_coefficient=False):
     if nominal_terms is not None and rig != "platform":
         raise ValueError(_NOMINAL_TERMS_RIG.format(rig=rig))
+    if per_coefficient and rig != "imu":
+        raise ValueError(f"per_coefficient with rig {rig!r}: only --rig imu splits its effects "
+                         "by coefficient (the platform's coefficients are chosen by "
+                         "--nominal-terms); leave it out")
     if (noise_model is not None or flicker_b is not None) and rig != "esg":
         raise ValueError(f"noise_model / flicker_b with rig {rig!r}: only --rig esg offers a "
                          "choice of noise model; leave them out (the IMU fits AR prewhitening, "
                          "the other rigs a white level)")
     prob = _rig_problem(record, rig, holdout, noise_std, effects, order, split,
-                        {"noise_model": noise_model, "flicker_b": flicker_b}, nominal_terms)
+                        {"noise_model": noise_model, "flicker_b": flicker_b}, nominal_terms,
+                        per_coefficient)
     if split is not None and not hasattr(prob, "SPLITS"):
         raise ValueError(f"split={split!r}: --rig {rig} has one held-out split "
                          f"({getattr(prob, 'split_kind', 'the record end, time-ordered')}); "
@@ -125,7 +131,7 @@ def _problem(record, rig, holdout, noise_std, effects, order, split=None, noise_
 
 
 def _rig_problem(record, rig, holdout, noise_std, effects, order, split, noise_kw=None,
-                 nominal_terms=None):
+                 nominal_terms=None, per_coefficient=False):
     if rig == "esg":
         from ._esg import ESG_LIBRARY, ESGProblem
 
@@ -161,7 +167,8 @@ def _rig_problem(record, rig, holdout, noise_std, effects, order, split, noise_k
         from ._imu import IMU_LIBRARY, IMUProblem
 
         _check_effects(effects, IMU_LIBRARY, rig)
-        return IMUProblem(record, holdout=holdout, noise_std=noise_std, effects=effects)
+        return IMUProblem(record, holdout=holdout, noise_std=noise_std, effects=effects,
+                          per_coefficient=per_coefficient)
     raise ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: {', '.join(RIGS)}")
 
 
@@ -251,7 +258,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
              library_share: float = 0.5, split: str | None = None,
              refit_all: bool = False, null_draws: int = 499,
              noise_model: str | None = None, flicker_b=None,
-             nominal_terms=None) -> GapReport:
+             nominal_terms=None, per_coefficient: bool = False) -> GapReport:
     """Diagnose the gap between the rig's nominal model and ``record``.
 
     **Arguments:**
@@ -297,6 +304,10 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
       gyro (default all but ``oo``, seed 001's model; e.g. ``("f", "i", "o", "s")``, the
       first-order model). Every coefficient left out is then screened as an effect of its own
       (``D_ii_y``), beside the catalogue's non-drift-law effects.
+    - `per_coefficient`: IMU only: screen every coefficient of a many-coefficient catalogue
+      effect as an effect of its own (``g_sensitivity:gsxy``, ``warmup_transient:wgx`` with its
+      decay-time grid, ...): "which term of the error model", K = 40 on a six-channel record
+      (25 on three gyros, spec D1's reference case) instead of "which family", K = 6.
 
     **Returns:** a :class:`GapReport` (``.to_json()``, ``.markdown()``).
     """
@@ -309,7 +320,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         record = record.with_conditions(**dict(conditions))
     _check_record(record, holdout)
     prob = _problem(record, rig, holdout, noise_std, effects, order, split, noise_model,
-                    flicker_b, nominal_terms)
+                    flicker_b, nominal_terms, per_coefficient)
     n, c = prob.n_train, len(prob.channels)
     params0 = prob.fit_nominal()
     pred0 = prob.predict(params0)
@@ -622,7 +633,7 @@ def _with_noise(verdict, noise_rows, alpha):
         verdict.update(kind="attributed", effects=[x["name"] for x in sig],
                        reason="the mean model fits; the noise model lacks "
                               + ", ".join(x["name"] for x in sig))
-    slow = [e for e in (verdict.get("effects") or []) if e in SLOW_MEAN]
+    slow = [e for e in (verdict.get("effects") or []) if effect_family_name(e) in SLOW_MEAN]
     rival = [x["name"] for x in noise_rows if x["name"] in STOCHASTIC_SLOW
              and not x.get("significant") and x.get("p_nominal", 1.0) < alpha]
     if slow and rival and verdict["kind"] in ("attributed", "ambiguous", "unexplained"):

@@ -17,6 +17,7 @@ import jax
 import numpy as np
 
 from ..io import load_record
+from ._stats import INDISTINGUISHABLE
 from .bench import (
     _rate,
     _scores,
@@ -42,16 +43,17 @@ def projector(jn):
     return lambda a: a - q @ (q.T @ a)
 
 
-def separability(record, rig: str, sigma, split=None, nominal_terms=None) -> dict:
+def separability(record, rig: str, sigma, split=None, **problem_kw) -> dict:
     """Largest canonical correlation of each visible catalogue effect with another on the train
     rows of ``split``, after the nominal parameters are projected out, maximised over the
     effects' grids (a transient with a decay time near the record length looks like a ramp);
     spec §5.6 calls an effect separable at <= 0.9. ``sigma``: the channels' noise (SI; only the
     ratios between channels matter); ``None``: the problem's own noise model on this record (the
-    diagnosis's, e.g. the IMU's AR prewhitening)."""
+    diagnosis's, e.g. the IMU's AR prewhitening). ``problem_kw``: the diagnosis' catalogue
+    options (``nominal_terms``, ``per_coefficient``)."""
     from ._stats import _project, canonical_correlation, nominal_basis, visible
 
-    jn, sigs = _train_jacobians(record, rig, sigma, split, nominal_terms)
+    jn, sigs = _train_jacobians(record, rig, sigma, split, **problem_kw)
     u = nominal_basis(jn)
     vis = [s for s in sigs if visible(u, s.jac[0])]  # the diagnosis' threshold
     return {a.name: max(canonical_correlation(_project(u, ja), _project(u, jb))
@@ -59,13 +61,12 @@ def separability(record, rig: str, sigma, split=None, nominal_terms=None) -> dic
             for a in vis}
 
 
-def _train_jacobians(record, rig, sigma, split, nominal_terms=None):
+def _train_jacobians(record, rig, sigma, split, **problem_kw):
     """The whitened nominal Jacobian and the catalogue's signatures on the train rows of
     ``split``, at the nominal fit of ``record`` (``sigma``: see :func:`separability`)."""
     from ._diagnose import _noise_level, _problem, _train_slice
 
-    prob = _problem(record, rig, 0.25, None, None, "exact", split,
-                    nominal_terms=nominal_terms)
+    prob = _problem(record, rig, 0.25, None, None, "exact", split, **problem_kw)
     params0 = prob.fit_nominal()
     if sigma is None:
         resid = (prob.y - prob.predict(params0))[: prob.n_train]
@@ -77,7 +78,7 @@ def _train_jacobians(record, rig, sigma, split, nominal_terms=None):
 
 def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
                                 alpha: float = 0.05, n_draws: int = 20_000,
-                                seed: int = 0, nominal_terms=None) -> dict:
+                                seed: int = 0, **problem_kw) -> dict:
     """Null thresholds of the Bayes-oracle detector (:func:`~gyrojax.diagnose.bench.
     oracle_detect_statistic`) on the design of ``record``: per noncentrality, the ``1 - alpha``
     quantile of the statistic under the linearised null, from ``n_draws`` draws of the residual
@@ -89,7 +90,7 @@ def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
     run: the reference for spec §6 G2's detection power."""
     from ._stats import design_log_bf, screen_designs
 
-    jn, sigs = _train_jacobians(record, rig, sigma, split, nominal_terms)
+    jn, sigs = _train_jacobians(record, rig, sigma, split, **problem_kw)
     _, designs = screen_designs(jn, sigs, n_boot=0)
     span = np.concatenate([jt for des in designs for jt in des.jt], axis=1)
     q, s, _ = np.linalg.svd(span, full_matrices=False)
@@ -146,11 +147,16 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
             "time_library_scores_s": rep.timings.get("library_scores_s", 0.0)
             + rep.timings.get("jacobians_s", 0.0),
             "time_refit_all_in_report_s": rep.timings.get("refit_all_s"),
+            # effect pairs this design cannot tell apart (spec §4.2 stage 3)
+            "indistinguishable": [k.split(" ~ ") for k, v in rep.ambiguity["pairs"].items()
+                                  if v >= INDISTINGUISHABLE],
             **multiplicity_fields(rep),
         })
         if baselines:
+            kw = diagnose_kw or {}
             prob = _problem(rec, rig, holdout, None, None, "exact", rec_split,
-                            nominal_terms=(diagnose_kw or {}).get("nominal_terms"))
+                            nominal_terms=kw.get("nominal_terms"),
+                            per_coefficient=kw.get("per_coefficient", False))
             results[-1] |= refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]))
         if progress is not None:
             progress(k + 1, len(paths))
@@ -270,6 +276,12 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
         out["screen_refit_agreement"] = _rate(
             strong, lambda t, r: max(r["posterior"], key=r["posterior"].get)
             == r["b2_lr_choice"])
+
+        def same_class(t, r):  # the same answer, or two effects the design cannot tell apart
+            a, b = max(r["posterior"], key=r["posterior"].get), r["b2_lr_choice"]
+            return a == b or [a, b] in r["indistinguishable"] or [b, a] in r["indistinguishable"]
+        out["screen_refit_agreement_classes"] = _rate(
+            [(t, r) for t, r in strong if "indistinguishable" in r], same_class)
     return out
 
 

@@ -56,7 +56,13 @@ from ..models.imu import (
     pose_frame,
 )
 from ..record import BenchRecord
-from ._stats import Signature, full_rate_tau_cells, quantization_score
+from ._stats import (
+    Signature,
+    coefficient_effect,
+    effect_family_name,
+    full_rate_tau_cells,
+    quantization_score,
+)
 
 __all__ = ["IMUProblem", "IMU_LIBRARY"]
 
@@ -101,7 +107,8 @@ class IMUProblem:
     rig_name = "imu"
 
     def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
-                 effects=None, order=None, block_s: float | None = None, max_rows: int = 1500):
+                 effects=None, order=None, block_s: float | None = None, max_rows: int = 1500,
+                 per_coefficient: bool = False):
         bad = [c for c in record.channels if c not in IMU_CHANNELS and not is_aux(c)]
         if bad:
             raise ValueError(f"channels {bad} are neither IMU channels {IMU_CHANNELS} nor "
@@ -180,6 +187,11 @@ class IMUProblem:
             np.ones(len(self.pose_names))])
         self.effect_names = {e: tuple(n for n in self.space.effect_names(e) if n != "tau_w"
                                       and _relevant(n, self.channels)) for e in self.effects}
+        if per_coefficient:  # every coefficient of a many-coefficient effect an effect of its own
+            self.effect_names = {k: v for e, names in self.effect_names.items() for k, v in (
+                [(coefficient_effect(e, n), (n,)) for n in names] if len(names) > 1
+                else [(e, names)])}
+            self.effects = tuple(self.effect_names)
         span = self.t[self.n_train - 1] - self.t[0]
         self.tau_grid_s = tuple(float(x) for x in np.geomspace(span / 30, span / 2, 6))
         self.lines = {}
@@ -375,16 +387,25 @@ class IMUProblem:
         warm-up grid values included: ``(rows, channels, k)``."""
         t = self.t if t is None else t
         seg = self.seg if seg is None else seg
-        cols = []
-        for e in self.effects:
-            names = self.effect_names[e]
-            if not names:
-                continue
-            taus = self.tau_grid_s if e == "warmup_transient" else (None,)
-            for tau in taus:
+        cols = self._effect_columns(params, t, seg)
+        cols = [c for e in self.effects for n in self.effect_names[e] for c in cols[n]]
+        return np.stack(cols, axis=2) if cols else np.zeros((len(t), len(self.channels), 0))
+
+    def _effect_columns(self, params, t, seg, design=None, thermal=None):
+        """Raw Jacobian columns ``(rows, channels)`` of every catalogued mean-effect coefficient
+        at the null: name -> one column per warm-up decay time (one for the others). One batched
+        JVP per decay time and one for the rest, whatever the catalogue's granularity."""
+        effects = [e for e in self.effects if self.effect_names[e]]
+        warm = [n for e in effects if _grid_effect(e) for n in self.effect_names[e]]
+        plain = [n for e in effects if not _grid_effect(e) for n in self.effect_names[e]]
+        out = {}
+        for names, taus in ((plain, (None,)), (warm, self.tau_grid_s)):
+            for tau in taus if names else ():
                 base = dict(params) | ({"tau_w": tau} if tau else {})
-                cols.append(self._call(1, names, base, t, seg))
-        return np.concatenate(cols, axis=2) if cols else np.zeros((len(t), len(self.channels), 0))
+                j = self._call(1, names, base, t, seg, design=design, thermal=thermal)
+                for i, n in enumerate(names):
+                    out.setdefault(n, []).append(j[..., i])
+        return out
 
     def _fit_ar(self, params, max_order: int = 5):
         """AR(p) per channel on the full-model train residual, p by BIC; stores the filters."""
@@ -477,27 +498,31 @@ class IMUProblem:
         names = self.nominal_names + self.pose_names
         jn = self._call(1, names, params, t, seg, self._vector(params, names))
         jn = (self.whiten(jn) / sigma[None, :, None]).reshape(-1, len(names))
-        sigs = [self._signature(e, params, sigma, t, seg, self.whiten) for e in self.effects
-                if self.effect_names[e]]
-        return jn, sigs
+        return jn, self._signatures(params, sigma, t, seg, self.whiten)
 
-    def _signature(self, e, params, sigma, t, seg, whiten, design=None, thermal=None):
-        names = self.effect_names[e]
-        fam, prior = IMU_LIBRARY[e]
-        pri = np.array([prior if prior is not None else
-                        _PRIOR_BY_UNIT[self.space[n].display_unit] for n in names])
-        factor = np.array([self.space[n].display_factor / self.space[n].scale for n in names])
-        taus = self.tau_grid_s if e == "warmup_transient" else (None,)
-        slices = []
-        for tau in taus:
-            base = dict(params) | ({"tau_w": tau} if tau else {})
-            j = whiten(self._call(1, names, base, t, seg, design=design,
-                                  thermal=thermal)) / sigma[None, :, None]
-            slices.append(j.reshape(-1, len(names)) * factor * pri)
-        grid = tuple(x / 3600 for x in self.tau_grid_s) if e == "warmup_transient" else ()
-        return Signature(e, fam, names, tuple(self.space[n].display_unit for n in names), pri,
-                         np.stack(slices), grid, "decay time" if grid else "",
-                         "h" if grid else "")
+    def _signatures(self, params, sigma, t, seg, whiten, design=None, thermal=None):
+        """One :class:`Signature` per catalogued mean effect with coefficients (whitened by
+        ``whiten``, scaled by ``sigma`` and the prior scales; warm-up: one slice per decay
+        time)."""
+        cols = self._effect_columns(params, t, seg, design, thermal)
+        out = []
+        for e in self.effects:
+            names = self.effect_names[e]
+            if not names:
+                continue
+            fam, prior = IMU_LIBRARY[effect_family_name(e)]
+            pri = np.array([prior if prior is not None else
+                            _PRIOR_BY_UNIT[self.space[n].display_unit] for n in names])
+            factor = np.array([self.space[n].display_factor / self.space[n].scale
+                               for n in names])
+            slices = [whiten(np.stack([cols[n][g] for n in names], axis=2))
+                      / sigma[None, :, None] for g in range(len(cols[names[0]]))]
+            slices = [j.reshape(-1, len(names)) * factor * pri for j in slices]
+            grid = tuple(x / 3600 for x in self.tau_grid_s) if _grid_effect(e) else ()
+            out.append(Signature(e, fam, names, tuple(self.space[n].display_unit for n in names),
+                                 pri, np.stack(slices), grid, "decay time" if grid else "",
+                                 "h" if grid else ""))
+        return out
 
     # -- refits ----------------------------------------------------------------------------
     def refit(self, params0, sig_choices, sigma):
@@ -507,7 +532,7 @@ class IMUProblem:
             n[4:].split("_")[0]) not in self.heldout_poses]
         for sig, g in sig_choices:
             free += list(sig.names)
-            if sig.name == "warmup_transient":
+            if _grid_effect(sig.name):
                 p["tau_w"] = self.tau_grid_s[g]
         p = self._gn(p, tuple(free), np.arange(self.n_train))
         p = self._fit_heldout_poses(p)
@@ -556,9 +581,8 @@ class IMUProblem:
             thermal = tuple(jnp.asarray(x) for x in self.thermal_cycle(self.t))
             jn = self._call(1, names, params, self.t, self.seg, self._vector(params, names),
                             thermal=thermal) / sigma[None, :, None]
-            sigs = [self._signature(e, params, sigma, self.t, self.seg, lambda x: x,
+            sigs = self._signatures(params, sigma, self.t, self.seg, lambda x: x,
                                     thermal=thermal)
-                    for e in self.effects if self.effect_names[e]]
             return jn.reshape(-1, len(names)), sigs
         if kind == "long":
             t = np.concatenate([self.t, self.t + (self.t[-1] - self.t[0]) + 1.0])
@@ -587,8 +611,7 @@ class IMUProblem:
             # design): one linearisation point, so the poses absorb what they structurally can
             vec = jnp.zeros(len(names)).at[: len(nom)].set(nom)
         jn = self._call(1, names, params, t, seg, vec, geo) / sigma[None, :, None]
-        sigs = [self._signature(e, params, sigma, t, seg, lambda x: x, geo)
-                for e in self.effects if self.effect_names[e]]
+        sigs = self._signatures(params, sigma, t, seg, lambda x: x, geo)
         return jn.reshape(-1, len(names)), sigs
 
     def display_nominal(self, params):
@@ -781,6 +804,10 @@ def _local_slope(t, x, at, half):
     n, st, sx, stt, stx = (v[i1] - v[i0] for v in c)
     den = n * stt - st * st
     return np.where(den > 0, (n * stx - st * sx) / np.where(den > 0, den, 1.0), 0.0)
+
+
+def _grid_effect(name: str) -> bool:
+    return effect_family_name(name) == "warmup_transient"
 
 
 def _pose_scale(name):

@@ -32,6 +32,7 @@ __all__ = ["Signature", "Screen", "screen", "bh_qvalues", "gap_map_cells", "cano
 
 LAMBDA_80 = 7.85  # noncentrality giving 80 % power at alpha = 0.05, 1 dof
 SEPARABLE = 0.9  # spec §5.6: separable = largest projected canonical correlation <= this
+INDISTINGUISHABLE = 0.98  # spec §4.2 stage 3: pairs at or above "cannot be told apart"
 NULL_TOL = 1e-6  # relative singular value of a raw signature direction counted as no signature
 PRIORS = ("design", "shape", "zellner", "scale")  # Bayes-factor priors of the screening (see screen)
 
@@ -64,6 +65,18 @@ class Signature:
         if self.jac.ndim != 3 or self.jac.shape[2] != len(self.names):
             raise ValueError(f"signature {self.name}: jac has shape {self.jac.shape}; expected "
                              f"(grid, samples, {len(self.names)})")
+
+
+def coefficient_effect(effect: str, coefficient: str) -> str:
+    """The name of one coefficient screened as an effect of its own (``per_coefficient``):
+    ``"g_sensitivity:gsxy"``."""
+    return f"{effect}:{coefficient}"
+
+
+def effect_family_name(name: str) -> str:
+    """The catalogue effect an effect name belongs to (``"g_sensitivity:gsxy"`` ->
+    ``"g_sensitivity"``; a catalogue name is its own)."""
+    return name.split(":", 1)[0]
 
 
 def nominal_basis(jn: np.ndarray, *, rtol: float = 1e-10) -> np.ndarray:

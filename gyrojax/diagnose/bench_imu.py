@@ -14,6 +14,10 @@ keyed by each file's SHA-256, :func:`run` diagnoses the records without reading 
 - ``static``: one pose, 40 min at 50 Hz, for the noise-model effects (rate_random_walk,
   bias_instability, outliers, quantization) and time_drift / warmup_transient.
 
+``IMUDesign(per_coefficient=True)`` (spec §6 G10 at K >= 20): the diagnosis screens every
+coefficient as an effect of its own (``diagnose(per_coefficient=True)``, K = 40 on the six
+channels) and each case hides one coefficient (``g_sensitivity:gsxy``; :func:`mean_families`).
+
 **Splits.** ``same-design``: the record's last quarter (time-ordered). ``design-shift`` (multi
 only): the record continues with six *other* poses (tilted 45 deg between the axes) that form the
 held-out part, so a confusable pick that only fits the training poses is caught.
@@ -49,9 +53,10 @@ from ..models.imu import (
 )
 from ..record import BenchRecord
 from ._harness import run_cases, score_cases
+from ._stats import coefficient_effect, effect_family_name
 from .bench import _basis, _Sealer, remainder_after_library
 
-__all__ = ["IMUDesign", "generate", "run", "score", "MEAN_FAMILIES", "NOISE_FAMILIES",
+__all__ = ["IMUDesign", "generate", "run", "score", "mean_families", "MEAN_FAMILIES", "NOISE_FAMILIES",
            "OUT_OF_LIBRARY"]
 
 MEAN_FAMILIES = ("earth_rate", "scale_factor", "misalignment", "g_sensitivity", "time_drift",
@@ -99,6 +104,7 @@ class IMUDesign:
     vrw: float = 0.05
     latitude_deg: float = 45.0
     split: str = "same-design"
+    per_coefficient: bool = False  # each coefficient an effect of its own (diagnosis and cases)
 
     @property
     def poses(self):
@@ -159,6 +165,16 @@ def _static_samples(rec):
         idx.append(i)
         seg.append(np.full(i.size, k))
     return np.concatenate(idx), np.concatenate(seg)
+
+
+def mean_families(design: IMUDesign | None = None) -> tuple:
+    """The hidden mean effects of ``design``'s cases: the catalogue's families, or with
+    ``per_coefficient`` each coefficient a case family may set (``g_sensitivity:gsxy``)."""
+    design = design or IMUDesign()
+    if not design.per_coefficient:
+        return MEAN_FAMILIES
+    return tuple(coefficient_effect(f, n) if len(names) > 1 else f
+                 for f, names in _effect_params(design).items() for n in names)
 
 
 def _lambda_scale(params, design, names, b, n_train_frac):
@@ -246,9 +262,10 @@ def _noise_theta(family, design):
 def _hidden(rng, family, p, design, lam):
     p = dict(p)
     truth = {"family": family, "lambda": float(lam) if family != "null" else 0.0}
-    if family in _EFFECT_PARAMS:
-        names = _effect_params(design)[family]
-        if family == "warmup_transient":
+    if effect_family_name(family) in _EFFECT_PARAMS:
+        names = _effect_params(design)[family] if family in _EFFECT_PARAMS else (
+            family.split(":", 1)[1],)
+        if effect_family_name(family) == "warmup_transient":
             tau = float(rng.uniform(0.05, 0.4) * design.span_s)
             p["tau_w"] = tau
             truth["tau_s"] = tau
@@ -324,7 +341,8 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: IMUDesign | None =
     sealer = _Sealer(out_dir, seed)
     rng = sealer.rng
     if families is None:
-        families = STATIC_FAMILIES if design.kind == "static" else MEAN_FAMILIES + OUT_OF_LIBRARY
+        families = STATIC_FAMILIES if design.kind == "static" else \
+            mean_families(design) + OUT_OF_LIBRARY
     key = jax.random.key(seed)
     for i in range(n_cases):
         family, lam = sealer.draw(i, families, lambdas, null_fraction)
@@ -353,15 +371,18 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: IMUDesign | None =
     return sealer.close(design)
 
 
-def run(case_dir, *, design: IMUDesign | None = None, progress=None) -> list:
+def run(case_dir, *, design: IMUDesign | None = None, progress=None,
+        baselines: bool = False) -> list:
     """Diagnose every record in ``case_dir`` (never reading ``sealed/``)."""
     design = design or IMUDesign()
-    return run_cases(case_dir, "imu", design.holdout, progress=progress)
+    return run_cases(case_dir, "imu", design.holdout, progress=progress, baselines=baselines,
+                     diagnose_kw={"per_coefficient": True} if design.per_coefficient else None)
 
 
-def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
+def score(case_dir, results, separable=None, oracle_thresholds=None,
+          design: IMUDesign | None = None) -> dict:
     """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`)."""
-    return score_cases(case_dir, results, MEAN_FAMILIES, NOISE_FAMILIES, OUT_OF_LIBRARY,
+    return score_cases(case_dir, results, mean_families(design), NOISE_FAMILIES, OUT_OF_LIBRARY,
                        separable=separable,
                        oracle_thresholds=oracle_thresholds)
 
