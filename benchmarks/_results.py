@@ -154,8 +154,8 @@ def g10_text(s, refits: str) -> str:
             "Bayes factor with each refit's estimate in place of the one-step one) at lambda "
             f">= 32: {fmt_rate(s['screen_refit_agreement'])} (G10: >= 0.98)"
             + ("" if s.get("screen_refit_agreement_classes") is None else
-               f"; up to effects the design cannot tell apart (projected canonical correlation "
-               f">= 0.98, spec §4.2 stage 3: either answer is the other's) "
+               f"; up to effects the design cannot tell apart (the report's classes: smallest "
+               f"projected canonical correlation >= 0.98, spec §4.2 stage 3) "
                f"{fmt_rate(s['screen_refit_agreement_classes'])}"))
 
 

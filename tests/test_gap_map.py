@@ -388,3 +388,14 @@ def test_quantization_score_level_power_and_estimate():
     assert quantization_score([big], tau0)[2] == pytest.approx(0.3 * tau0, rel=0.05)
     lp = [np.convolve(rng.standard_normal(5000), np.ones(3) / 3, "valid") for _ in range(20)]
     assert min(quantization_score([x], tau0)[0] for x in lp) > 0.5
+
+
+def test_indistinguishable_classes_are_connected_components():
+    """Spec §4.2 stage 3: pairs at canonical correlation >= 0.98 merge (transitively) into
+    classes; a pair below it, or with an effect not listed (untested), does not."""
+    from gyrojax.diagnose._stats import indistinguishable_classes
+
+    pairs = {("a", "b"): 0.99, ("b", "c"): 0.981, ("c", "d"): 0.979, ("e", "f"): 1.0,
+             ("d", "x"): 1.0}
+    assert indistinguishable_classes(pairs, "abcdef") == [["a", "b", "c"], ["e", "f"]]
+    assert indistinguishable_classes({}, "ab") == []

@@ -450,7 +450,8 @@ def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, ca
     its own (spec D1's question, which term; K = 40 on six channels). Each split signature is
     its column of the family's signature; a hidden gyro-x g-sensitivity to g along y of
     15 deg/h/g (~8 s.e.) is attributed to ``g_sensitivity:gsxy`` alone through the CLI, its
-    refit within 3 s.e. of the truth; B2 refit-all (every effect, the six warm-ups at each of
+    refit within 3 s.e. of the truth; the pairs the design cannot tell apart are merged into
+    classes (spec §4.2 stage 3); B2 refit-all (every effect, the six warm-ups at each of
     their six decay times: 70 Levenberg-Marquardt refits) picks it too; other rigs refuse
     the option."""
     from gyrojax.diagnose._diagnose import _problem
@@ -474,9 +475,17 @@ def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, ca
     out = tmp_path / "gap.json"
     assert main(["diagnose", str(path), "--rig", "imu", "--latitude", "45", "--per-coefficient",
                  "--json", str(out)]) == 0
-    assert "g_sensitivity:gsxy" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "g_sensitivity:gsxy" in text and "Cannot be told apart on this design" in text
     rep = json.loads(out.read_text())
     assert len(rep["candidates"]) == 40
+    # an accelerometer misalignment's antisymmetric part is a common rotation, which the poses'
+    # tilts absorb: maxy and mayx are seen only through their sum (canonical correlation 1)
+    pair = {"misalignment:maxy", "misalignment:mayx"}
+    assert any(pair <= set(c) for c in rep["ambiguity"]["classes"])
+    assert rep["ambiguity"]["pairs"].get("misalignment:maxy ~ misalignment:mayx",
+                                         rep["ambiguity"]["pairs"].get(
+                                             "misalignment:mayx ~ misalignment:maxy")) > 0.999
     assert rep["verdict"]["kind"] == "attributed"
     assert rep["verdict"]["effects"] == ["g_sensitivity:gsxy"]
     rf = next(r for r in rep["refits"] if r["effects"] == ["g_sensitivity:gsxy"])

@@ -55,8 +55,10 @@ from ._stats import (
     ambiguity_set,
     bh_qvalues,
     canonical_correlation,
+    canonical_correlations,
     effect_family_name,
     gap_map_cells,
+    indistinguishable_classes,
     lag_cells,
     library_pvalues,
     map_design,
@@ -411,10 +413,12 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     timings["screening_s"] = time.perf_counter() - t0 - timings.get("calibration_s", 0.0)
 
     # confounding + pairwise canonical correlations of projected signatures
-    pairs = {}
+    pairs, contained = {}, {}  # largest and smallest canonical correlation of each pair
     for i, a in enumerate(rows):
         for b in rows[i + 1:]:
-            pairs[(a.sig.name, b.sig.name)] = canonical_correlation(a.projected, b.projected)
+            cc = canonical_correlations(a.projected, b.projected)
+            pairs[(a.sig.name, b.sig.name)] = float(cc[0])
+            contained[(a.sig.name, b.sig.name)] = float(cc[-1])
 
     top = max(rows, key=lambda r: r.posterior) if rows else None
 
@@ -508,7 +512,10 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         where=cells, ranking=[_row_json(r, prob, excess, n, c, cells) for r in
                               sorted(rows, key=lambda r: -r.posterior)],
         ambiguity={"set": [r.sig.name for r in amb],
-                   "pairs": {f"{a} ~ {b}": v for (a, b), v in pairs.items()}},
+                   "pairs": {f"{a} ~ {b}": v for (a, b), v in pairs.items()},
+                   "classes": indistinguishable_classes(
+                       contained, [r.sig.name for r in sorted(rows, key=lambda r: -r.posterior)
+                               if r.dof > 0])},
         second=second.sig.name if second is not None else None,
         refits=refits, design_advice=advice, verdict=verdict, alpha=alpha, timings=timings,
         multiplicity=multiplicity,

@@ -17,7 +17,6 @@ import jax
 import numpy as np
 
 from ..io import load_record
-from ._stats import INDISTINGUISHABLE
 from .bench import (
     _rate,
     _scores,
@@ -147,9 +146,8 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
             "time_library_scores_s": rep.timings.get("library_scores_s", 0.0)
             + rep.timings.get("jacobians_s", 0.0),
             "time_refit_all_in_report_s": rep.timings.get("refit_all_s"),
-            # effect pairs this design cannot tell apart (spec §4.2 stage 3)
-            "indistinguishable": [k.split(" ~ ") for k, v in rep.ambiguity["pairs"].items()
-                                  if v >= INDISTINGUISHABLE],
+            # the effects this design cannot tell apart (spec §4.2 stage 3)
+            "classes": rep.ambiguity["classes"],
             **multiplicity_fields(rep),
         })
         if baselines:
@@ -279,9 +277,9 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
 
         def same_class(t, r):  # the same answer, or two effects the design cannot tell apart
             a, b = max(r["posterior"], key=r["posterior"].get), r["b2_lr_choice"]
-            return a == b or [a, b] in r["indistinguishable"] or [b, a] in r["indistinguishable"]
+            return a == b or any(a in c and b in c for c in r["classes"])
         out["screen_refit_agreement_classes"] = _rate(
-            [(t, r) for t, r in strong if "indistinguishable" in r], same_class)
+            [(t, r) for t, r in strong if "classes" in r], same_class)
     return out
 
 

@@ -187,6 +187,12 @@ class GapReport:
                       "decided on): " + ("; ".join(
                           f"{ch} at tau {x['tau_s']:.3g} s (ratio {x['statistic']:.3g}, "
                           f"p {x['p']:.2g})" for ch, x in best.items()) or "nowhere")]
+        classes = self.ambiguity.get("classes")
+        if classes:
+            lines += ["", "Cannot be told apart on this design (every direction of one effect "
+                      "mimicked by the other: smallest projected canonical correlation >= 0.98; "
+                      "the design advice says which test would): "
+                      + "; ".join(" = ".join(c) for c in classes)]
         if self.verdict.get("notes"):
             lines += [""] + [f"Note: {x}" for x in self.verdict["notes"]]
         nulls = [(r["name"], d) for r in self.ranking for d in r["no_signature_directions"]]

@@ -98,13 +98,44 @@ def _orth(j, rtol=1e-8):
     return u[:, keep], s[keep]
 
 
+def indistinguishable_classes(pairs: dict, names) -> list[list[str]]:
+    """Spec §4.2 stage 3: the effects ``names`` merged into classes by their pairs at projected
+    canonical correlation >= :data:`INDISTINGUISHABLE` (``pairs``: ``{(a, b): correlation}``,
+    the *smallest* canonical correlation of the pair, so that a class means every direction of
+    the smaller effect is mimicked by the other; connected components, in the order of
+    ``names``). Only classes of two or more."""
+    names = list(names)
+    parent = {n: n for n in names}
+
+    def root(n):
+        while parent[n] != n:
+            parent[n] = parent[parent[n]]
+            n = parent[n]
+        return n
+    for (a, b), v in pairs.items():
+        if a in parent and b in parent and v >= INDISTINGUISHABLE:
+            parent[root(b)] = root(a)
+    groups = {}
+    for n in names:
+        groups.setdefault(root(n), []).append(n)
+    return [g for g in groups.values() if len(g) > 1]
+
+
 def canonical_correlation(a: np.ndarray, b: np.ndarray) -> float:
     """Largest canonical correlation between the column spans of ``a`` and ``b``."""
+    return float(canonical_correlations(a, b)[0])
+
+
+def canonical_correlations(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """All canonical correlations between the column spans of ``a`` and ``b``, largest first
+    (``min(rank a, rank b)`` of them; ``[0.0]`` where a span is empty). The smallest is near 1
+    only where the smaller span lies inside the other: every direction of one effect mimicked
+    by the other, not just one."""
     qa, _ = _orth(a)
     qb, _ = _orth(b)
     if qa.shape[1] == 0 or qb.shape[1] == 0:
-        return 0.0
-    return float(min(1.0, np.linalg.svd(qa.T @ qb, compute_uv=False)[0]))
+        return np.zeros(1)
+    return np.minimum(1.0, np.linalg.svd(qa.T @ qb, compute_uv=False))
 
 
 def _lm(jt, e, raw_scale, rtol=1e-10):
