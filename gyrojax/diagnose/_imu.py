@@ -391,10 +391,11 @@ class IMUProblem:
         cols = [c for e in self.effects for n in self.effect_names[e] for c in cols[n]]
         return np.stack(cols, axis=2) if cols else np.zeros((len(t), len(self.channels), 0))
 
-    def _effect_columns(self, params, t, seg, design=None, thermal=None):
-        """Raw Jacobian columns ``(rows, channels)`` of every catalogued mean-effect coefficient
-        at the null: name -> one column per warm-up decay time (one for the others). One batched
-        JVP per decay time and one for the rest, whatever the catalogue's granularity."""
+    def _effect_columns(self, params, t, seg, design=None, thermal=None, whiten=None):
+        """Jacobian columns ``(rows, channels)`` of every catalogued mean-effect coefficient at
+        the null (raw, or through ``whiten``): name -> one column per warm-up decay time (one
+        for the others). One batched JVP (and whitening) per decay time and one for the rest,
+        whatever the catalogue's granularity."""
         effects = [e for e in self.effects if self.effect_names[e]]
         warm = [n for e in effects if _grid_effect(e) for n in self.effect_names[e]]
         plain = [n for e in effects if not _grid_effect(e) for n in self.effect_names[e]]
@@ -403,6 +404,7 @@ class IMUProblem:
             for tau in taus if names else ():
                 base = dict(params) | ({"tau_w": tau} if tau else {})
                 j = self._call(1, names, base, t, seg, design=design, thermal=thermal)
+                j = j if whiten is None else whiten(j)
                 for i, n in enumerate(names):
                     out.setdefault(n, []).append(j[..., i])
         return out
@@ -503,8 +505,9 @@ class IMUProblem:
     def _signatures(self, params, sigma, t, seg, whiten, design=None, thermal=None):
         """One :class:`Signature` per catalogued mean effect with coefficients (whitened by
         ``whiten``, scaled by ``sigma`` and the prior scales; warm-up: one slice per decay
-        time)."""
-        cols = self._effect_columns(params, t, seg, design, thermal)
+        time). A pair of per-coefficient warm-ups refits at one decay time (the model has one
+        ``tau_w``)."""
+        cols = self._effect_columns(params, t, seg, design, thermal, whiten)
         out = []
         for e in self.effects:
             names = self.effect_names[e]
@@ -515,8 +518,8 @@ class IMUProblem:
                             _PRIOR_BY_UNIT[self.space[n].display_unit] for n in names])
             factor = np.array([self.space[n].display_factor / self.space[n].scale
                                for n in names])
-            slices = [whiten(np.stack([cols[n][g] for n in names], axis=2))
-                      / sigma[None, :, None] for g in range(len(cols[names[0]]))]
+            slices = [np.stack([cols[n][g] for n in names], axis=2) / sigma[None, :, None]
+                      for g in range(len(cols[names[0]]))]
             slices = [j.reshape(-1, len(names)) * factor * pri for j in slices]
             grid = tuple(x / 3600 for x in self.tau_grid_s) if _grid_effect(e) else ()
             out.append(Signature(e, fam, names, tuple(self.space[n].display_unit for n in names),
