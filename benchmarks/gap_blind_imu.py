@@ -58,13 +58,16 @@ SUITES = {
 }
 # spec D4: the 12-pose stand, then ccw/cw rate-table runs (`--table-cases`, its own section)
 TABLE_SUITES = {"rate table (D4)": bench_imu.IMUDesign(kind="table")}
+# the multi design diagnosed per coefficient (K = 40; `--per-coefficient-cases`, its null run)
+PER_COEFFICIENT = {"multi, per coefficient": bench_imu.IMUDesign(per_coefficient=True)}
 
 
 def main(argv=None):
     ap = blind_parser(__doc__, cases=60)
     ap.add_argument("--ool-cases", type=int, default=40,
                     help="extra out-of-library cases per multi-position suite (spec §6 G9)")
-    ap.add_argument("--null-suite", action="append", choices=list(SUITES | TABLE_SUITES),
+    ap.add_argument("--null-suite", action="append",
+                    choices=list(SUITES | TABLE_SUITES | PER_COEFFICIENT),
                     help="the design(s) of the null run (repeatable; default: every suite)")
     ap.add_argument("--calibration-cases", type=int, default=0,
                     help="a separate run of N static-design time_drift / warmup_transient "
@@ -112,7 +115,7 @@ def main(argv=None):
         g6_run(args, os.path.join(work, "g6"))
     if args.per_coefficient_cases > 0:
         per_coefficient(args, os.path.join(work, "per_coefficient"))
-    every = SUITES | TABLE_SUITES
+    every = SUITES | TABLE_SUITES | PER_COEFFICIENT
     for label in (args.null_suite or list(SUITES)) if args.nulls > 0 else ():
         k = list(every).index(label)
         null_run(bench_imu, os.path.join(work, f"nulls{k}"), args.nulls, seed=args.seed + 20 + k,
@@ -192,7 +195,7 @@ def per_coefficient(args, work):
 
     from gyrojax.diagnose import diagnose
 
-    design = dataclasses.replace(SUITES["multi, same-design"], per_coefficient=True)
+    design = PER_COEFFICIENT["multi, per coefficient"]
     fams = bench_imu.mean_families(design)
     n = args.per_coefficient_cases
     t0 = time.perf_counter()
