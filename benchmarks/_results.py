@@ -84,7 +84,10 @@ def fmt_rate(r) -> str:
 def far_text(s) -> str:
     """The null cases' false-alarm rate, and where the BH level was calibrated by null draws
     (spec §6 G1), what the uncalibrated weighted BH at q < 0.05 gives on the same cases."""
-    text = f"false-alarm rate {fmt_rate(s['far'])}"
+    far = s["far"]
+    text = f"false-alarm rate {fmt_rate(far)}" + (
+        "" if far is None else f" ({round(far['rate'] * far['n'])} alarms; pooled with other "
+        "runs by these counts)")
     lvl = s.get("level_median")
     if s.get("far_plain_bh") and lvl is not None and abs(lvl - 0.05) > 1e-12:
         text += (f" (BH level calibrated by 499 null draws per record, median {lvl:.3f}; "
