@@ -226,9 +226,10 @@ def per_coefficient(args, work):
              "with its decay-time grid, ...; spec D1's question, which term). "
              f"{n} sealed cases (seed {args.seed + 80}, 30 % nulls; one of the {len(fams)} "
              "coefficients a still stand can see hidden at lambda 8/16/32/64), generated in "
-             f"{t_gen:.0f} s, diagnosed in {t_run:.0f} s (median {s['median_diagnose_s']:.2f} s "
-             f"per case, B2 included). Separability: {len(separable)} of {len(sep)} visible "
-             "effects at canonical correlation <= 0.9; the closest pairs "
+             f"{t_gen:.0f} s, diagnosed and B2 run in {t_run:.0f} s (median diagnosis "
+             f"{s['median_diagnose_s']:.2f} s per case, B2 apart). Separability: "
+             f"{len(separable)} of {len(sep)} visible effects at canonical correlation <= 0.9; "
+             "the closest pairs "
              + ", ".join(f"{e} {v:.3f}" for e, v in sorted(sep.items(), key=lambda x: -x[1])[:4])
              + ".", "", f"- Nulls: {far_text(s)}.", "", ORACLE_NOTE, ""]
     lines += suite_lines(s, "none in this run")
@@ -237,7 +238,7 @@ def per_coefficient(args, work):
               f"- Reference case (the record's {len(rec.channels)} channels, "
               f"{len(rep.ranking)} effects, design advice on): one record of the suite "
               f"diagnosed whole in {t_ref:.1f} s after compilation (G10: <= 60 s); verdict "
-              f"{rep.verdict['kind']} {', '.join(rep.verdict.get('effects') or [])}.", ""]
+              f"{rep.verdict['kind']} {', '.join(rep.verdict.get('effects') or [])}".rstrip() + ".", ""]
     publish(args.out, "gap_blind_imu_per_coefficient", lines)
 
 

@@ -150,8 +150,8 @@ def many_effects(args, work, design):
              "warmup_transient, drift_ramp, vibration_rectification. "
              f"{args.cases} sealed cases (seed {args.seed + 70}, 30 % nulls; the hidden "
              "coefficient or effect at lambda 8/16/32/64; out of library readout_line, "
-             f"readout_step), generated in {t_gen:.0f} s, diagnosed in {t_run:.0f} s (median "
-             f"{s['median_diagnose_s']:.2f} s per case, B2 included). Separability on D2: "
+             f"readout_step), generated in {t_gen:.0f} s, diagnosed and B2 run in {t_run:.0f} s "
+             f"(median diagnosis {s['median_diagnose_s']:.2f} s per case, B2 apart). Separability on D2: "
              f"{len(separable)} of {len(sep)} visible effects at canonical correlation <= 0.9 "
              f"({', '.join(separable) or 'none'}); the closest pairs "
              + ", ".join(f"{e} {v:.3f}" for e, v in sorted(sep.items(), key=lambda x: -x[1])[:4])
@@ -166,7 +166,7 @@ def many_effects(args, work, design):
               f"- Reference case (3 channels, {c['n_effects']} effects, design advice on): one "
               f"record of the suite diagnosed whole in {t_ref:.1f} s after compilation (G10: "
               f"<= 60 s); verdict {rep.verdict['kind']} "
-              f"{', '.join(rep.verdict.get('effects') or [])}.", ""]
+              f"{', '.join(rep.verdict.get('effects') or [])}".rstrip() + ".", ""]
     publish(args.out, "gap_blind_platform_first_order", lines)
 
 
