@@ -494,5 +494,18 @@ def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, ca
     assert b2["n_refits"] == 70
     assert b2["b2_lr_choice"] == b2["b2_choice"] == "g_sensitivity:gsxy"
     assert main(["diagnose", str(path), "--rig", "esg", "--per-coefficient"]) == 2
+    # single coefficients may be asked for by name, beside whole families
+    sub = _problem(rec, "imu", 0.25, None, ("g_sensitivity:gsxy", "time_drift", "earth_rate"),
+                   "exact", None, per_coefficient=True)
+    assert sub.effects == ("g_sensitivity:gsxy", "time_drift:dgx", "time_drift:dgy",
+                           "time_drift:dgz", "time_drift:dax", "time_drift:day",
+                           "time_drift:daz", "earth_rate")
+    for effects, per, match in ((("g_sensitivity:gsxy",), False, "add --per-coefficient"),
+                                (("g_sensitivity:bogus",), True, "unknown coefficient"),
+                                (("earth_rate:k_earth",), True, "unknown coefficient")):
+        with pytest.raises(ValueError, match=match):
+            _problem(rec, "imu", 0.25, None, effects, "exact", None, per_coefficient=per)
+    assert main(["diagnose", str(path), "--rig", "imu", "--latitude", "45",
+                 "--effects", "g_sensitivity:gsxy"]) == 2
     with pytest.raises(ValueError, match="per_coefficient with rig 'platform'"):
         _problem(rec, "platform", 0.25, None, None, "exact", None, per_coefficient=True)

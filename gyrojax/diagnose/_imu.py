@@ -143,6 +143,12 @@ class IMUProblem:
         self.noise_std = noise_std
         self.rate_hz = self.cond.rate_hz
         lib = list(effects) if effects is not None else list(IMU_LIBRARY)
+        # per coefficient, single coefficients may be asked for by name (family:parameter)
+        picked = [e for e in lib if ":" in e]
+        if picked and not per_coefficient:
+            raise ValueError(f"effects {picked} name single coefficients; give "
+                             "per_coefficient=True (--per-coefficient), or the families")
+        lib = list(dict.fromkeys(effect_family_name(e) for e in lib))
         self.notes = []
         # the temperature effects act on the record's temperature channel (the first aux
         # channel named temp*): Delta T from its train mean and dT/dt of its block means
@@ -191,6 +197,17 @@ class IMUProblem:
             self.effect_names = {k: v for e, names in self.effect_names.items() for k, v in (
                 [(coefficient_effect(e, n), (n,)) for n in names] if len(names) > 1
                 else [(e, names)])}
+            if picked:  # the families asked for whole, and the coefficients asked for by name
+                whole = set(effects) - set(picked)
+                self.effect_names = {k: v for k, v in self.effect_names.items()
+                                     if k in picked or effect_family_name(k) in whole}
+                missing = [e for e in picked if e not in self.effect_names]
+                if missing:
+                    raise ValueError(
+                        f"effects {missing} are not screened on this record: a coefficient "
+                        f"needs its sensor among the channels {self.channels}, and an effect "
+                        "with one coefficient keeps its family's name (e.g. earth_rate); see "
+                        "gyrojax effects --rig imu")
             self.effects = tuple(self.effect_names)
         span = self.t[self.n_train - 1] - self.t[0]
         self.tau_grid_s = tuple(float(x) for x in np.geomspace(span / 30, span / 2, 6))
