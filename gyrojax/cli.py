@@ -698,8 +698,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--per-coefficient", action="store_true",
                    help="imu: screen every coefficient of a many-coefficient effect as an effect "
                         "of its own (g_sensitivity:gsxy, misalignment:mgxy, ...; K = 40 on six "
-                        "channels, 25 on three gyros): which term of the error model, not only "
-                        "which family")
+                        "channels): which term of the error model, not only which family")
     p.add_argument("--refit-all", action="store_true",
                    help="also refit every other catalogued effect, so each candidate carries "
                         "its held-out gap after and reduction (the verdict is unchanged)")

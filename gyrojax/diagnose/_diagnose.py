@@ -325,7 +325,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     - `per_coefficient`: IMU only: screen every coefficient of a many-coefficient catalogue
       effect as an effect of its own (``g_sensitivity:gsxy``, ``warmup_transient:wgx`` with its
       decay-time grid, ...): "which term of the error model", K = 40 on a six-channel record
-      (25 on three gyros, spec D1's reference case) instead of "which family", K = 6.
+      instead of "which family", K = 6. `effects` may then name single coefficients too.
 
     **Returns:** a :class:`GapReport` (``.to_json()``, ``.markdown()``).
     """
