@@ -168,23 +168,8 @@ def _rig_problem(record, rig, holdout, noise_std, effects, order, split, noise_k
     if rig == "imu":
         from ._imu import IMU_LIBRARY, IMUProblem
 
-        coef = [e for e in (effects or ()) if ":" in e]
-        if coef and not per_coefficient:
-            raise ValueError(f"effects {coef} name single coefficients; add --per-coefficient "
-                             "(per_coefficient=True), or give their families")
-        if coef:  # single coefficients named family:parameter, of the mean effects
-            from ..models.imu import MEAN_EFFECTS, IMURig
-
-            space = IMURig().param_space
-            known = {f"{e}:{n}" for e in MEAN_EFFECTS for n in space.effect_names(e)
-                     if n != "tau_w" and len(space.effect_names(e)) > 1}
-            bad = [e for e in coef if e not in known]
-            if bad:
-                raise ValueError(f"unknown coefficient effect(s) {bad} for --rig imu: give "
-                                 "family:parameter of a mean effect with several "
-                                 "coefficients, e.g. g_sensitivity:gsxy (gyrojax effects "
-                                 "--rig imu lists them)")
-        _check_effects([e for e in (effects or ()) if ":" not in e], IMU_LIBRARY, rig)
+        # single coefficients (family:parameter) are checked by the problem
+        _check_effects([effect_family_name(e) for e in effects or ()], IMU_LIBRARY, rig)
         return IMUProblem(record, holdout=holdout, noise_std=noise_std, effects=effects,
                           per_coefficient=per_coefficient)
     raise ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: {', '.join(RIGS)}")

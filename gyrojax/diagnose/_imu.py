@@ -146,8 +146,15 @@ class IMUProblem:
         # per coefficient, single coefficients may be asked for by name (family:parameter)
         picked = [e for e in lib if ":" in e]
         if picked and not per_coefficient:
-            raise ValueError(f"effects {picked} name single coefficients; give "
-                             "per_coefficient=True (--per-coefficient), or the families")
+            raise ValueError(f"effects {picked} name single coefficients; add --per-coefficient "
+                             "(per_coefficient=True), or give their families")
+        coefs = {e: [n for n in self.space.effect_names(e) if n != "tau_w"] for e in MEAN_EFFECTS}
+        known = {coefficient_effect(e, n) for e, ns in coefs.items() if len(ns) > 1 for n in ns}
+        bad = [e for e in picked if e not in known]
+        if bad:
+            raise ValueError(f"unknown coefficient effect(s) {bad} for --rig imu: give "
+                             "family:parameter of a mean effect with several coefficients, "
+                             "e.g. g_sensitivity:gsxy (gyrojax effects --rig imu lists them)")
         lib = list(dict.fromkeys(effect_family_name(e) for e in lib))
         self.notes = []
         # the temperature effects act on the record's temperature channel (the first aux
