@@ -22,6 +22,7 @@ from .bench import (
     _scores,
     _sha,
     calibration,
+    confounding_scores,
     multiplicity_fields,
     ool_scores,
     oracle_choice,
@@ -129,6 +130,8 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
             "effects": v.get("effects") or [], "noise_effects": v.get("noise_effects") or [],
             "ranking": [r["name"] for r in rep.ranking],
             "posterior": {r["name"]: r["posterior"] for r in rep.ranking},
+            "flags": {r["name"]: r["flag"] for r in rep.ranking},
+            "visible_fraction": {r["name"]: r["visible_fraction"] for r in rep.ranking},
             "scores": _scores(rep.ranking),
             "log_bf_by_lambda": {r["name"]: r["log_bf_by_lambda"] for r in rep.ranking},
             "ambiguity": rep.ambiguity["set"],
@@ -255,6 +258,7 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
                                          ("unexplained", "ambiguous", "no-gap"))
 
     out |= ool_scores(ool)  # spec §6 G9
+    out |= confounding_scores(mean_lib)  # spec §6 G5, practical confounding
     if structural:
         out["structural_silent"] = _rate([(t, r) for t, r in rows if t["family"] in structural],
                                          lambda t, r: r["verdict"] in ("no-gap", "confounded"))

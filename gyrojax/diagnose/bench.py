@@ -35,12 +35,14 @@ from ..models.esg import ESGConditions, ESGRig
 from ..record import BenchRecord
 from ._esg import ESG_LIBRARY, TRANSIENT_TIMES_H
 from ._stats import (
+    _directions,
     _project,
     grid_log_bf,
     ljung_box,
     mix_log_bf,
     nominal_basis,
     shape_log_bf_scores,
+    visibility_flag,
 )
 
 __all__ = ["generate", "run", "score", "LIBRARY_FAMILIES", "OUT_OF_LIBRARY"]
@@ -115,9 +117,32 @@ def _model_jac(params, cond, ts, names):
     return np.asarray(trajectory_jacobian(_TRUTH_RIG, params, cond, jnp.asarray(ts), names))
 
 
-def _efficient(jn, jb):
+# the flags of spec §4.2 stage 3 that say the nominal fit absorbs (part of) an effect: visible
+# fraction < 0.05 in some direction (practically or structurally confounded, or no signature)
+CONFOUNDED_FLAGS = ("practically confounded", "structurally confounded",
+                    "partly structurally confounded", "no signature")
+
+
+def truth_visibility(jb, jt) -> dict:
+    """Truth side of spec §5.6's confounding recall and precision: the hidden effect's visible
+    fraction on the train rows (the smallest ``1 - rho^2`` over its coefficient directions,
+    spec §4.2 stage 3) from the whitened Jacobian ``jb`` of its coefficients at the generating
+    parameters and sealed grid value, and ``jt``, the same with the nominal span projected out;
+    and the flag that fraction earns. The diagnosis computes its own at its fitted nominal and
+    chosen grid value, from the record."""
+    jb, jt = np.asarray(jb, float), np.asarray(jt, float)
+    _, _, v, null, conf = _directions(jb, jt)
+    return {"visible_fraction": float(v),
+            "visibility": visibility_flag(v, bool(null), jb.shape[1] - len(null), len(conf))}
+
+
+def _projected(jn, jb):
     q, _ = np.linalg.qr(jn)
-    jt = jb - q @ (q.T @ jb)
+    return jb - q @ (q.T @ jb)
+
+
+def _efficient(jn, jb):
+    jt = _projected(jn, jb)
     return jt.T @ jt
 
 
@@ -160,6 +185,7 @@ def _hidden(rng, family, p, cond, design, lam):
             for name, v in zip(_EFFECT_PARAMS[family], b):
                 p[name] = jnp.asarray(v)
             truth["coefficients"] = {n: float(v) for n, v in zip(_EFFECT_PARAMS[family], b)}
+            truth |= truth_visibility(jb, _projected(jn, jb))
     elif family == "diurnal_line":
         jn = _model_jac(p, cond, ts[:n_train], nominal) / sigma
         cols = _output_columns(family, ts)
@@ -168,6 +194,7 @@ def _hidden(rng, family, p, cond, design, lam):
         b = b * math.sqrt(lam / float(b @ _efficient(jn, jb) @ b))
         out_term = cols @ b
         truth["coefficients_arcsec"] = [float(x) for x in b]
+        truth |= truth_visibility(jb, _projected(jn, jb))
     elif family != "null":
         raise ValueError(f"unknown case family {family!r}")
     truth["lambda"] = float(lam) if family != "null" else 0.0
@@ -832,6 +859,7 @@ def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
                                         or max(r["posterior"].values()) <= 0.9)
     out |= ool_scores(ool)  # spec §6 G9
     out |= localisation_scores(lib)  # spec §6 G8
+    out |= confounding_scores(lib)  # spec §6 G5, practical confounding
     out |= tau_band_scores(rows)
     out["two_effects_both_named"] = rate(two, lambda t, r: {e["family"] for e in t["effects"]}
                                          <= set(r["effects"]) | set(r["ambiguity"]))
@@ -851,6 +879,29 @@ def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
         [(t, r) for t, r in strong if t["family"] in sep],
         lambda t, r: _top(r) == r["b2_lr_choice"])
     return out
+
+
+def confounding_scores(lib) -> dict:
+    """Spec §5.6 / §6 G5 over the in-library cases ``lib`` ((truth, result) pairs): confounding
+    recall (hidden effects whose truth-side visible fraction is < 0.05, or which have no
+    signature, that the diagnosis flags so: :data:`CONFOUNDED_FLAGS` on that effect's row) and
+    precision (flagged hidden effects that are so on the truth side), the agreement of the two
+    flags over every case, and the confident misattribution over all in-library cases
+    (posterior > 0.9 on another effect)."""
+    known = [(t, r) for t, r in lib if "visibility" in t and "flags" in r]
+
+    def flagged(t, r):
+        return r["flags"].get(t["family"]) in CONFOUNDED_FLAGS
+
+    def truth(t, r):
+        return t["visibility"] in CONFOUNDED_FLAGS
+
+    return {"confounding_recall": _rate([x for x in known if truth(*x)], flagged),
+            "confounding_precision": _rate([x for x in known if flagged(*x)], truth),
+            "confounding_agreement": _rate(known, lambda t, r: flagged(t, r) == truth(t, r)),
+            "confident_misattribution_all": _rate(
+                lib, lambda t, r: bool(r["posterior"]) and max(r["posterior"].values()) > 0.9
+                and _top(r) != t["family"])}
 
 
 def _top(r):

@@ -36,7 +36,7 @@ from ..models.gyrotheodolite import (
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._harness import projector, run_cases, score_cases
-from .bench import _Sealer
+from .bench import _Sealer, truth_visibility
 
 __all__ = ["GyrotheodoliteDesign", "generate", "run", "score", "MEAN_FAMILIES",
            "OUT_OF_LIBRARY", "STRUCTURAL"]
@@ -110,6 +110,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0,
             for k, c in zip(names, coef, strict=True):
                 p[k] = jnp.asarray(c)
             truth["coefficients"] = {k: float(space[k].to_display(p[k])) for k in names}
+            truth |= truth_visibility(jb[:n_train] / sigma, jt)
             if gpar:
                 truth[gpar] = float(space[gpar].to_display(p[gpar]))
         elif family in STRUCTURAL:

@@ -54,7 +54,7 @@ from ..models.imu import (
 from ..record import BenchRecord
 from ._harness import run_cases, score_cases
 from ._stats import coefficient_effect, effect_family_name
-from .bench import _basis, _Sealer, remainder_after_library
+from .bench import _basis, _Sealer, remainder_after_library, truth_visibility
 
 __all__ = ["IMUDesign", "generate", "run", "score", "mean_families", "MEAN_FAMILIES", "NOISE_FAMILIES",
            "OUT_OF_LIBRARY"]
@@ -178,11 +178,13 @@ def mean_families(design: IMUDesign | None = None) -> tuple:
 
 
 def _lambda_scale(params, design, names, b, n_train_frac):
-    """Scale ``b`` so that its efficient noncentrality on the train samples is 1 (truth side)."""
+    """The factor that scales ``b`` to unit efficient noncentrality on the train samples, and
+    the effect's visibility there (:func:`~gyrojax.diagnose.bench.truth_visibility`): truth
+    side."""
     jn, jb, _ = _train_jacobian(params, design, names, n_train_frac)
     q = _basis(jn)
     jt = jb - q @ (q.T @ jb)
-    return 1.0 / math.sqrt(float(b @ (jt.T @ jt) @ b))
+    return 1.0 / math.sqrt(float(b @ (jt.T @ jt) @ b)), truth_visibility(jb, jt)
 
 
 def _remainder_lambda(params, design, term):
@@ -270,10 +272,12 @@ def _hidden(rng, family, p, design, lam):
             p["tau_w"] = tau
             truth["tau_s"] = tau
         b = rng.standard_normal(len(names))
-        b = b * math.sqrt(lam) * _lambda_scale(p, design, names, b, design.holdout)
+        scale, visibility = _lambda_scale(p, design, names, b, design.holdout)
+        b = b * math.sqrt(lam) * scale
         for n, v in zip(names, b):
             p[n] = p[n] + v
         truth["coefficients"] = {n: float(v) for n, v in zip(names, b)}
+        truth |= visibility
     elif family in ("quantization", "bias_instability", "rate_random_walk"):
         theta = math.sqrt(lam) * _noise_theta(family, design)  # coefficient of the spectrum
         key = {"quantization": "q_g", "bias_instability": "b_g", "rate_random_walk": "k_g"}

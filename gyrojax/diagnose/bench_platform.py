@@ -52,7 +52,7 @@ from ..models.platform_schedule import (
 from . import _harness
 from ._harness import projector, run_cases, score_cases
 from ._platform import NOMINAL, nominal_coefficients, platform_library
-from .bench import _Sealer
+from .bench import _Sealer, truth_visibility
 
 __all__ = ["PlatformDesign", "generate", "run", "score", "MEAN_FAMILIES", "OUT_OF_LIBRARY",
            "STRUCTURAL", "mean_families"]
@@ -138,14 +138,16 @@ class _TrainRows:
         self.proj = projector(jn / self.sigma)
         self.y0 = y0
 
-    def whitened(self, dy):
-        """Train rows of a change of the angles (A, P, n, 3), whitened, nominal projected out."""
+    def whitened(self, dy, projected: bool = True):
+        """Train rows of a change of the angles (A, P, n, 3), whitened, nominal projected out
+        (``projected=False``: not)."""
         rows = []
         for a in range(dy.shape[0]):
             for p in range(dy.shape[1]):
                 b, sizes = _reduce(dy[a, p], self.design.blocks, self.k_train)
                 rows.append(b * np.sqrt(sizes)[:, None])
-        return self.proj(np.concatenate(rows).reshape(-1, 1) / self.sigma)[:, 0]
+        w = np.concatenate(rows).reshape(-1, 1) / self.sigma
+        return (self.proj(w) if projected else w)[:, 0]
 
 
 def generate(out_dir, n_cases: int, *, seed: int = 0, design: PlatformDesign | None = None,
@@ -187,6 +189,11 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: PlatformDesign | N
             unit = p | {k: jnp.asarray(v) for k, v in zip(names, d, strict=True)}
             lam1 = float(np.sum(rows.whitened(_noise_free(unit, s) - rows.y0) ** 2))
             coef = d * np.sqrt(lam / lam1)
+            # each coefficient's column (the model is linear in them), for the truth side of
+            # the confounding recall / precision
+            jb = np.stack([rows.whitened(_noise_free(p | {k: jnp.asarray(c)}, s) - rows.y0,
+                                         projected=False) / c for k, c in zip(names, sc)], 1)
+            truth |= truth_visibility(jb, rows.proj(jb))
             for k, c in zip(names, coef, strict=True):
                 p[k] = jnp.asarray(c)
             truth["coefficients"] = {k: float(space[k].to_display(p[k])) for k in names}
