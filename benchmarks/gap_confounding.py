@@ -146,9 +146,10 @@ def main(argv=None):
         ap.error(f"--designs {','.join(bad)}: unknown; use some of {', '.join(DESIGNS)}")
     root = work_dir(args, "gyrojax-blind-confounding-")
     rows, detail = [], []
-    for i, name in enumerate(names):
+    for name in names:
+        seed = args.seed + list(DESIGNS).index(name)  # a design's cases whatever --designs says
         work = os.path.join(root, name)
-        s, t_gen, t_run, results = run_design(name, work, args.cases, args.seed + i)
+        s, t_gen, t_run, results = run_design(name, work, args.cases, seed)
         label = DESIGNS[name][0]
         tt = truth_table(work, results)
         n_truth = sum(v[1] for v in tt.values())
@@ -163,7 +164,7 @@ def main(argv=None):
         fams = "; ".join(
             f"{f} {v[1]}/{v[2]}/{v[0]} (v {min(v[3]):.2g}-{max(v[3]):.2g})"
             for f, v in sorted(tt.items()) if v[1] or v[2])
-        detail.append(f"- {label} (seed {args.seed + i}): families confounded on the truth "
+        detail.append(f"- {label} (seed {seed}): families confounded on the truth "
                       f"side / flagged / cases (truth-side visible fraction range): "
                       f"{fams or 'none confounded, none flagged'}.")
         print(rows[-1], flush=True)
