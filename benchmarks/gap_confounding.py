@@ -121,11 +121,15 @@ def truth_table(work, results) -> dict:
         t = man[r["sha"]]
         if "visibility" not in t:
             continue
-        row = out.setdefault(t["family"], [0, 0, 0, []])
+        row = out.setdefault(t["family"], [0, 0, 0, [], []])
+        truth = t["visibility"] in bench.CONFOUNDED_FLAGS
+        flagged = r["flags"].get(t["family"]) in bench.CONFOUNDED_FLAGS
         row[0] += 1
-        row[1] += t["visibility"] in bench.CONFOUNDED_FLAGS
-        row[2] += r["flags"].get(t["family"]) in bench.CONFOUNDED_FLAGS
+        row[1] += truth
+        row[2] += flagged
         row[3].append(t["visible_fraction"])
+        if truth != flagged:  # at which lambda the two sides disagree
+            row[4].append(f"{t['lambda']:g}")
     return out
 
 
@@ -162,8 +166,9 @@ def main(argv=None):
                     f"{fmt_rate(s['confounding_agreement'])} | "
                     f"{fmt_rate(s['confident_misattribution_all'])} | {took} |")
         fams = "; ".join(
-            f"{f} {v[1]}/{v[2]}/{v[0]} (v {min(v[3]):.2g}-{max(v[3]):.2g})"
-            for f, v in sorted(tt.items()) if v[1] or v[2])
+            f"{f} {v[1]}/{v[2]}/{v[0]} (v {min(v[3]):.2g}-{max(v[3]):.2g}"
+            + (f"; disagree at lambda {', '.join(sorted(v[4], key=float))}" if v[4] else "")
+            + ")" for f, v in sorted(tt.items()) if v[1] or v[2])
         detail.append(f"- {label} (seed {seed}): families confounded on the truth "
                       f"side / flagged / cases (truth-side visible fraction range): "
                       f"{fams or 'none confounded, none flagged'}.")

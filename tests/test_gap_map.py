@@ -399,3 +399,47 @@ def test_indistinguishable_classes_are_connected_components():
              ("d", "x"): 1.0}
     assert indistinguishable_classes(pairs, "abcdef") == [["a", "b", "c"], ["e", "f"]]
     assert indistinguishable_classes({}, "ab") == []
+
+
+def test_truth_visibility_is_one_minus_squared_cosine_and_flags_it():
+    """The harness' truth side of spec §5.6 confounding: for a one-column nominal span, an
+    effect direction at angle phi to it keeps the visible fraction sin^2(phi) = 1 - cos^2(phi);
+    the smallest over the effect's directions sets the flag (< 0.05 practically confounded,
+    < 1e-6 structurally, a zero column no signature in that direction)."""
+    from gyrojax.diagnose.bench import _projected, truth_visibility
+
+    rng = np.random.default_rng(7)
+    q, _ = np.linalg.qr(rng.standard_normal((200, 3)))
+    x, y, z = q.T  # orthonormal
+    jn = 3.0 * x[:, None]
+    for cos2, flag in [(0.5, "visible"), (0.9, "weakly identifiable"),
+                       (0.98, "practically confounded")]:
+        a = np.sqrt(cos2) * x + np.sqrt(1 - cos2) * y
+        jb = np.stack([2.0 * a, 5.0 * z], 1)  # the second direction fully visible
+        got = truth_visibility(jb, _projected(jn, jb))
+        assert got["visible_fraction"] == pytest.approx(1 - cos2, rel=1e-9)
+        assert got["visibility"] == flag
+    absorbed = truth_visibility(np.stack([4.0 * x, z], 1), _projected(jn, np.stack([4.0 * x, z],
+                                                                                   1)))
+    assert absorbed["visible_fraction"] < 1e-12
+    assert absorbed["visibility"] == "partly structurally confounded"
+    blind = np.stack([np.zeros(200), z], 1)
+    assert truth_visibility(blind, _projected(jn, blind))["visibility"] == "partly no signature"
+
+
+def test_confounding_scores_count_recall_precision_and_misattribution():
+    from gyrojax.diagnose.bench import confounding_scores
+
+    def case(truth_flag, diag_flag, post):
+        return ({"family": "a", "visibility": truth_flag},
+                {"flags": {"a": diag_flag, "b": "visible"}, "posterior": post})
+
+    pc, vis = "practically confounded", "visible"
+    lib = [case(pc, pc, {"a": 0.6, "b": 0.4}), case(pc, vis, {"a": 0.95, "b": 0.05}),
+           case(vis, pc, {"a": 0.05, "b": 0.95}), case(vis, vis, {"a": 0.5, "b": 0.5}),
+           case("structurally confounded", "no signature", {"a": 0.2, "b": 0.8})]
+    s = confounding_scores(lib)
+    assert (s["confounding_recall"]["rate"], s["confounding_recall"]["n"]) == (2 / 3, 3)
+    assert (s["confounding_precision"]["rate"], s["confounding_precision"]["n"]) == (2 / 3, 3)
+    assert s["confounding_agreement"]["rate"] == 3 / 5
+    assert s["confident_misattribution_all"]["rate"] == 1 / 5  # 0.95 on b; 0.8 is not > 0.9
