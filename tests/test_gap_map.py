@@ -406,7 +406,7 @@ def test_truth_visibility_is_one_minus_squared_cosine_and_flags_it():
     effect direction at angle phi to it keeps the visible fraction sin^2(phi) = 1 - cos^2(phi);
     the smallest over the effect's directions sets the flag (< 0.05 practically confounded,
     < 1e-6 structurally, a zero column no signature in that direction)."""
-    from gyrojax.diagnose.bench import _projected, truth_visibility
+    from gyrojax.diagnose.bench import projector, truth_visibility
 
     rng = np.random.default_rng(7)
     q, _ = np.linalg.qr(rng.standard_normal((200, 3)))
@@ -416,15 +416,15 @@ def test_truth_visibility_is_one_minus_squared_cosine_and_flags_it():
                        (0.98, "practically confounded")]:
         a = np.sqrt(cos2) * x + np.sqrt(1 - cos2) * y
         jb = np.stack([2.0 * a, 5.0 * z], 1)  # the second direction fully visible
-        got = truth_visibility(jb, _projected(jn, jb))
+        got = truth_visibility(jb, projector(jn)(jb))
         assert got["visible_fraction"] == pytest.approx(1 - cos2, rel=1e-9)
         assert got["visibility"] == flag
-    absorbed = truth_visibility(np.stack([4.0 * x, z], 1), _projected(jn, np.stack([4.0 * x, z],
-                                                                                   1)))
+    both = np.stack([4.0 * x, z], 1)
+    absorbed = truth_visibility(both, projector(jn)(both))
     assert absorbed["visible_fraction"] < 1e-12
     assert absorbed["visibility"] == "partly structurally confounded"
     blind = np.stack([np.zeros(200), z], 1)
-    assert truth_visibility(blind, _projected(jn, blind))["visibility"] == "partly no signature"
+    assert truth_visibility(blind, projector(jn)(blind))["visibility"] == "partly no signature"
 
 
 def test_confounding_scores_count_recall_precision_and_misattribution():

@@ -28,19 +28,13 @@ from .bench import (
     oracle_choice,
     oracle_power,
     plain_bh_far,
+    projector,
     ratio_rate,
     refit_all_baseline,
 )
 
 __all__ = ["run_cases", "score_cases", "projector", "separability",
            "oracle_detection_thresholds"]
-
-
-def projector(jn):
-    """``a -> (I - P) a`` with ``P`` the orthogonal projector on the columns of ``jn``: the
-    generators' truth-side noncentrality has the nominal parameters projected out."""
-    q, _ = np.linalg.qr(jn)
-    return lambda a: a - q @ (q.T @ a)
 
 
 def separability(record, rig: str, sigma, split=None, **problem_kw) -> dict:

@@ -136,13 +136,15 @@ def truth_visibility(jb, jt) -> dict:
             "visibility": visibility_flag(v, bool(null), jb.shape[1] - len(null), len(conf))}
 
 
-def _projected(jn, jb):
+def projector(jn):
+    """``a -> (I - P) a`` with ``P`` the orthogonal projector on the columns of ``jn``: the
+    generators' truth-side noncentrality has the nominal parameters projected out."""
     q, _ = np.linalg.qr(jn)
-    return jb - q @ (q.T @ jb)
+    return lambda a: a - q @ (q.T @ a)
 
 
 def _efficient(jn, jb):
-    jt = _projected(jn, jb)
+    jt = projector(jn)(jb)
     return jt.T @ jt
 
 
@@ -185,7 +187,7 @@ def _hidden(rng, family, p, cond, design, lam):
             for name, v in zip(_EFFECT_PARAMS[family], b):
                 p[name] = jnp.asarray(v)
             truth["coefficients"] = {n: float(v) for n, v in zip(_EFFECT_PARAMS[family], b)}
-            truth |= truth_visibility(jb, _projected(jn, jb))
+            truth |= truth_visibility(jb, projector(jn)(jb))
     elif family == "diurnal_line":
         jn = _model_jac(p, cond, ts[:n_train], nominal) / sigma
         cols = _output_columns(family, ts)
@@ -194,7 +196,7 @@ def _hidden(rng, family, p, cond, design, lam):
         b = b * math.sqrt(lam / float(b @ _efficient(jn, jb) @ b))
         out_term = cols @ b
         truth["coefficients_arcsec"] = [float(x) for x in b]
-        truth |= truth_visibility(jb, _projected(jn, jb))
+        truth |= truth_visibility(jb, projector(jn)(jb))
     elif family != "null":
         raise ValueError(f"unknown case family {family!r}")
     truth["lambda"] = float(lam) if family != "null" else 0.0
