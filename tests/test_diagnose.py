@@ -105,6 +105,41 @@ def test_score_equals_refit_drop_in_the_linear_regime():
     np.testing.assert_allclose(row.beta, coef, rtol=1e-10)
 
 
+def test_grid_effect_flag_follows_the_posterior_over_its_grid():
+    """A grid effect confounded at one grid value (v = 0.01 / 1.01 analytically) and visible at
+    three others. With a weak residual whose largest score sits at the confounded value, the
+    posterior over the grid is nearly flat, so the flag is "visible" (the largest score alone
+    would flag it confounded); with a strong residual there, both agree on "practically
+    confounded". The grid posterior's average of its per-value factors is the row's log BF."""
+    from gyrojax.diagnose._stats import grid_posterior, screen_designs
+
+    m = 240
+    basis = np.linalg.qr(np.random.default_rng(3).standard_normal((m, 5)))[0]
+    n, x = basis[:, :1], basis[:, 1:]  # nominal column; four directions orthogonal to it
+    jac = np.stack([n + 0.1 * x[:, :1]] + [x[:, k : k + 1] for k in (1, 2, 3)])
+    sig = Signature("g", "x", ("d",), ("1",), np.ones(1), jac, grid=(1.0, 2.0, 3.0, 4.0),
+                    grid_name="tau")
+    w0 = x[:, 0]  # unit projected direction of the confounded value (LM_0 = (w0 . e)^2)
+    weak = np.sqrt(3.0) * w0 + np.sqrt(2.5) * (x[:, 1] + x[:, 2] + x[:, 3])
+    for e, flag, at_argmax in ((weak, "visible", False), (5.0 * w0, "practically confounded", True)):
+        u, designs = screen_designs(n, [sig])
+        r = screen(e, n, [sig], designs=(u, designs))[0]
+        np.testing.assert_allclose(r.lm_grid, [(w0 @ e) ** 2] + [(x[:, k] @ e) ** 2
+                                                                  for k in (1, 2, 3)], rtol=1e-9, atol=1e-9)
+        assert r.grid_index == 0  # the largest score is at the confounded value in both cases
+        assert r.flag == flag and (r.vis_index == 0) == at_argmax
+        assert r.visible_fraction == pytest.approx(0.01 / 1.01 if at_argmax else 1.0, rel=1e-9)
+        w = grid_posterior(designs[0], e, r.lm_grid, r.dof_grid)
+        assert w.sum() == pytest.approx(1.0) and (w[0] > 0.5) == at_argmax
+    # the per-value factors average to the row's Bayes factor (same prior, lambda0 = 32)
+    from gyrojax.diagnose._stats import design_log_bf
+    lbf_g = np.array([design_log_bf([jt], [b], e, [32.0])[0]
+                      for jt, b in zip(designs[0].jt, designs[0].bases)])
+    assert np.logaddexp.reduce(lbf_g) - np.log(4) == pytest.approx(r.log_bf, rel=1e-9)
+    np.testing.assert_allclose(grid_posterior(designs[0], e, r.lm_grid, r.dof_grid),
+                               np.exp(lbf_g - np.logaddexp.reduce(lbf_g)), rtol=1e-9)
+
+
 def _linear_world(rng, m, u, effects, bases, n, lam, draw):
     """Posteriors of ``n`` linearised cases (equal odds over ``effects``; coefficients drawn by
     ``draw(name, rng)``) under the shape prior, the g-prior and their mixture (the default)."""

@@ -694,7 +694,7 @@ def _shift_hidden(rows, cells, jn_all, s_full):
     out = []
     for r in rows:
         if r.flag in _CONFOUNDED_FLAGS:
-            if visible(u, s_full[r.sig.name].jac[r.grid_index]):
+            if visible(u, s_full[r.sig.name].jac[r.vis_index]):
                 out.append(r.sig.name)
     return out
 
@@ -762,7 +762,9 @@ def _row_json(r: Screen, prob, excess, n, c, cells):
         "onestep_se": {nm: float(s * ps) for nm, s, ps in zip(r.sig.names, r.beta_se,
                                                               r.sig.prior_scale)},
         "grid": ({"name": r.sig.grid_name, "unit": r.sig.grid_unit,
-                  "best": r.sig.grid[r.grid_index]} if r.sig.grid else None),
+                  "best": r.sig.grid[r.grid_index],
+                  # the posterior median of the visible fraction, where the flag is taken
+                  "flag_at": r.sig.grid[r.vis_index]} if r.sig.grid else None),
         "explained_gap_share": float(min(1.0, r.lm / excess)) if excess > 0 else 0.0,
         "signature_consistency": cons,
         "visible_fraction": r.visible_fraction, "identifiable": r.flag in
@@ -818,9 +820,9 @@ def _mde(jt):
 
 def _design_advice(prob, params0, sigma, flagged):
     rows = []
-    grid = {r.sig.name: r.grid_index for r in flagged}  # screened grid value of flagged effects
+    grid = {r.sig.name: r.vis_index for r in flagged}  # the grid value each flag was taken at
     names = set(grid)
-    # problems that can evaluate one grid value per effect are told which (the screened one)
+    # problems that can evaluate one grid value per effect are told which (the flag's)
     only = {"grid": grid} if getattr(prob, "design_grid_choice", False) else {}
     designs = []
     for label, cond, t in prob.designs():
