@@ -762,9 +762,13 @@ def _row_json(r: Screen, prob, excess, n, c, cells):
         "onestep_se": {nm: float(s * ps) for nm, s, ps in zip(r.sig.names, r.beta_se,
                                                               r.sig.prior_scale)},
         "grid": ({"name": r.sig.grid_name, "unit": r.sig.grid_unit,
-                  "best": r.sig.grid[r.grid_index],
+                  "values": [float(x) for x in r.sig.grid], "best": r.sig.grid[r.grid_index],
                   # the posterior median of the visible fraction, where the flag is taken
-                  "flag_at": r.sig.grid[r.vis_index]} if r.sig.grid else None),
+                  "flag_at": r.sig.grid[r.vis_index],
+                  # the posterior over the grid values given the effect (uniform prior)
+                  "posterior": ([float(x) for x in r.grid_weights]
+                                if r.grid_weights is not None else [1.0])}
+                 if r.sig.grid else None),
         "explained_gap_share": float(min(1.0, r.lm / excess)) if excess > 0 else 0.0,
         "signature_consistency": cons,
         "visible_fraction": r.visible_fraction, "identifiable": r.flag in

@@ -187,6 +187,10 @@ class GapReport:
                       "decided on): " + ("; ".join(
                           f"{ch} at tau {x['tau_s']:.3g} s (ratio {x['statistic']:.3g}, "
                           f"p {x['p']:.2g})" for ch, x in best.items()) or "nowhere")]
+        grids = [r for r in self.ranking if r.get("grid") and r["posterior"] >= 0.05][:5]
+        if grids:
+            lines += ["", "Grid values (uniform prior over the grid; the posterior given the "
+                      "effect): " + "; ".join(_grid_text(r) for r in grids)]
         classes = self.ambiguity.get("classes")
         if classes:
             lines += ["", "Cannot be told apart on this design (every direction of one effect "
@@ -242,6 +246,30 @@ class GapReport:
                 lines.append(f"\n{len(self.design_advice) - len(shown)} more designs in the "
                              "JSON report (`design_advice`).")
         return "\n".join(lines)
+
+
+def grid_interval(values, weights, mass: float = 0.9) -> tuple[float, float, float]:
+    """The shortest run of consecutive grid ``values`` whose posterior ``weights`` hold at least
+    ``mass``: ``(first value, last value, mass held)`` (ties: the run holding more)."""
+    w = np.asarray(weights, float)
+    w = w / w.sum()
+    best = (len(w) + 1, 0.0, 0, len(w) - 1)
+    for i in range(len(w)):
+        acc = np.cumsum(w[i:])
+        j = int(np.searchsorted(acc, mass - 1e-12))
+        if j < len(acc) and (j + 1, -acc[j]) < (best[0], -best[1]):
+            best = (j + 1, float(acc[j]), i, i + j)
+    return float(values[best[2]]), float(values[best[3]]), best[1]
+
+
+def _grid_text(r) -> str:
+    g = r["grid"]
+    lo, hi, held = grid_interval(g["values"], g["posterior"])
+    unit = f" {g['unit']}" if g["unit"] else ""
+    mode = int(np.argmax(g["posterior"]))
+    return (f"{r['name']} {g['name']} {g['best']:.3g}{unit} at the largest score, posterior "
+            f"{g['posterior'][mode]:.2f} at {g['values'][mode]:.3g}{unit}, 90 % within "
+            f"{lo:.3g}-{hi:.3g}{unit} (mass {held:.2f}), flag taken at {g['flag_at']:.3g}{unit}")
 
 
 def _noise_text(rig: str, channel: str, s: float) -> str:

@@ -306,6 +306,7 @@ class Screen:
     # grid value of the visibility, flag, aliases and hidden directions: the posterior median of
     # the visible fraction over the grid (see :func:`screen`); ``grid_index`` without a grid
     vis_index: int = 0
+    grid_weights: np.ndarray | None = None  # posterior over the grid values (grid effects only)
 
 
 def _visibility(j, u):
@@ -491,8 +492,8 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
         else:
             log_bf = float({"design": curve, "shape": shape, "zellner": zell}[prior][-1])
         p = float(_pvalue(des, lms[gi], dof))
-        gv = gi if len(des.vis) == 1 else _median_index(
-            [x[0] for x in des.vis], grid_posterior(des, e, lms, dofs, lambda0, prior))
+        gw = None if len(des.vis) == 1 else grid_posterior(des, e, lms, dofs, lambda0, prior)
+        gv = gi if gw is None else _median_index([x[0] for x in des.vis], gw)
         v, null, conf = des.vis[gv]
         flag = visibility_flag(v, bool(null), sig.jac.shape[2] - len(null), len(conf))
         alias = cov_n @ (jn.T @ sig.jac[gv])
@@ -500,7 +501,7 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
         out.append(Screen(sig, lms[gi], dof, p, log_bf, gi, beta, np.sqrt(np.diag(cov)), v, flag,
                           null, conf, alias, alias_std, jt, np.asarray(lms), np.asarray(dofs),
                           log_bf_curve=dict(zip(PRIOR_LAMBDAS, map(float, curve[:-1]))),
-                          vis_index=gv))
+                          vis_index=gv, grid_weights=gw))
     _posteriors(out, prior_none)
     return out
 
