@@ -39,7 +39,7 @@ from ..models.gyrotheodolite import (
 )
 from ..record import BenchRecord
 from ..simulate import integrate
-from ._stats import Signature
+from ._stats import Signature, onset_grid
 
 __all__ = ["GyrotheodoliteProblem", "GYROTHEODOLITE_LIBRARY", "north_seeking_period"]
 
@@ -126,7 +126,10 @@ class GyrotheodoliteProblem:
                                          for k in sp.effect_names(e)
                                          if k != GYROTHEODOLITE_LIBRARY[e][1])
         self.all_scales = sp.scales(self.all_names)
-        self.step_grid_s = tuple(float(self.t[0] + span * k / 9) for k in range(1, 9))
+        # one onset every 5 % of the record over the train span (14 on the 40-min design; 8,
+        # 11 % of the span apart, before stop 44: a torque step's visible fraction rises from
+        # 0.003 at 11 % to 0.09 at 22 %, so the flag could not follow an onset between them)
+        self.step_grid_s = tuple(float(x) for x in onset_grid(self.t, self.n_train))
         self.lines = {"north-seeking period": period}
 
     # -- the model and its Jacobian over every free name ----------------------------------

@@ -79,6 +79,16 @@ def effect_family_name(name: str) -> str:
     return name.split(":", 1)[0]
 
 
+def onset_grid(t, n_train: int) -> np.ndarray:
+    """A step's onset grid over the train span of a record sampled at ``t``: equally spaced
+    interior values at most 5 % of the record apart (spec §6 G8 asks onsets within one such
+    window) and at least 8 of them; in ``t``'s units."""
+    t = np.asarray(t, float)
+    span = t[n_train - 1] - t[0]
+    n_int = max(9, math.ceil(span / (0.05 * (t[-1] - t[0])) - 1e-9))
+    return t[0] + span * np.arange(1, n_int) / n_int
+
+
 def nominal_basis(jn: np.ndarray, *, rtol: float = 1e-10) -> np.ndarray:
     """Orthonormal basis of the span of the nominal Jacobian (rank-revealing SVD)."""
     u, s, _ = np.linalg.svd(jn, full_matrices=False)
