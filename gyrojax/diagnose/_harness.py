@@ -145,6 +145,10 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
             "time_refit_all_in_report_s": rep.timings.get("refit_all_s"),
             # the effects this design cannot tell apart (spec §4.2 stage 3)
             "classes": rep.ambiguity["classes"],
+            # each grid effect's grid value at its largest score (onset, decay time) and the
+            # record's length: spec §6 G8's localisation
+            "grid_best": {r["name"]: r["grid"]["best"] for r in rep.ranking if r.get("grid")},
+            "record_s": float(rep.t[-1] - rep.t[0]),
             **multiplicity_fields(rep),
         })
         if baselines:

@@ -19,6 +19,8 @@ split with the five test parameters projected out, computed here from the truth 
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 from pathlib import Path
 
 import jax
@@ -36,7 +38,7 @@ from ..models.gyrotheodolite import (
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._harness import projector, run_cases, score_cases
-from .bench import _Sealer, truth_visibility
+from .bench import _rate, _Sealer, truth_visibility
 
 __all__ = ["GyrotheodoliteDesign", "generate", "run", "score", "MEAN_FAMILIES",
            "OUT_OF_LIBRARY", "STRUCTURAL"]
@@ -66,6 +68,12 @@ class GyrotheodoliteDesign:
     def ts(self) -> np.ndarray:
         return np.arange(0.0, self.minutes * 60 + 0.5 * self.sample_s, self.sample_s)
 
+    @property
+    def n_train(self) -> int:
+        """Samples in the train part (the diagnosis holds out the last ``holdout``)."""
+        n = len(self.ts)
+        return n - int(round(self.holdout * n))
+
 
 def generate(out_dir, n_cases: int, *, seed: int = 0,
              design: GyrotheodoliteDesign | None = None, lambdas=(8.0, 16.0, 32.0, 64.0),
@@ -77,7 +85,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0,
     cond = design.conditions
     space = _RIG.param_space
     ts = design.ts
-    n_train = len(ts) - int(round(design.holdout * len(ts)))
+    n_train = design.n_train
     sigma = design.noise_arcsec * units.ARCSEC
     fams = list(families or (MEAN_FAMILIES + STRUCTURAL + OUT_OF_LIBRARY))
     key = jax.random.key(seed)
@@ -151,3 +159,25 @@ def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
     return score_cases(case_dir, results, MEAN_FAMILIES, (), OUT_OF_LIBRARY,
                        structural=STRUCTURAL, separable=separable,
                        oracle_thresholds=oracle_thresholds)
+
+
+def localisation_scores(case_dir, results, *, lam_min: float = 32.0) -> dict:
+    """Spec §6 G8 over the in-library cases at ``lambda >= lam_min``: a torque step's onset at
+    its largest score within 5 % of the record of the truth, and a drift transient's decay time
+    within one step of its geometric grid (``_gyrotheodolite.TRANSIENT_TIMES_MIN``)."""
+    from ._gyrotheodolite import TRANSIENT_TIMES_MIN
+
+    manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
+    strong = [(manifest[r["sha"]], r) for r in results]
+    strong = [(t, r) for t, r in strong if t.get("lambda", 0) >= lam_min and "grid_best" in r]
+    step = math.log(TRANSIENT_TIMES_MIN[1] / TRANSIENT_TIMES_MIN[0])
+    return {
+        "g8_step_onset": _rate(
+            [(t, r) for t, r in strong if t["family"] == "torque_step"],
+            lambda t, r: abs(r["grid_best"]["torque_step"] - t["t_step"])
+            <= 0.05 * r["record_s"] / 60),
+        "g8_transient_decay": _rate(
+            [(t, r) for t, r in strong if t["family"] == "drift_transient"],
+            lambda t, r: abs(math.log(r["grid_best"]["drift_transient"] / t["tau_tr"])) <= step),
+    }
+
