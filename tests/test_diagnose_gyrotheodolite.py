@@ -118,6 +118,28 @@ def test_gyrotheodolite_blind_harness(tmp_path):
     s = bg.score(tmp_path / "b", [tape, step, line])
     assert s["structural_silent"]["rate"] == 1.0
     assert s["out_of_library_honest"]["rate"] == 1.0
+    # spec §6 G8: the strong step's onset at its largest score within 2 min of the truth
+    g8 = bg.localisation_scores(tmp_path / "b", [tape, step, line])
+    assert g8["g8_step_onset"] == {"rate": 1.0, "se": pytest.approx(1e-6), "n": 1}
+    assert g8["g8_transient_decay"] is None
+
+
+def test_gyrotheodolite_localisation_scores_by_hand(tmp_path):
+    """Spec §6 G8 on a 40-min record (tolerance 2 min; decay grid step ratio 10^(1/7))."""
+    from gyrojax.diagnose import bench_gyrotheodolite as bg
+
+    cases = {"a": {"family": "torque_step", "lambda": 32.0, "t_step": 10.0},
+             "b": {"family": "torque_step", "lambda": 64.0, "t_step": 10.0},
+             "c": {"family": "torque_step", "lambda": 16.0, "t_step": 10.0},  # below 32
+             "d": {"family": "drift_transient", "lambda": 32.0, "tau_tr": 10.0}}
+    (tmp_path / "sealed").mkdir()
+    (tmp_path / "sealed" / "manifest.json").write_text(json.dumps({"cases": cases}))
+    best = {"a": 11.9, "b": 12.1, "c": 30.0, "d": 13.8}  # 13.8 / 10 < 10^(1/7) = 1.39
+    res = [{"sha": k, "record_s": 2400.0,
+            "grid_best": {cases[k]["family"]: v}} for k, v in best.items()]
+    g8 = bg.localisation_scores(tmp_path, res)
+    assert g8["g8_step_onset"]["rate"] == 0.5 and g8["g8_step_onset"]["n"] == 2
+    assert g8["g8_transient_decay"]["rate"] == 1.0
 
 
 def test_nominal_fit_converges_when_the_model_jitters_at_its_solver_tolerance(tmp_path):
