@@ -205,7 +205,8 @@ def _hidden(rng, family, p, cond, design, lam):
 
 def _library_columns(p, cond, ts, sigma) -> dict:
     """Truth-side whitened columns of every library effect on the rows ``ts`` (family -> one
-    block per grid value, on the diagnosis' decay-time and onset grids)."""
+    block per grid value: the diagnosis' decay-time grid, and 8 onsets over the rows, the
+    diagnosis' onset grid before stop 40's 14)."""
     onsets = ts[0] / 3600 + (ts[-1] - ts[0]) / 3600 * np.arange(1, 9) / 9
     names = tuple(n for v in _EFFECT_PARAMS.values() for n in v)
     cols = {}
