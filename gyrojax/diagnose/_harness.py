@@ -23,6 +23,7 @@ from .bench import (
     _sha,
     calibration,
     confounding_scores,
+    grid_best,
     multiplicity_fields,
     ool_scores,
     oracle_choice,
@@ -147,7 +148,7 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
             "classes": rep.ambiguity["classes"],
             # each grid effect's grid value at its largest score (onset, decay time) and the
             # record's length: spec §6 G8's localisation
-            "grid_best": {r["name"]: r["grid"]["best"] for r in rep.ranking if r.get("grid")},
+            "grid_best": grid_best(rep),
             "record_s": float(rep.t[-1] - rep.t[0]),
             **multiplicity_fields(rep),
         })

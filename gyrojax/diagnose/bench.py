@@ -540,6 +540,28 @@ def refit_all_baseline(prob, ranking, sigma) -> dict:
             "n_refits": n_refits}
 
 
+def grid_best(rep) -> dict:
+    """Each grid effect's grid value at its largest score (onset, decay time) in a report."""
+    return {r["name"]: r["grid"]["best"] for r in rep.ranking if r.get("grid")}
+
+
+def grid_localisation(strong, *, step, transient, decay_grid, record_length) -> dict:
+    """Spec §6 G8's onset and decay-time rules over (truth, result) pairs with ``grid_best``:
+    ``step`` and ``transient`` are ``(family, truth key)``; an onset counts within 5 % of the
+    record (``record_length(result)``, in the grid's unit) of the truth, a decay time within one
+    step of the geometric ``decay_grid``."""
+    (fs, ks), (ft, kt) = step, transient
+    ratio = math.log(decay_grid[1] / decay_grid[0])
+    return {
+        "g8_step_onset": _rate([(t, r) for t, r in strong if t["family"] == fs],
+                               lambda t, r: abs(r["grid_best"][fs] - t[ks])
+                               <= 0.05 * record_length(r)),
+        "g8_transient_decay": _rate([(t, r) for t, r in strong if t["family"] == ft],
+                                    lambda t, r: abs(math.log(r["grid_best"][ft] / t[kt]))
+                                    <= ratio),
+    }
+
+
 def localisation_fields(rep) -> dict:
     """What spec §6 G8 scores from a report: each grid effect's screened grid value (onset,
     decay time; ``grid_best``), the frequency cell of smallest p (``top_line``, its p) and the
@@ -549,7 +571,7 @@ def localisation_fields(rep) -> dict:
     taus = [x for x in rep.where if x["axis"] == "tau" and x.get("rate") != "full"]  # decided
     top_tau = min(taus, key=lambda x: x["p"]) if taus else None
     t = np.asarray(rep.t)
-    return {"grid_best": {r["name"]: r["grid"]["best"] for r in rep.ranking if r.get("grid")},
+    return {"grid_best": grid_best(rep),
             "top_line": top["cell"] if top else None, "top_line_p": top["p"] if top else None,
             "top_tau_s": top_tau["tau_s"] if top_tau else None,
             "top_tau_significant": bool(top_tau and top_tau["significant"]),
@@ -575,19 +597,11 @@ def localisation_scores(lib, *, lam_min: float = 32.0) -> dict:
     level), a transient's screened decay time within one step of the geometric grid, and a
     diurnal line found on the sidereal-day line (the frequency cell of smallest p)."""
     strong = [(t, r) for t, r in lib if t.get("lambda", 0) >= lam_min and "grid_best" in r]
-
-    def onset_ok(t, r):
-        return abs(r["grid_best"]["drift_step"] - t["onset_h"]) <= 0.05 * r["record_hours"]
-
-    def decay_ok(t, r):
-        step = math.log(TRANSIENT_TIMES_H[1] / TRANSIENT_TIMES_H[0])
-        return abs(math.log(r["grid_best"]["drift_transient"] / t["decay_time_h"])) <= step
-
     return {
-        "g8_step_onset": _rate([(t, r) for t, r in strong if t["family"] == "drift_step"],
-                               onset_ok),
-        "g8_transient_decay": _rate(
-            [(t, r) for t, r in strong if t["family"] == "drift_transient"], decay_ok),
+        **grid_localisation(strong, step=("drift_step", "onset_h"),
+                            transient=("drift_transient", "decay_time_h"),
+                            decay_grid=TRANSIENT_TIMES_H,
+                            record_length=lambda r: r["record_hours"]),
         "g8_line": _rate([(t, r) for t, r in strong if t["family"] == "diurnal_line"],
                          lambda t, r: (r["top_line"] or "").startswith("sidereal day")),
         # how specific that is: the other families' gaps on the same line

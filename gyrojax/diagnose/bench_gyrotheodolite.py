@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from pathlib import Path
 
 import jax
@@ -38,7 +37,7 @@ from ..models.gyrotheodolite import (
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._harness import projector, run_cases, score_cases
-from .bench import _rate, _Sealer, truth_visibility
+from .bench import _Sealer, grid_localisation, truth_visibility
 
 __all__ = ["GyrotheodoliteDesign", "generate", "run", "score", "MEAN_FAMILIES",
            "OUT_OF_LIBRARY", "STRUCTURAL"]
@@ -170,14 +169,7 @@ def localisation_scores(case_dir, results, *, lam_min: float = 32.0) -> dict:
     manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
     strong = [(manifest[r["sha"]], r) for r in results]
     strong = [(t, r) for t, r in strong if t.get("lambda", 0) >= lam_min and "grid_best" in r]
-    step = math.log(TRANSIENT_TIMES_MIN[1] / TRANSIENT_TIMES_MIN[0])
-    return {
-        "g8_step_onset": _rate(
-            [(t, r) for t, r in strong if t["family"] == "torque_step"],
-            lambda t, r: abs(r["grid_best"]["torque_step"] - t["t_step"])
-            <= 0.05 * r["record_s"] / 60),
-        "g8_transient_decay": _rate(
-            [(t, r) for t, r in strong if t["family"] == "drift_transient"],
-            lambda t, r: abs(math.log(r["grid_best"]["drift_transient"] / t["tau_tr"])) <= step),
-    }
-
+    return grid_localisation(strong, step=("torque_step", "t_step"),
+                             transient=("drift_transient", "tau_tr"),
+                             decay_grid=TRANSIENT_TIMES_MIN,
+                             record_length=lambda r: r["record_s"] / 60)
