@@ -323,6 +323,20 @@ def diagnose_suite(harness, work, design, desc: str, name: str = "results.json")
     return results, t_run
 
 
+def g8_suite(harness, work, n_cases: int, *, seed: int, design, families):
+    """Spec §6 G8 on ``n_cases`` more sealed cases of ``families`` (no nulls, lambda 32/64) in
+    ``work/g8``: generated, diagnosed and scored by ``harness.localisation_scores``. Returns
+    ``(scores, seconds)``."""
+    import time
+
+    g8_dir = os.path.join(work, "g8")
+    t0 = time.perf_counter()
+    harness.generate(g8_dir, n_cases, seed=seed, design=design, null_fraction=0.0,
+                     lambdas=(32.0, 64.0), families=families)
+    results, _ = diagnose_suite(harness, g8_dir, design, "g8")
+    return harness.localisation_scores(g8_dir, results), time.perf_counter() - t0
+
+
 def g6_lines(s: dict, hidden: str) -> list[str]:
     """The closed-loop bullets of spec §6 G6 from :func:`gyrojax.diagnose._harness.
     closed_loop_scores` (``hidden``: how the text names the hidden effect)."""

@@ -18,7 +18,6 @@ import dataclasses
 import json
 import os
 import sys
-import time
 
 sys.path.insert(0, os.path.dirname(__file__))
 
@@ -27,8 +26,8 @@ from _results import (  # noqa: E402
     ORACLE_NOTE,
     blind_parser,
     blind_suite,
-    diagnose_suite,
     far_text,
+    g8_suite,
     machine_line,
     one_design_main,
     publish,
@@ -92,16 +91,12 @@ def suite(args, work, design):
 def g8_line(args, work, design) -> str:
     """Spec §6 G8 on ``args.g8_cases`` more sealed cases (torque step and drift transient at
     lambda 32/64): onset and decay time at the largest score against the truth."""
-    g8_dir = os.path.join(work, "g8")
-    t0 = time.perf_counter()
-    bg.generate(g8_dir, args.g8_cases, seed=args.seed + 3, design=design, null_fraction=0.0,
-                lambdas=(32.0, 64.0), families=("torque_step", "drift_transient"))
-    results, _ = diagnose_suite(bg, g8_dir, design, "g8")
-    g8 = bg.localisation_scores(g8_dir, results)
+    g8, secs = g8_suite(bg, work, args.g8_cases, seed=args.seed + 3, design=design,
+                        families=("torque_step", "drift_transient"))
     return (f"- Localisation (spec §6 G8: onsets within 5 % of the record in >= 0.90 at lambda "
             f">= 32; {args.g8_cases} more sealed cases, torque_step and drift_transient at "
-            f"lambda 32/64, seed {args.seed + 3}, generated and diagnosed in "
-            f"{time.perf_counter() - t0:.0f} s): torque_step onset at the largest score within "
+            f"lambda 32/64, seed {args.seed + 3}, generated and diagnosed in {secs:.0f} s): "
+            f"torque_step onset at the largest score within "
             f"5 % of the record ({0.05 * design.minutes:.0f} min) of the truth "
             f"{_fmt(g8['g8_step_onset'])} (onset grid: one value every 5 % of the record over "
             f"the train span, {len(onset_grid(design.ts, design.n_train))} values); "

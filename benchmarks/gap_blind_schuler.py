@@ -6,7 +6,7 @@ Also reports how separable the catalogue is on this design (largest projected ca
 correlation of each effect with another one, spec §5.6 "separable": <= 0.9). Writes the section
 ``gap_blind_schuler`` of RESULTS.md.
 
-    python benchmarks/gap_blind_schuler.py              # 60 cases (~10 min on 2 cores)
+    python benchmarks/gap_blind_schuler.py              # 60 cases + 60 G8 cases
     python benchmarks/gap_blind_schuler.py --cases 12   # quick look
     python benchmarks/gap_blind_schuler.py --cases 0 --nulls 1000   # G1 null run (~25 min)
 """
@@ -26,6 +26,8 @@ from _results import (  # noqa: E402
     blind_parser,
     blind_suite,
     far_text,
+    fmt_rate,
+    g8_suite,
     machine_line,
     one_design_main,
     publish,
@@ -38,11 +40,15 @@ from gyrojax.diagnose._harness import (  # noqa: E402
     oracle_detection_thresholds,
     separability,
 )
+from gyrojax.diagnose._stats import onset_grid  # noqa: E402
 from gyrojax.io import load_record  # noqa: E402
 
 
 def main(argv=None):
     ap = blind_parser(__doc__, cases=60)
+    ap.add_argument("--g8-cases", type=int, default=60,
+                    help="extra drift_step / drift_transient cases at lambda 32/64 for the "
+                         "localisation of spec §6 G8 (onset, decay time)")
     one_design_main(ap.parse_args(argv), bench_schuler, bench_schuler.SchulerDesign(), suite,
                     name="schuler", title="Gap diagnosis, Schuler-test D5 null run",
                     label="design D5 (the 12 nominal errors drawn from the prior per case)")
@@ -72,7 +78,26 @@ def suite(args, work, design):
              + ", ".join(f"{e} {v:.4f}" for e, v in sorted(sep.items()))
              + f". Separable (<= 0.9): {', '.join(separable) or 'none'}.", "", ORACLE_NOTE, ""]
     lines += suite_lines(s, "velocity_line, attitude_step")
+    if args.g8_cases:
+        lines.insert(-1, g8_line(args, work, design))
     publish(args.out, "gap_blind_schuler", lines)
+
+
+def g8_line(args, work, design) -> str:
+    """Spec §6 G8 on ``args.g8_cases`` more sealed cases (drift step and drift transient at
+    lambda 32/64): onset and decay time at the largest score against the truth."""
+    g8, secs = g8_suite(bench_schuler, work, args.g8_cases, seed=args.seed + 3, design=design,
+                        families=("drift_step", "drift_transient"))
+    minutes = (design.ts[-1] - design.ts[0]) / 60
+    return (f"- Localisation (spec §6 G8: onsets within 5 % of the record in >= 0.90 at lambda "
+            f">= 32; {args.g8_cases} more sealed cases, drift_step and drift_transient at "
+            f"lambda 32/64, seed {args.seed + 3}, generated and diagnosed in {secs:.0f} s): "
+            f"drift_step onset at the largest score within 5 % of the record "
+            f"({0.05 * minutes:.1f} min) of the truth {fmt_rate(g8['g8_step_onset'])} (onset "
+            f"grid: one value every 5 % of the record over the train span, "
+            f"{len(onset_grid(design.ts, design.n_train))} values); drift_transient decay time "
+            f"within one step of its grid (8 values, 0.25-3 h) "
+            f"{fmt_rate(g8['g8_transient_decay'])}.")
 
 
 if __name__ == "__main__":

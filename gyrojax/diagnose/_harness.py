@@ -24,6 +24,7 @@ from .bench import (
     calibration,
     confounding_scores,
     grid_best,
+    grid_localisation,
     multiplicity_fields,
     ool_scores,
     oracle_choice,
@@ -35,7 +36,7 @@ from .bench import (
 )
 
 __all__ = ["run_cases", "score_cases", "projector", "separability",
-           "oracle_detection_thresholds"]
+           "oracle_detection_thresholds", "sealed_pairs", "sealed_localisation"]
 
 
 def separability(record, rig: str, sigma, split=None, **problem_kw) -> dict:
@@ -163,6 +164,21 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
     return results
 
 
+def sealed_pairs(case_dir, results) -> list:
+    """``(truth, result)`` for each result, the truth unsealed from ``case_dir``'s manifest (only
+    once every record is diagnosed)."""
+    manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
+    return [(manifest[r["sha"]], r) for r in results]
+
+
+def sealed_localisation(case_dir, results, *, lam_min: float = 32.0, **rules) -> dict:
+    """Spec §6 G8's grid rules (:func:`~gyrojax.diagnose.bench.grid_localisation` with
+    ``rules``) over the sealed in-library cases at ``lambda >= lam_min`` that screened a grid."""
+    strong = [(t, r) for t, r in sealed_pairs(case_dir, results)
+              if t.get("lambda", 0) >= lam_min and "grid_best" in r]
+    return grid_localisation(strong, **rules)
+
+
 def score_cases(case_dir, results, mean_families, noise_families=(), out_of_library=(),
                 structural=(), separable=None, oracle_thresholds=None) -> dict:
     """Unseal and score. top-1: the verdict's first effect (or the top posterior) is the hidden
@@ -178,8 +194,7 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
     0.9 x the oracle's (the hidden effect's own refit). ``oracle_thresholds`` (``{lambda:
     threshold}``, :func:`oracle_detection_thresholds`): also the Bayes oracle's detection power
     (spec §6 G2's reference) on the mean families."""
-    manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
-    rows = [(manifest[r["sha"]], r) for r in results]
+    rows = sealed_pairs(case_dir, results)
     nulls = [(t, r) for t, r in rows if t["family"] == "null"]
     lib = [(t, r) for t, r in rows if t["family"] in tuple(mean_families) + tuple(noise_families)]
     ool = [(t, r) for t, r in rows if t["family"] in out_of_library]

@@ -545,19 +545,22 @@ def grid_best(rep) -> dict:
     return {r["name"]: r["grid"]["best"] for r in rep.ranking if r.get("grid")}
 
 
-def grid_localisation(strong, *, step, transient, decay_grid, record_length) -> dict:
+def grid_localisation(strong, *, step, transient, decay_grid, record_length,
+                      truth_scale: float = 1.0) -> dict:
     """Spec §6 G8's onset and decay-time rules over (truth, result) pairs with ``grid_best``:
     ``step`` and ``transient`` are ``(family, truth key)``; an onset counts within 5 % of the
     record (``record_length(result)``, in the grid's unit) of the truth, a decay time within one
-    step of the geometric ``decay_grid``."""
+    step of the geometric ``decay_grid``. ``truth_scale`` converts the truth's display unit to the
+    grid's (e.g. 1/60 for minutes against a grid in hours)."""
     (fs, ks), (ft, kt) = step, transient
     ratio = math.log(decay_grid[1] / decay_grid[0])
     return {
         "g8_step_onset": _rate([(t, r) for t, r in strong if t["family"] == fs],
-                               lambda t, r: abs(r["grid_best"][fs] - t[ks])
+                               lambda t, r: abs(r["grid_best"][fs] - truth_scale * t[ks])
                                <= 0.05 * record_length(r)),
         "g8_transient_decay": _rate([(t, r) for t, r in strong if t["family"] == ft],
-                                    lambda t, r: abs(math.log(r["grid_best"][ft] / t[kt]))
+                                    lambda t, r: abs(math.log(r["grid_best"][ft]
+                                                              / (truth_scale * t[kt])))
                                     <= ratio),
     }
 

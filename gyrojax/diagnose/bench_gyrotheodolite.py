@@ -19,7 +19,6 @@ split with the five test parameters projected out, computed here from the truth 
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import jax
@@ -36,8 +35,8 @@ from ..models.gyrotheodolite import (
 )
 from ..record import BenchRecord
 from ..simulate import integrate
-from ._harness import projector, run_cases, score_cases
-from .bench import _Sealer, grid_localisation, truth_visibility
+from ._harness import projector, run_cases, score_cases, sealed_localisation
+from .bench import _Sealer, truth_visibility
 
 __all__ = ["GyrotheodoliteDesign", "generate", "run", "score", "MEAN_FAMILIES",
            "OUT_OF_LIBRARY", "STRUCTURAL"]
@@ -166,10 +165,8 @@ def localisation_scores(case_dir, results, *, lam_min: float = 32.0) -> dict:
     within one step of its geometric grid (``_gyrotheodolite.TRANSIENT_TIMES_MIN``)."""
     from ._gyrotheodolite import TRANSIENT_TIMES_MIN
 
-    manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
-    strong = [(manifest[r["sha"]], r) for r in results]
-    strong = [(t, r) for t, r in strong if t.get("lambda", 0) >= lam_min and "grid_best" in r]
-    return grid_localisation(strong, step=("torque_step", "t_step"),
-                             transient=("drift_transient", "tau_tr"),
-                             decay_grid=TRANSIENT_TIMES_MIN,
-                             record_length=lambda r: r["record_s"] / 60)
+    return sealed_localisation(case_dir, results, lam_min=lam_min,
+                               step=("torque_step", "t_step"),
+                               transient=("drift_transient", "tau_tr"),
+                               decay_grid=TRANSIENT_TIMES_MIN,
+                               record_length=lambda r: r["record_s"] / 60)

@@ -31,10 +31,11 @@ from ..estimate.schuler import THETA_NAMES, schuler_residuals
 from ..models.schuler import SchulerConditions, SchulerRig, add_measurement_noise
 from ..record import BenchRecord
 from ..simulate import integrate
-from ._harness import projector, run_cases, score_cases
+from ._harness import projector, run_cases, score_cases, sealed_localisation
 from .bench import _Sealer, truth_visibility
 
-__all__ = ["SchulerDesign", "generate", "run", "score", "MEAN_FAMILIES", "OUT_OF_LIBRARY"]
+__all__ = ["SchulerDesign", "generate", "run", "score", "localisation_scores", "MEAN_FAMILIES",
+           "OUT_OF_LIBRARY"]
 
 MEAN_FAMILIES = ("drift_ramp", "drift_transient", "drift_step", "accelerometer_ramp",
                  "g_sensitivity", "accelerometer_cross_axis")
@@ -65,6 +66,11 @@ class SchulerDesign:
         return np.arange(0.0, span + 0.5 * self.sample_s, self.sample_s)
 
     @property
+    def n_train(self) -> int:
+        """Samples in the train split (the first ``1 - holdout`` of the record)."""
+        return len(self.ts) - int(round(self.holdout * len(self.ts)))
+
+    @property
     def sigma(self) -> np.ndarray:
         a = self.sigma_arcmin * units.ARCMIN
         return np.array([self.sigma_v, self.sigma_v, a, a, a])
@@ -91,7 +97,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: SchulerDesign | No
     cond = design.conditions
     space = _RIG.param_space
     ts = design.ts
-    n_train = len(ts) - int(round(design.holdout * len(ts)))
+    n_train = design.n_train
     rows = n_train * len(CHANNELS)
     w = jnp.asarray(1.0 / design.sigma)
     fams = list(families or (MEAN_FAMILIES + OUT_OF_LIBRARY))
@@ -171,3 +177,17 @@ def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
     """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`)."""
     return score_cases(case_dir, results, MEAN_FAMILIES, (), OUT_OF_LIBRARY, separable=separable,
                        oracle_thresholds=oracle_thresholds)
+
+
+def localisation_scores(case_dir, results, *, lam_min: float = 32.0) -> dict:
+    """Spec §6 G8 over the in-library cases at ``lambda >= lam_min``: a drift step's onset at its
+    largest score within 5 % of the record of the truth, and a drift transient's decay time within
+    one step of its geometric grid (``_schuler.TRANSIENT_TIMES_H``). The truth is in minutes (the
+    parameters' display unit), the grids in hours."""
+    from ._schuler import TRANSIENT_TIMES_H
+
+    return sealed_localisation(case_dir, results, lam_min=lam_min,
+                               step=("drift_step", "t_step"),
+                               transient=("drift_transient", "tau_tr"),
+                               decay_grid=TRANSIENT_TIMES_H, truth_scale=1 / 60,
+                               record_length=lambda r: r["record_s"] / 3600)
