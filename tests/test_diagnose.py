@@ -1016,3 +1016,30 @@ def test_remainder_after_library_equals_direct_least_squares_on_every_row():
     assert got["remainder_lambda"] == pytest.approx(min(pair, got["remainder_single_lambda"]),
                                                     rel=1e-10)
     assert got["remainder_lambda"] < 0.5 * got["remainder_single_lambda"]
+
+
+def test_g9_truth_side_uses_the_diagnosis_onset_grid():
+    """The truth side of spec §6 G9 fits the library on the diagnosis' grids: one drift-step
+    block per onset of ``onset_grid`` (one every 5 % of the record over the train span), each
+    zero on the train rows before its onset and not after (the step's angle response is its
+    integral), and one transient block per decay time."""
+    from gyrojax.diagnose import bench
+    from gyrojax.diagnose._esg import TRANSIENT_TIMES_H
+    from gyrojax.diagnose._stats import onset_grid
+    from gyrojax.models.esg import ESGConditions
+
+    design = bench.Design(hours=6.0)
+    ts = design.ts
+    n_train = len(ts) - int(round(design.holdout * len(ts)))
+    p = bench._truth_params(np.random.default_rng(0), design)
+    cond = ESGConditions.from_scheme(design.scheme, design.latitude_deg)
+    cols = bench._library_columns(p, cond, ts, n_train, units.ARCSEC)
+    onsets_h = onset_grid(ts / 3600, n_train)
+    assert len(onsets_h) == 14 and len(cols["drift_step"]) == 14
+    assert len(cols["drift_transient"]) == len(TRANSIENT_TIMES_H)
+    assert all(len(cols[f]) == 1 for f in ("rotor_tilt", "base_misalignment", "drift_ramp",
+                                           "diurnal_line"))
+    for onset, block in zip(onsets_h, cols["drift_step"], strict=True):
+        rows = np.abs(block).reshape(n_train, -1).max(axis=1)
+        first = ts[np.argmax(rows > 1e-9 * rows.max())] / 3600
+        assert onset <= first <= onset + design.sample_s / 3600 + 1e-12

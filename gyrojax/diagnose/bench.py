@@ -41,6 +41,7 @@ from ._stats import (
     ljung_box,
     mix_log_bf,
     nominal_basis,
+    onset_grid,
     shape_log_bf_scores,
     visibility_flag,
 )
@@ -182,7 +183,7 @@ def _hidden(rng, family, p, cond, design, lam):
             out_term = (_ool_columns(family, ts)[:, 0] * b[0]).reshape(len(ts), 2)
             truth["amplitude"] = float(b[0])
             truth |= remainder_after_library(jb[:, 0] * b[0], jn, _library_columns(
-                p, cond, ts[:n_train], sigma))
+                p, cond, ts, n_train, sigma))
         else:
             for name, v in zip(_EFFECT_PARAMS[family], b):
                 p[name] = jnp.asarray(v)
@@ -203,23 +204,29 @@ def _hidden(rng, family, p, cond, design, lam):
     return p, out_term, truth
 
 
-def _library_columns(p, cond, ts, sigma) -> dict:
-    """Truth-side whitened columns of every library effect on the rows ``ts`` (family -> one
-    block per grid value: the diagnosis' decay-time grid, and 8 onsets over the rows, the
-    diagnosis' onset grid before stop 40's 14)."""
-    onsets = ts[0] / 3600 + (ts[-1] - ts[0]) / 3600 * np.arange(1, 9) / 9
+def _library_columns(p, cond, ts, n_train, sigma) -> dict:
+    """Truth-side whitened columns of every library effect on the train rows ``ts[:n_train]``
+    (family -> one block per grid value: the diagnosis' decay-time grid and its onset grid,
+    ``_stats.onset_grid`` of the record)."""
+    onsets = onset_grid(np.asarray(ts) / 3600, n_train)
+    rows = ts[:n_train]
+    grids = {"drift_transient": len(TRANSIENT_TIMES_H), "drift_step": len(onsets)}
     names = tuple(n for v in _EFFECT_PARAMS.values() for n in v)
     cols = {}
-    for g, tau_h in enumerate(TRANSIENT_TIMES_H):
+    for g in range(max(grids.values())):
+        # the k-th pass sets each gridded effect to its k-th value (the last one past its end);
+        # an effect's columns do not depend on another's grid value (every amplitude is 0 here)
+        tau_h = TRANSIENT_TIMES_H[min(g, len(TRANSIENT_TIMES_H) - 1)]
         pg = dict(p) | {"k_tr": jnp.asarray(1.0 / (tau_h * 3600 * units.EARTH_RATE)),
-                        "t_step": jnp.asarray(onsets[g] * 3600 * units.EARTH_RATE)}
-        j = _model_jac(pg, cond, ts, names) / sigma
+                        "t_step": jnp.asarray(onsets[min(g, len(onsets) - 1)] * 3600
+                                              * units.EARTH_RATE)}
+        j = _model_jac(pg, cond, rows, names) / sigma
         k = 0
         for fam, fn in _EFFECT_PARAMS.items():
-            if g == 0 or fam in ("drift_transient", "drift_step"):
+            if g < grids.get(fam, 1):
                 cols.setdefault(fam, []).append(j[:, k:k + len(fn)])
             k += len(fn)
-    cols["diurnal_line"] = [_output_columns("diurnal_line", ts).reshape(len(ts) * 2, 4) / sigma]
+    cols["diurnal_line"] = [_output_columns("diurnal_line", rows).reshape(n_train * 2, 4) / sigma]
     return cols
 
 
