@@ -1043,3 +1043,50 @@ def test_g9_truth_side_uses_the_diagnosis_onset_grid():
         rows = np.abs(block).reshape(n_train, -1).max(axis=1)
         first = ts[np.argmax(rows > 1e-9 * rows.max())] / 3600
         assert onset <= first <= onset + design.sample_s / 3600 + 1e-12
+
+
+def test_onset_crb_and_an_efficient_estimators_rate_analytic():
+    """``onset_crb``: a step of height a at the onset, a constant as nuisance: the projected
+    column is the step minus its mean, so sigma = 1 / (a sqrt(N p (1 - p))) with p the share of
+    samples after the onset; ``crb_rate`` is the normal probability of |error| <= tol."""
+    from gyrojax.diagnose import bench
+
+    n, a = 400, 0.3
+    on = (np.arange(n) >= 100).astype(float)
+    sigma = bench.onset_crb(np.ones((n, 1)), a * on)
+    assert sigma == pytest.approx(1 / (a * math.sqrt(n * 0.75 * 0.25)), rel=1e-12)
+    pairs = [({"crb": 2.0}, {"tol": 2.0}), ({"crb": 1.0}, {"tol": 1.96}), ({}, {"tol": 1.0})]
+    got = bench.crb_rate(pairs, "crb", lambda r: r["tol"])
+    assert got["n"] == 2 and got["rate"] == pytest.approx((0.682689 + 0.950004) / 2, abs=1e-6)
+    assert bench.crb_rate(pairs, "crb", lambda r: r["tol"], truth_scale=0.5)["rate"] == (
+        pytest.approx((0.954500 + 0.999911) / 2, abs=1e-6))
+    assert bench.crb_rate(pairs[2:], "crb", lambda r: 1.0) is None
+
+
+@pytest.mark.slow  # ~20 s: compiles the truth rig's Jacobian and solver
+def test_esg_generator_onset_crb_matches_a_trajectory_difference():
+    """The ESG generator's truth-side Cramér-Rao deviation of a drift step's onset (the sizes'
+    Jacobian differenced over one sample) against a second method: the simulated noise-free
+    trajectories with the onset moved half a sample either way, differenced."""
+    from gyrojax.diagnose import bench
+    from gyrojax.models.esg import ESGConditions
+    from gyrojax.simulate import integrate
+
+    design = bench.Design(hours=8.0)
+    cond = ESGConditions.from_scheme(design.scheme, design.latitude_deg)
+    rng = np.random.default_rng(11)
+    p0 = bench._truth_params(rng, design)
+    p, _, truth = bench._hidden(rng, "drift_step", p0, cond, design, 64.0)
+    ts = design.ts
+    n_train = len(ts) - int(round(design.holdout * len(ts)))
+    sigma = design.noise_arcsec * units.ARCSEC
+    h = 0.5 * design.sample_s * units.EARTH_RATE
+    rows = jax.numpy.asarray(ts[:n_train])
+    ys = [np.asarray(integrate(bench._TRUTH_RIG, p | {"t_step": p["t_step"] + d}, cond, rows))
+          for d in (-h, h)]
+    jt = ((ys[1] - ys[0]) / (2 * h * sigma)).reshape(-1)
+    names = bench._TRUTH_RIG.param_space.nominal_names() + ("smc1", "smc2")
+    j = bench._model_jac(p, cond, ts[:n_train], names) / sigma
+    crb_h = bench.onset_crb(j, jt) / units.EARTH_RATE / 3600
+    assert 0 < truth["onset_crb_h"] < 0.05 * design.hours
+    assert truth["onset_crb_h"] == pytest.approx(crb_h, rel=1e-3)
