@@ -121,6 +121,7 @@ def test_gyrotheodolite_blind_harness(tmp_path):
     # spec §6 G8: the strong step's onset at its largest score within 2 min of the truth
     g8 = bg.localisation_scores(tmp_path / "b", [tape, step, line])
     assert g8["g8_step_onset"] == {"rate": 1.0, "se": pytest.approx(1e-6), "n": 1}
+    assert g8["g8_step_onset_crb"]["n"] == 1 and g8["g8_step_onset_crb"]["rate"] > 0.99
     assert g8["g8_transient_decay"] is None
 
 

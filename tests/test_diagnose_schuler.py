@@ -3,7 +3,9 @@ measured and closed on the held-out part; the accelerometer vertical-axis tilt r
 absorbed by the bias with the analytic alias ``g`` per radian; a null record left alone."""
 
 import json
+import math
 
+import numpy as np
 import pytest
 
 from gyrojax import units
@@ -107,6 +109,7 @@ def test_schuler_blind_harness(tmp_path):
     assert "drift_step" in step["effects"] + step["ambiguity"], step
     g8 = bs.localisation_scores(tmp_path / "b", [ramp, line, step])
     assert g8["g8_step_onset"] == {"rate": 1.0, "se": pytest.approx(1e-6), "n": 1}
+    assert g8["g8_step_onset_crb"]["n"] == 1 and g8["g8_step_onset_crb"]["rate"] > 0.99
     assert g8["g8_transient_decay"] is None
 
 
@@ -115,8 +118,8 @@ def test_schuler_localisation_scores_by_hand(tmp_path):
     parameters' display unit) against grids in hours; decay grid step ratio 12^(1/7)."""
     from gyrojax.diagnose import bench_schuler as bs
 
-    cases = {"a": {"family": "drift_step", "lambda": 32.0, "t_step": 60.0},
-             "b": {"family": "drift_step", "lambda": 64.0, "t_step": 60.0},
+    cases = {"a": {"family": "drift_step", "lambda": 32.0, "t_step": 60.0, "onset_crb_min": 6.0},
+             "b": {"family": "drift_step", "lambda": 64.0, "t_step": 60.0, "onset_crb_min": 3.0},
              "c": {"family": "drift_step", "lambda": 8.0, "t_step": 60.0},  # below 32
              "d": {"family": "drift_transient", "lambda": 32.0, "tau_tr": 60.0},
              "e": {"family": "drift_transient", "lambda": 32.0, "tau_tr": 60.0}}
@@ -132,3 +135,8 @@ def test_schuler_localisation_scores_by_hand(tmp_path):
     g8 = bs.localisation_scores(tmp_path, res)
     assert g8["g8_step_onset"]["rate"] == 0.5 and g8["g8_step_onset"]["n"] == 2
     assert g8["g8_transient_decay"]["rate"] == 0.5 and g8["g8_transient_decay"]["n"] == 2
+    # an efficient estimator's rate: normal errors of the Cramér-Rao deviations (min -> h)
+    tol_min = 60 * tol_h
+    expected = [math.erf(tol_min / (math.sqrt(2) * s)) for s in (6.0, 3.0)]
+    assert g8["g8_step_onset_crb"] == {"rate": pytest.approx(np.mean(expected), rel=1e-12),
+                                       "n": 2}

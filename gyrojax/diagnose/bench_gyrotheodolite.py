@@ -36,7 +36,7 @@ from ..models.gyrotheodolite import (
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._harness import projector, run_cases, score_cases, sealed_localisation
-from .bench import _Sealer, truth_visibility
+from .bench import _Sealer, onset_crb, truth_visibility
 
 __all__ = ["GyrotheodoliteDesign", "generate", "run", "score", "MEAN_FAMILIES",
            "OUT_OF_LIBRARY", "STRUCTURAL"]
@@ -119,6 +119,12 @@ def generate(out_dir, n_cases: int, *, seed: int = 0,
             truth |= truth_visibility(jb[:n_train] / sigma, jt)
             if gpar:
                 truth[gpar] = float(space[gpar].to_display(p[gpar]))
+            if gpar == "t_step":  # the onset's Cramér-Rao deviation (min), sizes as nuisance
+                jo = np.asarray(trajectory_jacobian(_RIG, p, cond, jnp.asarray(ts), (gpar,),
+                                                    **ODE_OPTIONS))
+                truth["onset_crb_min"] = onset_crb(
+                    np.c_[jn[:n_train] * space.scales(TEST_PARAMS), jb[:n_train]] / sigma,
+                    jo[:n_train, 0] * 60 / sigma)
         elif family in STRUCTURAL:
             p["M_tape"] = jnp.asarray(rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 2.0) * 1e-9)
             truth["coefficients"] = {"M_tape": float(space["M_tape"].to_display(p["M_tape"]))}
@@ -168,5 +174,5 @@ def localisation_scores(case_dir, results, *, lam_min: float = 32.0) -> dict:
     return sealed_localisation(case_dir, results, lam_min=lam_min,
                                step=("torque_step", "t_step"),
                                transient=("drift_transient", "tau_tr"),
-                               decay_grid=TRANSIENT_TIMES_MIN,
+                               decay_grid=TRANSIENT_TIMES_MIN, crb_key="onset_crb_min",
                                record_length=lambda r: r["record_s"] / 60)

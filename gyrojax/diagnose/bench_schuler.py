@@ -32,7 +32,7 @@ from ..models.schuler import SchulerConditions, SchulerRig, add_measurement_nois
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._harness import projector, run_cases, score_cases, sealed_localisation
-from .bench import _Sealer, truth_visibility
+from .bench import _Sealer, onset_crb, truth_visibility
 
 __all__ = ["SchulerDesign", "generate", "run", "score", "localisation_scores", "MEAN_FAMILIES",
            "OUT_OF_LIBRARY"]
@@ -137,6 +137,11 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: SchulerDesign | No
                 truth |= truth_visibility(jb[:rows], jt)
                 if gpar:
                     truth[gpar] = float(space[gpar].to_display(p[gpar]))
+                if gpar == "t_step":  # the onset's Cramér-Rao deviation (min), sizes as nuisance
+                    jo = np.asarray(_truth_jacobian(cond, jnp.asarray(ts), y0, p, (gpar,),
+                                                    jnp.asarray([60.0]), w))
+                    truth["onset_crb_min"] = onset_crb(np.c_[jn[:rows], jb[:rows]],
+                                                       jo[:rows, 0])
             else:
                 shape = _ool_shape(rng, family, ts, n_train)
                 white = (shape / design.sigma).reshape(-1)
@@ -190,4 +195,5 @@ def localisation_scores(case_dir, results, *, lam_min: float = 32.0) -> dict:
                                step=("drift_step", "t_step"),
                                transient=("drift_transient", "tau_tr"),
                                decay_grid=TRANSIENT_TIMES_H, truth_scale=1 / 60,
+                               crb_key="onset_crb_min",
                                record_length=lambda r: r["record_s"] / 3600)
