@@ -323,6 +323,15 @@ def diagnose_suite(harness, work, design, desc: str, name: str = "results.json")
     return results, t_run
 
 
+def crb_text(r) -> str:
+    """The Cramér-Rao reference of a G8 onset rate (``g8_step_onset_crb``), or nothing."""
+    if not r:
+        return ""
+    return (f"; an efficient estimator's rate on the same cases, from each onset's Cramér-Rao "
+            f"deviation (truth side; the nominal parameters and the step's sizes as nuisance) "
+            f"{r['rate']:.2f} (n={r['n']}): a local bound, blind to errors far from the truth")
+
+
 def g8_suite(harness, work, n_cases: int, *, seed: int, design, families):
     """Spec §6 G8 on ``n_cases`` more sealed cases of ``families`` (no nulls, lambda 32/64) in
     ``work/g8``: generated, diagnosed and scored by ``harness.localisation_scores``. Returns

@@ -26,6 +26,7 @@ from _results import (  # noqa: E402
     ORACLE_NOTE,
     blind_parser,
     blind_suite,
+    crb_text,
     far_text,
     g8_suite,
     machine_line,
@@ -99,7 +100,8 @@ def g8_line(args, work, design) -> str:
             f"torque_step onset at the largest score within "
             f"5 % of the record ({0.05 * design.minutes:.0f} min) of the truth "
             f"{_fmt(g8['g8_step_onset'])} (onset grid: one value every 5 % of the record over "
-            f"the train span, {len(onset_grid(design.ts, design.n_train))} values); "
+            f"the train span, {len(onset_grid(design.ts, design.n_train))} values"
+            f"{crb_text(g8.get('g8_step_onset_crb'))}); "
             f"drift_transient decay time within one step of its grid (8 values, 3-30 min) "
             f"{_fmt(g8['g8_transient_decay'])}.")
 

@@ -25,6 +25,7 @@ from _results import (  # noqa: E402
     ORACLE_NOTE,
     blind_parser,
     blind_suite,
+    crb_text,
     far_text,
     fmt_rate,
     g8_suite,
@@ -95,7 +96,8 @@ def g8_line(args, work, design) -> str:
             f"drift_step onset at the largest score within 5 % of the record "
             f"({0.05 * minutes:.1f} min) of the truth {fmt_rate(g8['g8_step_onset'])} (onset "
             f"grid: one value every 5 % of the record over the train span, "
-            f"{len(onset_grid(design.ts, design.n_train))} values); drift_transient decay time "
+            f"{len(onset_grid(design.ts, design.n_train))} values"
+            f"{crb_text(g8.get('g8_step_onset_crb'))}); drift_transient decay time "
             f"within one step of its grid (8 values, 0.25-3 h) "
             f"{fmt_rate(g8['g8_transient_decay'])}.")
 
