@@ -50,6 +50,9 @@ def main(argv=None):
     ap.add_argument("--g8-cases", type=int, default=60,
                     help="extra drift_step / drift_transient cases at lambda 32/64 for the "
                          "localisation of spec §6 G8 (onset, decay time)")
+    ap.add_argument("--g8-periods", type=float, nargs="*", default=[],
+                    help="also localise drift steps on records of these many Schuler periods "
+                         "(D5 has 2): --g8-cases / 2 drift_step cases each, same seed")
     one_design_main(ap.parse_args(argv), bench_schuler, bench_schuler.SchulerDesign(), suite,
                     name="schuler", title="Gap diagnosis, Schuler-test D5 null run",
                     label="design D5 (the 12 nominal errors drawn from the prior per case)")
@@ -81,6 +84,8 @@ def suite(args, work, design):
     lines += suite_lines(s, "velocity_line, attitude_step")
     if args.g8_cases:
         lines.insert(-1, g8_line(args, work, design))
+        for periods in args.g8_periods:
+            lines.insert(-1, g8_periods_line(args, work, design, periods))
     publish(args.out, "gap_blind_schuler", lines)
 
 
@@ -100,6 +105,22 @@ def g8_line(args, work, design) -> str:
             f"{crb_text(g8.get('g8_step_onset_crb'))}); drift_transient decay time "
             f"within one step of its grid (8 values, 0.25-3 h) "
             f"{fmt_rate(g8['g8_transient_decay'])}.")
+
+
+def g8_periods_line(args, work, design, periods: float) -> str:
+    """G8's drift-step onset on a longer (or shorter) record than D5's: ``args.g8_cases / 2``
+    sealed drift steps at lambda 32/64 (the other settings of D5 unchanged)."""
+    longer = dataclasses.replace(design, periods=periods)
+    n = args.g8_cases // 2
+    g8, secs = g8_suite(bench_schuler, os.path.join(work, f"periods_{periods:g}"), n,
+                        seed=args.seed + 3, design=longer, families=("drift_step",))
+    minutes = (longer.ts[-1] - longer.ts[0]) / 60
+    return (f"- Localisation on {periods:g} Schuler periods ({n} sealed drift_step cases at lambda "
+            f"32/64, seed {args.seed + 3}, {secs:.0f} s): onset at the largest score within 5 % "
+            f"of the record ({0.05 * minutes:.1f} min) of the truth "
+            f"{fmt_rate(g8['g8_step_onset'])} (onset grid "
+            f"{len(onset_grid(longer.ts, longer.n_train))} values"
+            f"{crb_text(g8.get('g8_step_onset_crb'))}).")
 
 
 if __name__ == "__main__":
