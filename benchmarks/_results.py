@@ -332,6 +332,18 @@ def crb_text(r) -> str:
             f"{r['rate']:.2f} (n={r['n']}): a local bound, blind to errors far from the truth")
 
 
+def onset_text(g8: dict, ts, n_train: int, digits: int = 1) -> str:
+    """G8's onset rate in words: the tolerance (5 % of the record ``ts``, in minutes), the rate,
+    the onset grid's size and the Cramér-Rao reference."""
+    from gyrojax.diagnose._stats import onset_grid
+
+    minutes = (ts[-1] - ts[0]) / 60
+    return (f"onset at the largest score within 5 % of the record ({0.05 * minutes:.{digits}f} "
+            f"min) of the truth {fmt_rate(g8['g8_step_onset'])} (onset grid: one value every 5 % "
+            f"of the record over the train span, {len(onset_grid(ts, n_train))} values"
+            f"{crb_text(g8.get('g8_step_onset_crb'))})")
+
+
 def g8_suite(harness, work, n_cases: int, *, seed: int, design, families):
     """Spec §6 G8 on ``n_cases`` more sealed cases of ``families`` (no nulls, lambda 32/64) in
     ``work/g8``: generated, diagnosed and scored by ``harness.localisation_scores``. Returns
@@ -344,6 +356,20 @@ def g8_suite(harness, work, n_cases: int, *, seed: int, design, families):
                      lambdas=(32.0, 64.0), families=families)
     results, _ = diagnose_suite(harness, g8_dir, design, "g8")
     return harness.localisation_scores(g8_dir, results), time.perf_counter() - t0
+
+
+def g8_line(harness, args, work, design, *, step: str, decay_grid: str, digits: int = 1) -> str:
+    """Spec §6 G8 on ``args.g8_cases`` more sealed cases (the ``step`` family and the drift
+    transient at lambda 32/64, :func:`g8_suite`): onset and decay time at the largest score
+    against the truth. ``decay_grid``: the transient's grid in words."""
+    g8, secs = g8_suite(harness, work, args.g8_cases, seed=args.seed + 3, design=design,
+                        families=(step, "drift_transient"))
+    return (f"- Localisation (spec §6 G8: onsets within 5 % of the record in >= 0.90 at lambda "
+            f">= 32; {args.g8_cases} more sealed cases, {step} and drift_transient at "
+            f"lambda 32/64, seed {args.seed + 3}, generated and diagnosed in {secs:.0f} s): "
+            f"{step} {onset_text(g8, design.ts, design.n_train, digits)}; drift_transient decay "
+            f"time within one step of its grid ({decay_grid}) "
+            f"{fmt_rate(g8['g8_transient_decay'])}.")
 
 
 def g6_lines(s: dict, hidden: str) -> list[str]:

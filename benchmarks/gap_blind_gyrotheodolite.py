@@ -26,9 +26,8 @@ from _results import (  # noqa: E402
     ORACLE_NOTE,
     blind_parser,
     blind_suite,
-    crb_text,
     far_text,
-    g8_suite,
+    g8_line,
     machine_line,
     one_design_main,
     publish,
@@ -43,7 +42,6 @@ from gyrojax.diagnose._harness import (  # noqa: E402
     oracle_detection_thresholds,
     separability,
 )
-from gyrojax.diagnose._stats import onset_grid  # noqa: E402
 from gyrojax.io import load_record  # noqa: E402
 
 
@@ -85,25 +83,9 @@ def suite(args, work, design):
              + f". Separable (<= 0.9): {', '.join(separable) or 'none'}.", "", ORACLE_NOTE, ""]
     lines += suite_lines(s, "pickoff_line, pickoff_step")
     if args.g8_cases:
-        lines.insert(-1, g8_line(args, work, design))
+        lines.insert(-1, g8_line(bg, args, work, design, step="torque_step",
+                                 decay_grid="8 values, 3-30 min", digits=0))
     publish(args.out, "gap_blind_gyrotheodolite", lines)
-
-
-def g8_line(args, work, design) -> str:
-    """Spec §6 G8 on ``args.g8_cases`` more sealed cases (torque step and drift transient at
-    lambda 32/64): onset and decay time at the largest score against the truth."""
-    g8, secs = g8_suite(bg, work, args.g8_cases, seed=args.seed + 3, design=design,
-                        families=("torque_step", "drift_transient"))
-    return (f"- Localisation (spec §6 G8: onsets within 5 % of the record in >= 0.90 at lambda "
-            f">= 32; {args.g8_cases} more sealed cases, torque_step and drift_transient at "
-            f"lambda 32/64, seed {args.seed + 3}, generated and diagnosed in {secs:.0f} s): "
-            f"torque_step onset at the largest score within "
-            f"5 % of the record ({0.05 * design.minutes:.0f} min) of the truth "
-            f"{_fmt(g8['g8_step_onset'])} (onset grid: one value every 5 % of the record over "
-            f"the train span, {len(onset_grid(design.ts, design.n_train))} values"
-            f"{crb_text(g8.get('g8_step_onset_crb'))}); "
-            f"drift_transient decay time within one step of its grid (8 values, 3-30 min) "
-            f"{_fmt(g8['g8_transient_decay'])}.")
 
 
 if __name__ == "__main__":

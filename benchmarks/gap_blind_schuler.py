@@ -25,12 +25,12 @@ from _results import (  # noqa: E402
     ORACLE_NOTE,
     blind_parser,
     blind_suite,
-    crb_text,
     far_text,
-    fmt_rate,
+    g8_line,
     g8_suite,
     machine_line,
     one_design_main,
+    onset_text,
     publish,
     rescore,
     suite_lines,
@@ -41,7 +41,6 @@ from gyrojax.diagnose._harness import (  # noqa: E402
     oracle_detection_thresholds,
     separability,
 )
-from gyrojax.diagnose._stats import onset_grid  # noqa: E402
 from gyrojax.io import load_record  # noqa: E402
 
 
@@ -83,28 +82,11 @@ def suite(args, work, design):
              + f". Separable (<= 0.9): {', '.join(separable) or 'none'}.", "", ORACLE_NOTE, ""]
     lines += suite_lines(s, "velocity_line, attitude_step")
     if args.g8_cases:
-        lines.insert(-1, g8_line(args, work, design))
+        lines.insert(-1, g8_line(bench_schuler, args, work, design, step="drift_step",
+                                 decay_grid="8 values, 0.25-3 h"))
         for periods in args.g8_periods:
             lines.insert(-1, g8_periods_line(args, work, design, periods))
     publish(args.out, "gap_blind_schuler", lines)
-
-
-def g8_line(args, work, design) -> str:
-    """Spec §6 G8 on ``args.g8_cases`` more sealed cases (drift step and drift transient at
-    lambda 32/64): onset and decay time at the largest score against the truth."""
-    g8, secs = g8_suite(bench_schuler, work, args.g8_cases, seed=args.seed + 3, design=design,
-                        families=("drift_step", "drift_transient"))
-    minutes = (design.ts[-1] - design.ts[0]) / 60
-    return (f"- Localisation (spec §6 G8: onsets within 5 % of the record in >= 0.90 at lambda "
-            f">= 32; {args.g8_cases} more sealed cases, drift_step and drift_transient at "
-            f"lambda 32/64, seed {args.seed + 3}, generated and diagnosed in {secs:.0f} s): "
-            f"drift_step onset at the largest score within 5 % of the record "
-            f"({0.05 * minutes:.1f} min) of the truth {fmt_rate(g8['g8_step_onset'])} (onset "
-            f"grid: one value every 5 % of the record over the train span, "
-            f"{len(onset_grid(design.ts, design.n_train))} values"
-            f"{crb_text(g8.get('g8_step_onset_crb'))}); drift_transient decay time "
-            f"within one step of its grid (8 values, 0.25-3 h) "
-            f"{fmt_rate(g8['g8_transient_decay'])}.")
 
 
 def g8_periods_line(args, work, design, periods: float) -> str:
@@ -114,13 +96,9 @@ def g8_periods_line(args, work, design, periods: float) -> str:
     n = args.g8_cases // 2
     g8, secs = g8_suite(bench_schuler, os.path.join(work, f"periods_{periods:g}"), n,
                         seed=args.seed + 3, design=longer, families=("drift_step",))
-    minutes = (longer.ts[-1] - longer.ts[0]) / 60
     return (f"- Localisation on {periods:g} Schuler periods ({n} sealed drift_step cases at lambda "
-            f"32/64, seed {args.seed + 3}, {secs:.0f} s): onset at the largest score within 5 % "
-            f"of the record ({0.05 * minutes:.1f} min) of the truth "
-            f"{fmt_rate(g8['g8_step_onset'])} (onset grid "
-            f"{len(onset_grid(longer.ts, longer.n_train))} values"
-            f"{crb_text(g8.get('g8_step_onset_crb'))}).")
+            f"32/64, seed {args.seed + 3}, {secs:.0f} s): "
+            f"{onset_text(g8, longer.ts, longer.n_train)}.")
 
 
 if __name__ == "__main__":
