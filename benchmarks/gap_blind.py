@@ -26,6 +26,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(__file__))
 
 from _results import (  # noqa: E402
+    LOCATED_WORDS,
     ORACLE_LAMBDAS,
     ORACLE_NOTE,
     calibration_line,
@@ -56,11 +57,12 @@ def g8_text(s) -> str:
     """Spec §6 G8 from a score's ``g8_*`` entries (:func:`gyrojax.diagnose.bench.
     localisation_scores`)."""
     return (f"drift_step onset within 5 % of the record (1.2 h, one window of the map's finest "
-            f"level) of the truth {_fmt(s['g8_step_onset'])} (the onset grid: one value every 5 "
-            f"% of the record over the train span, at least 8{crb_text(s.get('g8_step_onset_crb'))}"
-            f"); drift_transient decay time "
-            f"within one step of its grid "
-            f"{_fmt(s['g8_transient_decay'])}; diurnal_line on the sidereal-day line "
+            f"level) of the truth: located {_fmt(s.get('g8_step_onset_located'))}, at the "
+            f"largest score {_fmt(s['g8_step_onset'])} (the onset grid: one value every 5 % of "
+            f"the record over the train span, at least 8{LOCATED_WORDS}"
+            f"{crb_text(s.get('g8_step_onset_crb'))}); drift_transient decay time within one "
+            f"step of its grid: located {_fmt(s.get('g8_transient_decay_located'))}, at the "
+            f"largest score {_fmt(s['g8_transient_decay'])}; diurnal_line on the sidereal-day line "
             f"{_fmt(s['g8_line'])} (G8: >= 0.90, >= 0.95), the other families' gaps on that "
             f"line too {_fmt(s['g8_line_other_families'])}")
 

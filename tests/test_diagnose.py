@@ -334,18 +334,22 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     # spec §6 G8 by hand on a 24 h record (tolerance 1.2 h; decay grid step ratio 1.43)
     res = {"record_hours": 24.0, "top_line": "sidereal day (23.93 h)"}
     lib = [({"family": "drift_step", "lambda": 32.0, "onset_h": 9.0},
-            res | {"grid_best": {"drift_step": 10.0}}),
+            res | {"grid_best": {"drift_step": 10.0}, "grid_located": {"drift_step": 10.5}}),
            ({"family": "drift_step", "lambda": 64.0, "onset_h": 9.0},
-            res | {"grid_best": {"drift_step": 12.0}}),
+            res | {"grid_best": {"drift_step": 12.0}, "grid_located": {"drift_step": 9.9}}),
            ({"family": "drift_step", "lambda": 16.0, "onset_h": 9.0},  # below lambda 32
-            res | {"grid_best": {"drift_step": 20.0}}),
+            res | {"grid_best": {"drift_step": 20.0}, "grid_located": {"drift_step": 9.0}}),
            ({"family": "drift_transient", "lambda": 32.0, "decay_time_h": 1.0},
-            res | {"grid_best": {"drift_transient": 1.4}}),
+            res | {"grid_best": {"drift_transient": 1.4}, "grid_located": {"drift_transient": 1.5}}),
            ({"family": "diurnal_line", "lambda": 32.0},
-            res | {"grid_best": {}, "top_line": "half sidereal day (11.97 h)"})]
+            res | {"grid_best": {}, "grid_located": {},
+                   "top_line": "half sidereal day (11.97 h)"})]
     g8 = localisation_scores(lib)
     assert g8["g8_step_onset"]["rate"] == 0.5 and g8["g8_step_onset"]["n"] == 2
     assert g8["g8_transient_decay"]["rate"] == 1.0 and g8["g8_line"]["rate"] == 0.0
+    # the located values: 10.5 h is 1.5 h off (out), 9.9 h in; 1.5 h is a ratio 1.5 > 1.43 off
+    assert g8["g8_step_onset_located"]["rate"] == 0.5 and g8["g8_step_onset_located"]["n"] == 2
+    assert g8["g8_transient_decay_located"]["rate"] == 0.0
     assert g8["g8_line_other_families"]["rate"] == 1.0
 
 
@@ -631,6 +635,36 @@ def test_grid_interval_is_the_shortest_run_holding_the_mass():
     assert grid_interval(v, [4, 4, 2, 2, 8], mass=0.8) == pytest.approx((2.0, 5.0, 0.8))
 
 
+def test_grid_located_holds_the_most_mass_within_one_step():
+    """The located value against a second method: the posterior's weights interpolated linearly
+    on a fine mesh and integrated by the trapezoid rule over every window of one step either
+    side; and by hand: a broad mode beats a taller narrow one, two equal neighbours give their
+    midpoint (each hat holds 1 - 1/8 of itself within half a step), a geometric grid takes its
+    window as a ratio."""
+    from gyrojax.diagnose._report import grid_located
+
+    v = np.arange(1.0, 15.0) * 1.2  # an ESG onset grid (h)
+    w = np.array([0, 0.34, 0, 0, 0, 0, 0.2, 0.23, 0.2, 0.03, 0, 0, 0, 0])
+    c, held, (lo, hi) = grid_located(v, w)
+    assert v[np.argmax(w)] == pytest.approx(2.4)  # the tallest weight is the narrow mode
+    x = np.linspace(v[0] - 1.2, v[-1] + 1.2, 20001)
+    f = np.interp(x, v, w, left=0.0, right=0.0)
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(x))])
+    mass = (np.interp(x + 1.2, x, cdf) - np.interp(x - 1.2, x, cdf)) / cdf[-1]
+    inside = (x >= v[0]) & (x <= v[-1])
+    assert c == pytest.approx(x[inside][np.argmax(mass[inside])], abs=1.2 / 60)
+    assert held == pytest.approx(mass[inside].max(), abs=1e-3)
+    assert abs(c - 9.6) < 0.6 and (lo, hi) == pytest.approx((c - 1.2, c + 1.2))
+    assert grid_located([1.0, 2.0, 3.0, 4.0], [0, 1, 1, 0])[:2] == pytest.approx((2.5, 0.875))
+    c, held, win = grid_located([1.0, 2.0, 3.0], [0, 1, 0])
+    assert (c, held, *win) == pytest.approx((2.0, 1.0, 1.0, 3.0))
+    tau = np.geomspace(0.25, 3.0, 8)
+    c, held, (lo, hi) = grid_located(tau, np.eye(8)[3])
+    r = tau[1] / tau[0]
+    assert (c, held, lo, hi) == pytest.approx((tau[3], 1.0, tau[3] / r, tau[3] * r))
+    assert grid_located([3.0], [1.0]) == (3.0, 1.0, None)
+
+
 def test_report_gives_the_posterior_over_a_step_onset():
     """A 1e-4 deg/h drift step at 9.6 h (on the onset grid, lambda ~ 17): the report carries the
     posterior over the onset grid (sums to one, mode at the true onset) and its 90 % interval
@@ -647,6 +681,10 @@ def test_report_gives_the_posterior_over_a_step_onset():
     lo, hi, held = grid_interval(g["values"], w)
     assert held >= 0.9 and lo <= 9.6 <= hi
     assert f"90 % within {lo:.3g}-{hi:.3g} h" in rep.markdown()
+    # the located onset: within one step of the truth; its window holds at least the mode's
+    # weight (a window centred on the mode holds that weight's whole hat)
+    assert abs(g["located"] - 9.6) <= 1.2 and g["located_mass"] >= w.max() - 1e-9
+    assert f"located at {g['located']:.3g} h" in rep.markdown()
 
 
 def test_refit_drop_equals_the_screened_score():

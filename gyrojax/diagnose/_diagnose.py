@@ -43,7 +43,7 @@ import numpy as np
 
 from ..analysis.observability import _pretty_basis, format_combination
 from ..record import BenchRecord
-from ._report import GapReport
+from ._report import GapReport, grid_located
 from ._stats import (
     LAMBDA_80,
     SEPARABLE,
@@ -767,7 +767,12 @@ def _row_json(r: Screen, prob, excess, n, c, cells):
                   "flag_at": r.sig.grid[r.vis_index],
                   # the posterior over the grid values given the effect (uniform prior)
                   "posterior": ([float(x) for x in r.grid_weights]
-                                if r.grid_weights is not None else [1.0])}
+                                if r.grid_weights is not None else [1.0]),
+                  # the value within one grid step of the most posterior mass (spec §6 G8's
+                  # loss): the localisation to quote; "best" is what the refit uses
+                  **dict(zip(("located", "located_mass", "located_window"),
+                             grid_located(r.sig.grid, r.grid_weights
+                                          if r.grid_weights is not None else [1.0])))}
                  if r.sig.grid else None),
         "explained_gap_share": float(min(1.0, r.lm / excess)) if excess > 0 else 0.0,
         "signature_consistency": cons,

@@ -25,6 +25,7 @@ from .bench import (
     confounding_scores,
     grid_best,
     grid_localisation,
+    grid_locations,
     multiplicity_fields,
     ool_scores,
     oracle_choice,
@@ -149,7 +150,7 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
             "classes": rep.ambiguity["classes"],
             # each grid effect's grid value at its largest score (onset, decay time) and the
             # record's length: spec §6 G8's localisation
-            "grid_best": grid_best(rep),
+            "grid_best": grid_best(rep), "grid_located": grid_locations(rep),
             "record_s": float(rep.t[-1] - rep.t[0]),
             **multiplicity_fields(rep),
         })
