@@ -336,6 +336,17 @@ def crb_text(r) -> str:
             f"{r['rate']:.2f} (n={r['n']}): a local bound, blind to errors far from the truth")
 
 
+def decay_crb_text(r) -> str:
+    """What the record says of a decay time at all (``g8_transient_decay_crb``), or nothing."""
+    if not r:
+        return ""
+    return (f" (the truth side's Cramér-Rao deviation of the decay time, in log time, within one "
+            f"grid step in {r['resolved']:.2f} of the cases, median {r['median_ratio']:.2g} "
+            f"steps, n={r['n']}" + (": mostly the record does not place a decay time to one "
+                                     "step, and the rate is held up by the grid's range"
+                                     if r["resolved"] < 0.5 else "") + ")")
+
+
 def onset_text(g8: dict, ts, n_train: int, digits: int = 1) -> str:
     """G8's onset rate in words: the tolerance (5 % of the record ``ts``, in minutes), the rate,
     the onset grid's size and the Cramér-Rao reference."""
@@ -375,7 +386,8 @@ def g8_line(harness, args, work, design, *, step: str, decay_grid: str, digits: 
             f"{step} {onset_text(g8, design.ts, design.n_train, digits)}; drift_transient decay "
             f"time within one step of its grid ({decay_grid}): located "
             f"{fmt_rate(g8.get('g8_transient_decay_located'))}, at the largest score "
-            f"{fmt_rate(g8['g8_transient_decay'])}.")
+            f"{fmt_rate(g8['g8_transient_decay'])}"
+            f"{decay_crb_text(g8.get('g8_transient_decay_crb'))}.")
 
 
 def g6_lines(s: dict, hidden: str) -> list[str]:

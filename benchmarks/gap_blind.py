@@ -31,6 +31,7 @@ from _results import (  # noqa: E402
     ORACLE_NOTE,
     calibration_line,
     crb_text,
+    decay_crb_text,
     far_text,
     g6_lines,
     g9_text,
@@ -62,7 +63,8 @@ def g8_text(s) -> str:
             f"the record over the train span, at least 8{LOCATED_WORDS}"
             f"{crb_text(s.get('g8_step_onset_crb'))}); drift_transient decay time within one "
             f"step of its grid: located {_fmt(s.get('g8_transient_decay_located'))}, at the "
-            f"largest score {_fmt(s['g8_transient_decay'])}; diurnal_line on the sidereal-day line "
+            f"largest score {_fmt(s['g8_transient_decay'])}"
+            f"{decay_crb_text(s.get('g8_transient_decay_crb'))}; diurnal_line on the sidereal-day line "
             f"{_fmt(s['g8_line'])} (G8: >= 0.90, >= 0.95), the other families' gaps on that "
             f"line too {_fmt(s['g8_line_other_families'])}")
 

@@ -635,6 +635,18 @@ def test_grid_interval_is_the_shortest_run_holding_the_mass():
     assert grid_interval(v, [4, 4, 2, 2, 8], mass=0.8) == pytest.approx((2.0, 5.0, 0.8))
 
 
+def test_crb_spread_by_hand():
+    """The decay time's Cramér-Rao summary: deviations 0.2, 0.5, 1.0 and 4.0 against a tolerance
+    of 0.5 are 0.4, 1, 2, 8 tolerances: median 1.5, within one in 2 of 4; a pair without the
+    key is left out."""
+    from gyrojax.diagnose.bench import crb_spread
+
+    pairs = [({"d": x}, {}) for x in (0.2, 0.5, 1.0, 4.0)] + [({}, {})]
+    assert crb_spread(pairs, "d", 0.5) == pytest.approx({"median_ratio": 1.5, "resolved": 0.5,
+                                                         "n": 4})
+    assert crb_spread([({}, {})], "d", 0.5) is None
+
+
 def test_grid_located_holds_the_most_mass_within_one_step():
     """The located value against a second method: the posterior's weights interpolated linearly
     on a fine mesh and integrated by the trapezoid rule over every window of one step either
@@ -1128,3 +1140,14 @@ def test_esg_generator_onset_crb_matches_a_trajectory_difference():
     crb_h = bench.onset_crb(j, jt) / units.EARTH_RATE / 3600
     assert 0 < truth["onset_crb_h"] < 0.05 * design.hours
     assert truth["onset_crb_h"] == pytest.approx(crb_h, rel=1e-3)
+    # the decay time's, in log time: trajectories with the decay time scaled by exp(-+0.02).
+    # Looser: the decay column is nearly in the nuisance span (deviations of several log units
+    # on this 8 h record), so the projection amplifies the difference's truncation and the
+    # solver's error (at exp(-+0.003) the solver's noise already moves it by ~5 %)
+    p, _, truth = bench._hidden(rng, "drift_transient", p0, cond, design, 64.0)
+    ys = [np.asarray(integrate(bench._TRUTH_RIG, p | {"k_tr": p["k_tr"] * np.exp(-d)}, cond,
+                               rows)) for d in (-0.02, 0.02)]
+    jt = ((ys[1] - ys[0]) / (0.04 * sigma)).reshape(-1)
+    names = bench._TRUTH_RIG.param_space.nominal_names() + bench._EFFECT_PARAMS["drift_transient"]
+    j = bench._model_jac(p, cond, ts[:n_train], names) / sigma
+    assert truth["decay_crb_log"] == pytest.approx(bench.onset_crb(j, jt), rel=0.03)

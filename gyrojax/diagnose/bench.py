@@ -196,6 +196,9 @@ def _hidden(rng, family, p, cond, design, lam):
                 # d(response)/d(onset): the sizes' columns differenced over one sample
                 jt = (dj[1] - dj[0]) @ b / (design.sample_s * units.EARTH_RATE * sigma)
                 truth["onset_crb_h"] = onset_crb(np.c_[jn, jb], jt) / units.EARTH_RATE / 3600
+            if family == "drift_transient":  # d/d(log tau) = -k d/dk, the sizes as nuisance
+                jk = _model_jac(p, cond, ts[:n_train], ("k_tr",))[:, 0]
+                truth["decay_crb_log"] = onset_crb(np.c_[jn, jb], -float(p["k_tr"]) * jk / sigma)
     elif family == "diurnal_line":
         jn = _model_jac(p, cond, ts[:n_train], nominal) / sigma
         cols = _output_columns(family, ts)
@@ -566,14 +569,17 @@ def grid_locations(rep) -> dict:
 
 
 def grid_localisation(strong, *, step, transient, decay_grid, record_length,
-                      truth_scale: float = 1.0, crb_key: str | None = None) -> dict:
+                      truth_scale: float = 1.0, crb_key: str | None = None,
+                      decay_crb_key: str | None = None) -> dict:
     """Spec §6 G8's onset and decay-time rules over (truth, result) pairs with ``grid_best``:
     ``step`` and ``transient`` are ``(family, truth key)``; an onset counts within 5 % of the
     record (``record_length(result)``, in the grid's unit) of the truth, a decay time within one
     step of the geometric ``decay_grid``. ``truth_scale`` converts the truth's display unit to the
     grid's (e.g. 1/60 for minutes against a grid in hours). ``crb_key``: the truth's Cramér-Rao
     standard deviation of the onset (same unit), for an efficient estimator's rate on the same
-    cases (``g8_step_onset_crb``, :func:`crb_rate`). The rates are scored twice where the
+    cases (``g8_step_onset_crb``, :func:`crb_rate`); ``decay_crb_key``: the decay time's
+    deviation in log time, summarised against the one-step tolerance (``g8_transient_decay_crb``,
+    :func:`crb_spread`). The rates are scored twice where the
     results carry ``grid_located`` (the reports' located values, :func:`grid_locations`):
     ``g8_step_onset`` and ``g8_transient_decay`` at the largest score, the ``_located`` ones
     at the located value."""
@@ -597,6 +603,8 @@ def grid_localisation(strong, *, step, transient, decay_grid, record_length,
         # a local reference on the same cases: the truth side's Cramér-Rao deviations
         "g8_step_onset_crb": crb_rate(steps, crb_key, lambda r: 0.05 * record_length(r),
                                       truth_scale) if crb_key else None,
+        "g8_transient_decay_crb": crb_spread(transients, decay_crb_key, ratio)
+        if decay_crb_key else None,
     }
 
 
@@ -619,6 +627,18 @@ def crb_rate(pairs, key: str, tol, truth_scale: float = 1.0):
     vals = [math.erf(tol(r) / (math.sqrt(2) * truth_scale * t[key])) for t, r in pairs
             if key in t]
     return {"rate": float(np.mean(vals)), "n": len(vals)} if vals else None
+
+
+def crb_spread(pairs, key: str, tol: float):
+    """How well the record can place a grid parameter at all: over the pairs whose truth has
+    the Cramér-Rao deviation ``key``, the median of deviation / ``tol`` and the share with a
+    deviation <= ``tol`` (``None`` when none has). For a decay time (deviation in log time,
+    ``tol`` the grid's log ratio) :func:`crb_rate` would mislead: where the deviation exceeds the
+    grid's whole span, a Gaussian efficient estimator does worse than any guess inside the
+    grid, so the rate a diagnosis reaches there comes from the grid's range, not the record."""
+    r = np.array([t[key] / tol for t, _ in pairs if key in t])
+    return ({"median_ratio": float(np.median(r)), "resolved": float(np.mean(r <= 1.0)),
+             "n": int(r.size)} if r.size else None)
 
 
 def localisation_fields(rep) -> dict:
@@ -660,7 +680,8 @@ def localisation_scores(lib, *, lam_min: float = 32.0) -> dict:
         **grid_localisation(strong, step=("drift_step", "onset_h"),
                             transient=("drift_transient", "decay_time_h"),
                             decay_grid=TRANSIENT_TIMES_H,
-                            record_length=lambda r: r["record_hours"], crb_key="onset_crb_h"),
+                            record_length=lambda r: r["record_hours"], crb_key="onset_crb_h",
+                            decay_crb_key="decay_crb_log"),
         "g8_line": _rate([(t, r) for t, r in strong if t["family"] == "diurnal_line"],
                          lambda t, r: (r["top_line"] or "").startswith("sidereal day")),
         # how specific that is: the other families' gaps on the same line

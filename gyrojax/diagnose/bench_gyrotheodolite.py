@@ -125,6 +125,12 @@ def generate(out_dir, n_cases: int, *, seed: int = 0,
                 truth["onset_crb_min"] = onset_crb(
                     np.c_[jn[:n_train] * space.scales(TEST_PARAMS), jb[:n_train]] / sigma,
                     jo[:n_train, 0] * 60 / sigma)
+            if gpar == "tau_tr":  # the decay time's, in log time (d/d log tau = tau d/dtau)
+                jo = np.asarray(trajectory_jacobian(_RIG, p, cond, jnp.asarray(ts), (gpar,),
+                                                    **ODE_OPTIONS))
+                truth["decay_crb_log"] = onset_crb(
+                    np.c_[jn[:n_train] * space.scales(TEST_PARAMS), jb[:n_train]] / sigma,
+                    jo[:n_train, 0] * float(p[gpar]) / sigma)
         elif family in STRUCTURAL:
             p["M_tape"] = jnp.asarray(rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 2.0) * 1e-9)
             truth["coefficients"] = {"M_tape": float(space["M_tape"].to_display(p["M_tape"]))}
@@ -175,4 +181,5 @@ def localisation_scores(case_dir, results, *, lam_min: float = 32.0) -> dict:
                                step=("torque_step", "t_step"),
                                transient=("drift_transient", "tau_tr"),
                                decay_grid=TRANSIENT_TIMES_MIN, crb_key="onset_crb_min",
+                               decay_crb_key="decay_crb_log",
                                record_length=lambda r: r["record_s"] / 60)

@@ -142,6 +142,11 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: SchulerDesign | No
                                                     jnp.asarray([60.0]), w))
                     truth["onset_crb_min"] = onset_crb(np.c_[jn[:rows], jb[:rows]],
                                                        jo[:rows, 0])
+                if gpar == "tau_tr":  # the decay time's, in log time (d/d log tau = tau d/dtau)
+                    jo = np.asarray(_truth_jacobian(cond, jnp.asarray(ts), y0, p, (gpar,),
+                                                    jnp.asarray([float(p[gpar])]), w))
+                    truth["decay_crb_log"] = onset_crb(np.c_[jn[:rows], jb[:rows]],
+                                                       jo[:rows, 0])
             else:
                 shape = _ool_shape(rng, family, ts, n_train)
                 white = (shape / design.sigma).reshape(-1)
@@ -195,5 +200,5 @@ def localisation_scores(case_dir, results, *, lam_min: float = 32.0) -> dict:
                                step=("drift_step", "t_step"),
                                transient=("drift_transient", "tau_tr"),
                                decay_grid=TRANSIENT_TIMES_H, truth_scale=1 / 60,
-                               crb_key="onset_crb_min",
+                               crb_key="onset_crb_min", decay_crb_key="decay_crb_log",
                                record_length=lambda r: r["record_s"] / 3600)
