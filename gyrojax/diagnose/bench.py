@@ -612,7 +612,8 @@ def onset_crb(j_nuisance, j_onset) -> float:
     """Cramér-Rao standard deviation of an onset (in its Jacobian's unit) from whitened columns:
     ``1 / |(I - P) j_onset|`` with ``P`` the projector on the span of the nuisance columns (the
     nominal parameters and the effect's sizes, estimated jointly with the onset; rank-revealing,
-    so a structurally unidentifiable nominal direction costs nothing)."""
+    so a structurally unidentifiable nominal direction costs nothing). Any other grid value
+    the same way, e.g. a decay time with ``j_onset`` its column in log time."""
     q = nominal_basis(np.asarray(j_nuisance))
     r = np.asarray(j_onset) - q @ (q.T @ np.asarray(j_onset))
     return float(1.0 / np.sqrt(r @ r))

@@ -119,18 +119,15 @@ def generate(out_dir, n_cases: int, *, seed: int = 0,
             truth |= truth_visibility(jb[:n_train] / sigma, jt)
             if gpar:
                 truth[gpar] = float(space[gpar].to_display(p[gpar]))
-            if gpar == "t_step":  # the onset's Cramér-Rao deviation (min), sizes as nuisance
+            if gpar:  # the grid value's Cramér-Rao deviation, the sizes as nuisance: the
+                # onset in minutes, the decay time in log time (d/d log tau = tau d/dtau)
+                crb_name, unit = {"t_step": ("onset_crb_min", 60.0),
+                             "tau_tr": ("decay_crb_log", float(p[gpar]))}[gpar]
                 jo = np.asarray(trajectory_jacobian(_RIG, p, cond, jnp.asarray(ts), (gpar,),
                                                     **ODE_OPTIONS))
-                truth["onset_crb_min"] = onset_crb(
+                truth[crb_name] = onset_crb(
                     np.c_[jn[:n_train] * space.scales(TEST_PARAMS), jb[:n_train]] / sigma,
-                    jo[:n_train, 0] * 60 / sigma)
-            if gpar == "tau_tr":  # the decay time's, in log time (d/d log tau = tau d/dtau)
-                jo = np.asarray(trajectory_jacobian(_RIG, p, cond, jnp.asarray(ts), (gpar,),
-                                                    **ODE_OPTIONS))
-                truth["decay_crb_log"] = onset_crb(
-                    np.c_[jn[:n_train] * space.scales(TEST_PARAMS), jb[:n_train]] / sigma,
-                    jo[:n_train, 0] * float(p[gpar]) / sigma)
+                    jo[:n_train, 0] * unit / sigma)
         elif family in STRUCTURAL:
             p["M_tape"] = jnp.asarray(rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 2.0) * 1e-9)
             truth["coefficients"] = {"M_tape": float(space["M_tape"].to_display(p["M_tape"]))}

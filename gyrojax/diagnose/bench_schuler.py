@@ -137,16 +137,13 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: SchulerDesign | No
                 truth |= truth_visibility(jb[:rows], jt)
                 if gpar:
                     truth[gpar] = float(space[gpar].to_display(p[gpar]))
-                if gpar == "t_step":  # the onset's Cramér-Rao deviation (min), sizes as nuisance
+                if gpar:  # the grid value's Cramér-Rao deviation, the sizes as nuisance: the
+                    # onset in minutes, the decay time in log time (d/d log tau = tau d/dtau)
+                    crb_name, unit = {"t_step": ("onset_crb_min", 60.0),
+                                 "tau_tr": ("decay_crb_log", float(p[gpar]))}[gpar]
                     jo = np.asarray(_truth_jacobian(cond, jnp.asarray(ts), y0, p, (gpar,),
-                                                    jnp.asarray([60.0]), w))
-                    truth["onset_crb_min"] = onset_crb(np.c_[jn[:rows], jb[:rows]],
-                                                       jo[:rows, 0])
-                if gpar == "tau_tr":  # the decay time's, in log time (d/d log tau = tau d/dtau)
-                    jo = np.asarray(_truth_jacobian(cond, jnp.asarray(ts), y0, p, (gpar,),
-                                                    jnp.asarray([float(p[gpar])]), w))
-                    truth["decay_crb_log"] = onset_crb(np.c_[jn[:rows], jb[:rows]],
-                                                       jo[:rows, 0])
+                                                    jnp.asarray([unit]), w))
+                    truth[crb_name] = onset_crb(np.c_[jn[:rows], jb[:rows]], jo[:rows, 0])
             else:
                 shape = _ool_shape(rng, family, ts, n_train)
                 white = (shape / design.sigma).reshape(-1)
