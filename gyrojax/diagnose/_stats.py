@@ -661,6 +661,7 @@ class MapDesign:
     score_cells: list  # (axis, label, channel, basis J~ (n c, k), cov (k, k), dof, info dict)
     tau_cells: list  # (m, clusters, channel, mean, scale g, edf h)
     fisher: bool
+    overlapping: bool = True  # the tau cells' Allan form (fully overlapping or not)
 
     @property
     def n_cells(self) -> int:
@@ -706,7 +707,7 @@ def tau_band_moments(u, n: int, c: int, ch: int, m: int):
 def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise_dof: float,
                lines: dict[str, float], jn: np.ndarray, min_window: int = 16,
                levels: int = 5, segments=None, nuisance=None, min_clusters: int = 9,
-               aux=None) -> MapDesign:
+               aux=None, overlapping: bool = True) -> MapDesign:
     """The cells of :func:`gap_map_cells` for ``n = len(t)`` samples of ``channels``.
 
     ``segments``: the record's test positions, ``[(label, condition, w)]`` with ``w``
@@ -715,7 +716,8 @@ def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise
     platform's dwell offsets), projected out with it; ``aux``: bins of the record's auxiliary
     channels, ``[(label, aux channel, w)]`` with ``w`` the whitened signature of an offset on the
     rows of one bin (e.g. a temperature range): one 1-dof cell per bin and channel and the joint
-    test of one auxiliary channel's bins per channel (axis ``aux``)."""
+    test of one auxiliary channel's bins per channel (axis ``aux``); ``overlapping``: the tau
+    cells' Allan form (fully overlapping, or the non-overlapping one of :func:`allan_form`)."""
     n, c = len(t), len(channels)
     frac = 1.0 - n_params / max(n * c, 1)
     windows = []
@@ -745,15 +747,32 @@ def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise
     score_cells += _member_cells(u, aux, c, "aux", "aux")
     score_cells += _group_cells(u, aux, c, "aux", "bins", suffix=" (all bins)", key="aux")
     tau_cells = []
+    uc = u.reshape(n, c, -1)
+    sums = [np.concatenate([np.zeros((uc.shape[2], 1)), np.cumsum(uc[:, ch, :].T, axis=1)],
+                           axis=1) for ch in range(c)] if overlapping else None
     m = 2
     while n // m >= min_clusters:
         for ch in range(c):
-            mean, var = tau_band_moments(u, n, c, ch, m)
+            if overlapping:
+                mean, var = projected_overlapping_allan_moments(sums[ch], n, m)
+            else:
+                mean, var = tau_band_moments(u, n, c, ch, m)
             if mean > 0 and var > 0:
                 tau_cells.append((m, n // m, ch, mean, var / (2 * mean), 2 * mean ** 2 / var))
         m *= 2
     return MapDesign(n, c, np.asarray(t, float), tuple(channels), noise_dof, windows,
-                     score_cells, tau_cells, n >= 16)
+                     score_cells, tau_cells, n >= 16, overlapping)
+
+
+def projected_overlapping_allan_moments(sums: np.ndarray, n: int, m: int) -> tuple[float, float]:
+    """Null mean and variance of :func:`overlapping_allan_form` of a unit white residual of
+    ``n`` samples with the span of an orthonormal basis ``U`` projected out: ``Q = z'(I - P) A
+    (I - P) z``, so ``E Q = tr A - tr U'AU`` and ``var Q = 2 (tr A^2 - 2 |AU|_F^2 +
+    |U'AU|_F^2)`` (:func:`projected_overlapping_allan_traces`). ``sums``: the running sums of
+    this channel's rows of ``U`` with a leading zero, ``(K, n + 1)``."""
+    tr_a, var_a = white_overlapping_allan_moments(n, m)
+    tr_uau, au2, uau2 = projected_overlapping_allan_traces([sums], m)
+    return tr_a - tr_uau, var_a + 2.0 * (uau2 - 2.0 * au2)
 
 
 def _member_cells(u, members, c, axis, key):
@@ -810,6 +829,13 @@ def overlapping_allan_form(x: np.ndarray, m: int) -> float:
     cs = np.concatenate([[0.0], np.cumsum(np.asarray(x, float))])
     s = cs[m:] - cs[:-m]
     return float(np.sum((s[m:] - s[:-m]) ** 2) / (2 * m))
+
+
+def overlapping_allan_forms(csum: np.ndarray, m: int) -> np.ndarray:
+    """:func:`overlapping_allan_form` of every series at once from their running sums with a
+    leading zero, ``csum`` (``B x n+1 x c``): ``(B, c)``."""
+    s = csum[:, m:] - csum[:, :-m]
+    return np.sum((s[:, m:] - s[:, :-m]) ** 2, axis=1) / (2 * m)
 
 
 def white_overlapping_allan_moments(n: int, m: int) -> tuple[float, float]:
@@ -1087,7 +1113,8 @@ def map_statistics(design: MapDesign, e: np.ndarray):
         if design.tau_cells else None
     for m, _, ch, mean, g, h in design.tau_cells:
         if m not in forms:
-            forms[m] = allan_form(e, m, csum)
+            forms[m] = overlapping_allan_forms(csum, m) if design.overlapping else \
+                allan_form(e, m, csum)
         q = forms[m][:, ch]
         stat.append(q / mean)
         pv.append(np.reshape(_f_sf(q / (g * h), h, design.noise_dof), q.shape))
@@ -1126,11 +1153,14 @@ def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_
       one condition's positions, where the record has more than one condition;
     - aux x channel: the same for the bins of an auxiliary channel (``aux``), one cell per bin and
       the joint test of its bins;
-    - tau band x channel: the non-overlapping Allan variance of the residual at
-      ``tau = m tau_0`` (``m = 2, 4, ...`` while at least 9 clusters) over its null prediction,
-      with the exact null mean and variance of the quadratic form after the projection and a
-      scaled chi-square (Satterthwaite; F when the level was estimated) upper tail; ``ci95``:
-      its equivalent-dof confidence interval.
+    - tau band x channel: the fully overlapping Allan variance of the residual at
+      ``tau = m tau_0`` (``m = 2, 4, ...`` while at least 9 non-overlapping clusters) over its
+      null prediction, with the exact null mean and variance of the quadratic form after the
+      projection and a scaled chi-square (Satterthwaite; F when the level was estimated) upper
+      tail; ``ci95``: its equivalent-dof confidence interval. (``map_design(...,
+      overlapping=False)``: the non-overlapping form, ~half the equivalent dof at the longest
+      bands: an ESG angle random walk's smallest-p cell fell at the longest band in 0.84 of the
+      detected cases against 0.96 with the overlapping form, 200 cases each.)
     Cells: dicts with axis, cell, channel, statistic, dof, expected, p. ``design``: the
     :func:`map_design` of these arguments (computed here when not given).
     """
