@@ -44,7 +44,7 @@ from gyrojax.analysis.montecarlo import monte_carlo, staged
 from gyrojax.estimate import fit_trajectory, integral_regression
 from gyrojax.models.esg import DRIFT_NAMES
 from gyrojax.record import BenchRecord
-from gyrojax.simulate import grid_steps, integrate
+from gyrojax.simulate import gaussian_noise, grid_steps, integrate
 
 sys.path.insert(0, os.path.dirname(__file__))
 from _results import machine_line, publish  # noqa: E402
@@ -185,7 +185,7 @@ def gyrojax_trial_fn(identify_batch=8, fixed_grid=True):
         y = integrate(rig, p, cond, ts, steps=steps)
         if "noise" in d:
             return y + d["noise"]
-        return y + NOISE * jax.random.normal(jax.random.wrap_key_data(d["key"]), y.shape)
+        return y + gaussian_noise(jax.random.wrap_key_data(d["key"]), y.shape, NOISE)
 
     def identify(d, y):
         return integral_regression(rig, BenchRecord(ts, y, rig.channels), cond).values

@@ -10,8 +10,31 @@ import numpy as np
 
 from .models._base import AbstractRig
 from .record import BenchRecord, freeze
+from .rotations import sincos
 
-__all__ = ["simulate", "integrate", "trajectory", "grid_steps"]
+__all__ = ["simulate", "integrate", "trajectory", "grid_steps", "gaussian_noise"]
+
+
+def gaussian_noise(key, shape, std=1.0):
+    """White Gaussian deviates of standard deviation ``std`` (float64), by the Box-Muller
+    transform of 64-bit uniforms: ``sqrt(-2 ln u1) (cos, sin)(2 pi u2)``, exact in distribution
+    up to the uniforms' 2**-52 grid (the largest deviate is 8.5 sigma).
+
+    The Monte Carlo hot path's sampler: on XLA's CPU backend ``jax.random.normal`` in float64
+    spends more on its ``erf_inv`` than on the random bits (~100 us per 1441 x 2 deviates);
+    this draws the same bits and takes one logarithm and the polynomial
+    :func:`~gyrojax.rotations.sincos` per pair (~65 us). A different stream from
+    ``jax.random.normal`` for the same key: :func:`simulate` keeps ``jax.random.normal``, so
+    its seeded records are unchanged.
+    """
+    shape = (shape,) if isinstance(shape, int) else tuple(shape)
+    n = int(np.prod(shape, dtype=np.int64))
+    half = -(-n // 2)
+    u = jax.random.uniform(key, (2, half), dtype=jnp.float64)
+    radius = jnp.sqrt(-2.0 * jnp.log(1.0 - u[0]))  # 1 - u in (0, 1], exact
+    s, c = sincos(2.0 * np.pi * u[1])
+    z = jnp.concatenate([radius * c, radius * s])[:n]
+    return std * z.reshape(shape)
 
 
 @eqx.filter_jit

@@ -24,7 +24,7 @@ from ..estimate._linalg import scaled_lstsq
 from ..estimate.regression import integral_regression, regression_design
 from ..models.esg import DRIFT_NAMES, SCHEMES, ESGConditions, ESGRig
 from ..record import BenchRecord
-from ..simulate import grid_steps, integrate
+from ..simulate import gaussian_noise, grid_steps, integrate
 from .montecarlo import monte_carlo, staged
 
 __all__ = ["mounting_error_tables", "mounting_error_budget", "MountingTables", "MountingBudget",
@@ -192,7 +192,9 @@ def mounting_error_budget(key, n_draws: int, latitude_deg: float = 55.75, *, sch
         p = base | {"theta1": th[0], "theta2": th[1], "dchi1": dc[0], "dchi2": dc[1],
                     "dchi3": dc[2]}
         y = integrate(rig, p, c, ts, steps=steps)
-        return y + noise * jax.random.normal(jax.random.wrap_key_data(kd), y.shape)
+        if noise == 0.0:  # noise-free budgets draw no deviates
+            return y
+        return y + gaussian_noise(jax.random.wrap_key_data(kd), y.shape, noise)
 
     def identify(draw, y):
         c = jax.tree.map(lambda x: x[draw[0]], conds)

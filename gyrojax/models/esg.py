@@ -44,7 +44,7 @@ import numpy as np
 from .. import units
 from ..earth import earth_rate_unit_enu, gravity_unit_enu
 from ..params import Param, ParameterSpace, param
-from ..rotations import euler321_to_matrix, rotvec_to_matrix, skew
+from ..rotations import euler321_to_matrix, rotvec_to_matrix, sincos, skew
 from ._base import AbstractRig
 
 __all__ = ["ESGRig", "ESGConditions", "SCHEMES", "scheme_angles", "DRIFT_NAMES"]
@@ -211,7 +211,7 @@ class ESGRig(AbstractRig):
         # matrices) XLA's CPU backend works along a minor axis of length 3 and the batched
         # solve ran 1.6x slower (notes: "Speed of the ESG simulation").
         a1, a2 = alpha[0], alpha[1]
-        s1, c1, s2, c2 = jnp.sin(a1), jnp.cos(a1), jnp.sin(a2), jnp.cos(a2)
+        (s1, c1), (s2, c2) = sincos(a1), sincos(a2)
 
         def cross(a, b):
             return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
@@ -296,10 +296,9 @@ class ESGRig(AbstractRig):
         """
         u_zeta, g_zeta = conditions.base_vectors()
         a1, a2 = alpha[..., 0], alpha[..., 1]
-        c2 = jnp.cos(a2)
+        s2, c2 = sincos(a2)
         sec = 1.0 / c2
-        s2 = jnp.sin(a2)
-        trig = (jnp.sin(a1), jnp.cos(a1), s2, c2, sec, s2 * sec)
+        trig = (*sincos(a1), s2, c2, sec, s2 * sec)
         store = jnp.zeros((len(trig), *a1.shape), a1.dtype)
         for i, v in enumerate(trig):  # in-place updates: one loop per value, nothing repeated
             store = store.at[i].set(v)
