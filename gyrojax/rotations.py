@@ -6,8 +6,6 @@ the axes of ``b`` written in ``a``, so ``vec_a = mat_ab @ vec_b``.
 
 from __future__ import annotations
 
-import math
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,10 +16,15 @@ import numpy as np
 _PIO2_1 = 1.57079632673412561417e+00
 _PIO2_2 = 6.07710050630396597660e-11
 _PIO2_2T = 2.02226624879595063154e-21
-# Taylor coefficients on |r| <= pi/4: the first neglected terms, r**17/17! and r**18/18!, are
-# below 5e-17 there
-_SIN_COEF = tuple((-1) ** k / math.factorial(2 * k + 1) for k in range(1, 8))
-_COS_COEF = tuple((-1) ** k / math.factorial(2 * k) for k in range(1, 10))
+# Minimax polynomials on |r| <= pi/4 (fdlibm's __kernel_sin / __kernel_cos, Sun Microsystems,
+# freely distributable): sin r = r + r^3 S(r^2), cos r = 1 - r^2/2 + r^4 C(r^2), within 0.5 ulp
+# of 1 there (test)
+_SIN_COEF = (-1.66666666666666324348e-01, 8.33333333332248946124e-03,
+             -1.98412698298579493134e-04, 2.75573137070700676789e-06,
+             -2.50507602534068634195e-08, 1.58969099521155010221e-10)
+_COS_COEF = (4.16666666666666019037e-02, -1.38888888888741095749e-03,
+             2.48015872894767294178e-05, -2.75573143513906633035e-07,
+             2.08757232129817482790e-09, -1.13596475577881948265e-11)
 
 
 def _poly(z, coef):
@@ -38,8 +41,8 @@ def sincos(x):
     XLA's CPU backend evaluates float64 ``sin`` / ``cos`` element by element (~15-20 ns each);
     this version is polynomial arithmetic that its loops vectorise (~3 ns for both), which is
     most of the exact ESG model's vector field and of the integral regression's design
-    (docs/notes.md, "Speed of the ESG simulation"). Cody-Waite reduction by pi/2 to
-    |r| <= pi/4, Taylor polynomials, quadrant swap. Beyond |x| ~ 1.6e6 rad the error grows like
+    (docs/notes.md, "Transcendentals on XLA's CPU backend"). Cody-Waite reduction by pi/2 to
+    |r| <= pi/4, minimax polynomials, quadrant swap. Beyond |x| ~ 1.6e6 rad the error grows like
     |x| 2**-53, the input's own resolution. Other dtypes go to ``jnp.sin`` / ``jnp.cos``.
     Differentiable: the tangents are ``(cos x dx, -sin x dx)``.
     """
@@ -50,7 +53,7 @@ def sincos(x):
     r = ((x - q * _PIO2_1) - q * _PIO2_2) - q * _PIO2_2T
     z = r * r
     s = r + r * z * _poly(z, _SIN_COEF)
-    c = 1.0 + z * _poly(z, _COS_COEF)
+    c = 1.0 - 0.5 * z + z * z * _poly(z, _COS_COEF)
     quadrant = q - 4.0 * jnp.floor(0.25 * q)  # 0, 1, 2, 3
     swap = (quadrant == 1.0) | (quadrant == 3.0)
     sin = jnp.where(swap, c, s)
