@@ -170,6 +170,12 @@ def nominal():
     return rig, base, gj.ESGConditions.from_scheme(SCHEME, LAT), jnp.asarray(TS)
 
 
+def trial_params(base, d):
+    """The nominal parameters with one draw's rotor tilt and base misalignment."""
+    return base | {"theta1": d["theta"][0], "theta2": d["theta"][1], "dchi1": d["dchi"][0],
+                   "dchi2": d["dchi"][1], "dchi3": d["dchi"][2]}
+
+
 def gyrojax_trial_fn(identify_batch=8, fixed_grid=True):
     """A batch of trials (draws with a leading axis -> estimates) for
     ``monte_carlo(..., vectorized=True)``: ``staged`` vmaps the ODE solves over the whole batch
@@ -180,9 +186,7 @@ def gyrojax_trial_fn(identify_batch=8, fixed_grid=True):
     steps = grid_steps(rig, base, cond, ts) if fixed_grid else None
 
     def measure(d):
-        p = base | {"theta1": d["theta"][0], "theta2": d["theta"][1], "dchi1": d["dchi"][0],
-                    "dchi2": d["dchi"][1], "dchi3": d["dchi"][2]}
-        y = integrate(rig, p, cond, ts, steps=steps)
+        y = integrate(rig, trial_params(base, d), cond, ts, steps=steps)
         if "noise" in d:
             return y + d["noise"]
         return y + gaussian_noise(jax.random.wrap_key_data(d["key"]), y.shape, NOISE)
@@ -266,10 +270,8 @@ def stage_times(n=512, repeats=5):
     steps = grid_steps(rig, base, cond, ts)
     d = jax.tree.map(jnp.asarray, draws(n, seed=5, noise=False))
 
-    def ode(d):
-        p = base | {"theta1": d["theta"][0], "theta2": d["theta"][1], "dchi1": d["dchi"][0],
-                    "dchi2": d["dchi"][1], "dchi3": d["dchi"][2]}
-        return integrate(rig, p, cond, ts, steps=steps)
+    ode = jax.jit(jax.vmap(lambda d: integrate(rig, trial_params(base, d), cond, ts,
+                                              steps=steps)))
 
     def sub8(f):
         return jax.jit(lambda x: jax.lax.map(jax.vmap(f), x.reshape(n // 8, 8, *x.shape[1:])))
@@ -290,9 +292,9 @@ def stage_times(n=512, repeats=5):
     def wrap(k):
         return jax.random.wrap_key_data(k)
 
-    y = jax.jit(jax.vmap(ode))(d) + NOISE
+    y = ode(d) + NOISE
     ab = jax.jit(jax.vmap(design))(y)
-    return {"ode": timed(jax.jit(jax.vmap(ode)), d),
+    return {"ode": timed(ode, d),
             "noise": timed(jax.jit(jax.vmap(lambda k: gaussian_noise(wrap(k), (len(ts), 2)))),
                            d["key"]),
             "normal": timed(jax.jit(jax.vmap(lambda k: jax.random.normal(wrap(k),
@@ -553,8 +555,8 @@ def main(argv=None):
               "stop 49 the vector field and the regression's design take their sines and cosines "
               "from `rotations.sincos` (polynomial float64: XLA's CPU backend evaluates float64 "
               "sin and cos element by element at ~15-20 ns, the polynomial both in ~3 ns) and the "
-              "deviates come from `gaussian_noise`; interleaved with the code before them on one "
-              "pinned core a trial took 450-590 us against 630-730 us (docs/notes.md).",
+              "deviates come from `gaussian_noise` (the gain, measured against the code before "
+              "them: docs/notes.md).",
               "",
               f"The goal of 100x the scipy loop: at N = {big[0]:,} one device runs "
               f"{big[1] / srate:.0f}x the loop's best in this run (one trial ~{1e6 / big[1]:.0f} "
