@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 
 def tall_qr_r(a, *, block_rows: int = 480):
@@ -28,23 +29,56 @@ def scaled_lstsq(a, b, *, rcond: float = 1e-12):
     ``(A^T A)^+`` (multiply by the residual variance for the covariance); ``singular_values`` are those
     of the column-normalized ``a``, largest first.
     """
-    return scaled_lstsq_columns(jnp.concatenate([a.T, b[None]], axis=0), rcond=rcond)
+    k = a.shape[1]
+    norms = _column_norms(a)
+    scale = jnp.concatenate([1.0 / norms, jnp.ones(1, a.dtype)])
+    # R of the augmented [A b]: its last column holds Q^T b. Built transposed, the scaled
+    # [A b] is the column-major matrix LAPACK factors without a copy.
+    ab_t = jnp.concatenate([a.T, b[None]], axis=0) * scale[:, None]
+    r_aug = tall_qr_r(ab_t.T)
+    if r_aug.shape[0] < k + 1:
+        r_aug = jnp.pad(r_aug, ((0, k + 1 - r_aug.shape[0]), (0, 0)))
+    return _solve_r(r_aug, norms, k, rcond)
 
 
-def scaled_lstsq_columns(ab_t, *, rcond: float = 1e-12):
-    """:func:`scaled_lstsq` from the transposed augmented design ``[A b]^T`` (k+1, m): one row per
-    column of ``A``, then ``b``. This is the layout the integral regression builds (each column a
-    contiguous array) and, transposed, the column-major matrix LAPACK factors without a copy."""
-    at = ab_t[:-1]
-    k = at.shape[0]
-    norms = jnp.linalg.norm(at, axis=1)
-    # a column that is zero up to rounding (e.g. theta in the equatorial scheme) is exactly
-    # unobservable: scale it to zero instead of amplifying rounding noise to unit norm.
-    norms = jnp.where(norms > 1e-10 * jnp.max(norms), norms, jnp.inf)
-    scale = jnp.concatenate([1.0 / norms, jnp.ones(1, ab_t.dtype)])
-    # R of the augmented [A b]: its last column holds Q^T b, so Q is never formed. (Scaling after
-    # the QR, from R's column norms, would save a pass but measured 1.4x slower end to end.)
-    r_aug = tall_qr_r((ab_t * scale[:, None]).T)
+def scaled_lstsq_blocks(blocks, columns, k: int, *, rcond: float = 1e-12):
+    """:func:`scaled_lstsq` for a design whose row blocks each use only some of its ``k``
+    columns: block ``j`` is given transposed with its right-hand side, ``[A_j b_j]^T``
+    (len(columns[j]) + 1, m_j), one row per column of ``A`` it uses (``columns[j]``, static
+    indices; its other columns are zero), then ``b_j``.
+
+    Each block is factored on its own columns (the TSQR of :func:`tall_qr_r`; the transposed
+    layout is the column-major matrix LAPACK factors without a copy), the small triangular
+    factors are placed in their columns, stacked, column-scaled and factored once more. The
+    column norms come from the stacked factors (they equal the design's: Q is orthogonal), and
+    scaling after the QR loses nothing, as Householder QR is backward stable column by column.
+    """
+    stacked = []
+    for blk, cols in zip(blocks, columns):
+        r_j = tall_qr_r(blk.T)
+        place = np.asarray([*cols, k], int)
+        stacked.append(jnp.zeros((r_j.shape[0], k + 1), r_j.dtype).at[:, place].set(r_j))
+    r_aug = jnp.concatenate(stacked)
+    if r_aug.shape[0] < k + 1:  # fewer rows than unknowns: zero rows leave R unchanged
+        r_aug = jnp.pad(r_aug, ((0, k + 1 - r_aug.shape[0]), (0, 0)))
+    norms = _column_norms(r_aug[:, :k])
+    r_aug = r_aug * jnp.concatenate([1.0 / norms, jnp.ones(1, r_aug.dtype)])
+    if len(blocks) > 1:
+        r_aug = jnp.linalg.qr(r_aug, mode="r")
+    return _solve_r(r_aug[: k + 1], norms, k, rcond)
+
+
+def _column_norms(a):
+    """Column norms of ``a``, with a column that is zero up to rounding (e.g. theta in the
+    equatorial scheme: exactly unobservable) given an infinite norm, so scaling sets it to zero
+    instead of amplifying rounding noise to unit norm."""
+    norms = jnp.linalg.norm(a, axis=0)
+    return jnp.where(norms > 1e-10 * jnp.max(norms), norms, jnp.inf)
+
+
+def _solve_r(r_aug, norms, k, rcond):
+    """The minimum-norm solution, unit covariance and singular values from ``R`` of the
+    column-scaled ``[A b]`` (its last column holds ``Q^T b``, so ``Q`` is never formed)."""
     r, qtb = r_aug[:k, :k], r_aug[:k, k]
     u, s, vt = jnp.linalg.svd(r)
     keep = s > rcond * s[0]

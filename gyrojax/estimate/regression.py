@@ -14,9 +14,10 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..record import BenchRecord
-from ._linalg import scaled_lstsq_columns
+from ._linalg import scaled_lstsq_blocks
 from ._result import AbstractNamedEstimate
 
 __all__ = ["RegressionResult", "integral_regression", "regression_design"]
@@ -44,12 +45,19 @@ def regression_design(rig, record: BenchRecord, conditions, *, window: int = 1,
                       names: Sequence[str] | None = None, quadrature: str = "trapezoid"):
     """The stacked block design ``A`` (2r, k) and right-hand side ``b`` (2r,) of (6.3)-(6.4): the
     ``r`` block rows of the first channel, then those of the second."""
-    ab_t, names = _design_columns(rig, record, conditions, window, names, quadrature)
-    return ab_t[:-1].T, ab_t[-1], names
+    blocks, columns, names = _design_blocks(rig, record, conditions, window, names, quadrature)
+    a = jnp.concatenate([jnp.zeros((blk.shape[1], len(names)), blk.dtype).at[:, np.asarray(cols, int)]
+                         .set(blk[:-1].T) for blk, cols in zip(blocks, columns)])
+    return a, jnp.concatenate([blk[-1] for blk in blocks]), names
 
 
-def _design_columns(rig, record, conditions, window, names, quadrature):
-    """``[A b]^T`` (k+1, 2r), each column of ``A`` (and ``b``) one contiguous row."""
+def _design_blocks(rig, record, conditions, window, names, quadrature):
+    """The design one channel at a time: for each, ``[A_c b_c]^T`` (k_c + 1, r) holding only the
+    columns of ``A`` that are not zero by construction in that channel's rows (their indices
+    into ``names`` in ``columns``), each column one contiguous row. Each channel's rows are zero
+    in a few columns the other's are not (the ESG's first channel in ``mc1`` and ``theta1``, the
+    second in ``mc2`` and ``theta2``), so factoring each channel on its own columns and merging
+    the two small triangular factors does ~30 % less work than factoring the stacked design."""
     if window < 1:
         raise ValueError(f"window={window}: the block length must be an integer >= 1 sample")
     if quadrature not in ("trapezoid", "simpson"):
@@ -68,7 +76,7 @@ def _design_columns(rig, record, conditions, window, names, quadrature):
     if r < 1:
         raise ValueError(f"window={window} is longer than the record ({n} samples)")
     m = r * window
-    (c1, c2), f1, f2 = rig.regression_columns(alpha, conditions)
+    cs, *fs = rig.regression_columns(alpha, conditions)
     if quadrature == "trapezoid":
         h = 0.5 * jnp.diff(tau)[:m]
 
@@ -81,23 +89,27 @@ def _design_columns(rig, record, conditions, window, names, quadrature):
             return (h * (x[: m : 2] + 4 * x[1:m:2] + x[2 : m + 1 : 2])).reshape(r, -1).sum(1)
 
     ends = alpha[: m + 1 : window]
-    rows = [(block_integral(f1[all_names.index(nm)]), block_integral(f2[all_names.index(nm)]))
-            for nm in names]
-    rows.append((ends[1:, 0] - ends[:-1, 0] - block_integral(c1),
-                 ends[1:, 1] - ends[:-1, 1] - block_integral(c2)))
-    # in-place row updates, not a stacking concatenate (which XLA evaluates operand by operand
-    # for every element: several times slower here)
-    ab_t = jnp.zeros((len(rows), 2 * r), alpha.dtype)
-    for i, (x1, x2) in enumerate(rows):
-        ab_t = ab_t.at[i, :r].set(x1).at[i, r:].set(x2)
-    return ab_t, names
+    blocks, columns = [], []
+    for ch, (c, f) in enumerate(zip(cs, fs)):
+        cols = tuple(i for i, nm in enumerate(names) if f[all_names.index(nm)] is not None)
+        rows = [block_integral(f[all_names.index(names[i])]) for i in cols]
+        rows.append(ends[1:, ch] - ends[:-1, ch] - block_integral(c))
+        # in-place row updates, not a stacking concatenate (which XLA evaluates operand by
+        # operand for every element: several times slower here)
+        blk = jnp.zeros((len(rows), r), alpha.dtype)
+        for i, x in enumerate(rows):
+            blk = blk.at[i].set(x)
+        blocks.append(blk)
+        columns.append(cols)
+    return tuple(blocks), tuple(columns), names
 
 
 @eqx.filter_jit
-def _solve(ab_t):
-    p, cov_unit, s = scaled_lstsq_columns(ab_t)
-    res = ab_t[-1] - p @ ab_t[:-1]
-    dof = jnp.maximum(ab_t.shape[1] - jnp.sum(s > 1e-12 * s[0]), 1)
+def _solve(blocks, columns, k):
+    p, cov_unit, s = scaled_lstsq_blocks(blocks, columns, k)
+    res = jnp.concatenate([blk[-1] - p[np.asarray(cols, int)] @ blk[:-1]
+                           for blk, cols in zip(blocks, columns)])
+    dof = jnp.maximum(res.shape[0] - jnp.sum(s > 1e-12 * s[0]), 1)
     sigma2 = jnp.sum(res**2) / dof
     cov = sigma2 * cov_unit
     return p, jnp.sqrt(jnp.diag(cov)), cov, jnp.sqrt(jnp.mean(res**2)), s
@@ -131,6 +143,6 @@ def _regression(rig, t, y, channels, conditions, window, names, quadrature):
     """The design and its solve as one compiled function (eagerly, the design's few dozen small
     operations cost ~30 ms per record in dispatch alone). The record enters without its
     attributes, which would be part of the compile key."""
-    ab_t, _ = _design_columns(rig, BenchRecord(t, y, channels), conditions, window, names,
-                              quadrature)
-    return _solve(ab_t)
+    blocks, columns, _ = _design_blocks(rig, BenchRecord(t, y, channels), conditions, window,
+                                        names, quadrature)
+    return _solve(blocks, columns, len(names))

@@ -282,12 +282,16 @@ class ESGRig(AbstractRig):
         axes. The stacked form of :meth:`regression_columns`.
         """
         c, f1, f2 = self.regression_columns(alpha, conditions)
-        f = jnp.stack([jnp.stack(f1, axis=-1), jnp.stack(f2, axis=-1)], axis=-2)
+        zero = jnp.zeros_like(c[0])
+        f = jnp.stack([jnp.stack([zero if x is None else x for x in row], axis=-1)
+                       for row in (f1, f2)], axis=-2)
         return jnp.stack(c, axis=-1), f
 
     def regression_columns(self, alpha, conditions):
         """:meth:`regression_terms` as lists of arrays shaped like ``alpha[..., 0]``: ``(c1, c2)``,
-        then the ``k`` columns of the first row of ``F``, then of the second.
+        then the ``k`` columns of the first row of ``F``, then of the second; ``None`` where an
+        entry is zero whatever the angles (e.g. ``mc2`` in the first row), so the regression can
+        factor each row's design on its own nonzero columns.
 
         The hot path of the integral regression. The trigonometry of the measured angles is
         computed once and stored (XLA would otherwise re-evaluate it inside every column's fused
@@ -306,21 +310,21 @@ class ESGRig(AbstractRig):
 
         u1, u2, u3 = _platform_components(s1, c1, s2, c2, u_zeta)
         g1, g2, g3 = _platform_components(s1, c1, s2, c2, g_zeta)
-        z, o = jnp.zeros_like(a1), jnp.ones_like(a1)
-        row1 = [-g1 * sec, -2 * g1 * g3 * sec, g2 * sec, 2 * g2 * g3 * sec, z, -sec,
-                z, (u3 - u1 * t2) * sec]
-        row2 = [-g2, -2 * g2 * g3, -g1, -2 * g1 * g3, o, z, u1 * t2 - u3, z]
+        o = jnp.ones_like(a1)
+        row1 = [-g1 * sec, -2 * g1 * g3 * sec, g2 * sec, 2 * g2 * g3 * sec, None, -sec,
+                None, (u3 - u1 * t2) * sec]
+        row2 = [-g2, -2 * g2 * g3, -g1, -2 * g1 * g3, o, None, u1 * t2 - u3, None]
         # eps columns (6.10): -x1/cos(alpha2) and -x2 in base components
         e1 = (-o, -s1 * t2, c1 * t2)
-        e2 = (z, -c1, -s1)
+        e2 = (None, -c1, -s1)
         if self.base_param == "eps_free":
             b1, b2 = list(e1), list(e2)
         elif self.base_param == "eps":
             d = self.eps_dependent
             free = [i for i in range(3) if i != d]
             # eps_d = -(sum_i u_i eps_i) / u_d  ->  column_i - u_i / u_d column_d
-            b1 = [e1[i] - u_zeta[i] / u_zeta[d] * e1[d] for i in free]
-            b2 = [e2[i] - u_zeta[i] / u_zeta[d] * e2[d] for i in free]
+            b1 = [_combine(e1, {i: 1.0, d: -u_zeta[i] / u_zeta[d]}) for i in free]
+            b2 = [_combine(e2, {i: 1.0, d: -u_zeta[i] / u_zeta[d]}) for i in free]
         else:
             # eps = u x dchi = skew(u) dchi  (rotation vector); Euler increments through J
             jac = skew(u_zeta)
@@ -329,9 +333,16 @@ class ESGRig(AbstractRig):
                 c2x, s2x = jnp.cos(conditions.chi[1]), jnp.sin(conditions.chi[1])
                 jac = jac @ jnp.array([[1.0, 0.0, -s2x], [0.0, c1x, s1x * c2x],
                                        [0.0, -s1x, c1x * c2x]])
-            b1 = [sum(e1[i] * jac[i, j] for i in range(3)) for j in range(3)]
-            b2 = [sum(e2[i] * jac[i, j] for i in range(3)) for j in range(3)]
+            b1 = [_combine(e1, {i: jac[i, j] for i in range(3)}) for j in range(3)]
+            b2 = [_combine(e2, {i: jac[i, j] for i in range(3)}) for j in range(3)]
         return (-u1 * sec, -u2), row1 + b1, row2 + b2
+
+
+def _combine(columns, coefficients):
+    """``sum_i coefficients[i] * columns[i]`` over the entries that are not ``None`` (a
+    structural zero); ``None`` when every term is."""
+    terms = [coefficients[i] * columns[i] for i in coefficients if columns[i] is not None]
+    return sum(terms[1:], terms[0]) if terms else None
 
 
 def _platform_components(s1, c1, s2, c2, v):
