@@ -41,7 +41,8 @@ def scaled_lstsq(a, b, *, rcond: float = 1e-12):
     return _solve_r(r_aug, norms, k, rcond)
 
 
-def scaled_lstsq_blocks(blocks, columns, k: int, *, rcond: float = 1e-12):
+def scaled_lstsq_blocks(blocks, columns, k: int, *, rcond: float = 1e-12,
+                        block_rows: int = 1440):
     """:func:`scaled_lstsq` for a design whose row blocks each use only some of its ``k``
     columns: block ``j`` is given transposed with its right-hand side, ``[A_j b_j]^T``
     (len(columns[j]) + 1, m_j), one row per column of ``A`` it uses (``columns[j]``, static
@@ -55,7 +56,9 @@ def scaled_lstsq_blocks(blocks, columns, k: int, *, rcond: float = 1e-12):
     """
     stacked = []
     for blk, cols in zip(blocks, columns):
-        r_j = tall_qr_r(blk.T)
+        # a 24 h channel at 1-min samples (1440 x 10, ~115 KB) in one LAPACK call: ~10 % faster
+        # than the three 480-row blocks that suit the stacked 2880 x 12 (measured, one core)
+        r_j = tall_qr_r(blk.T, block_rows=block_rows)
         place = np.asarray([*cols, k], int)
         stacked.append(jnp.zeros((r_j.shape[0], k + 1), r_j.dtype).at[:, place].set(r_j))
     r_aug = jnp.concatenate(stacked)
