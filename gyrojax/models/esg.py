@@ -290,7 +290,7 @@ class ESGRig(AbstractRig):
     def regression_columns(self, alpha, conditions):
         """:meth:`regression_terms` as lists of arrays shaped like ``alpha[..., 0]``: ``(c1, c2)``,
         then the ``k`` columns of the first row of ``F``, then of the second; ``None`` where an
-        entry is zero whatever the angles (e.g. ``mc2`` in the first row), so the regression can
+        entry is zero whatever the angles (e.g. ``mc1`` in the first row), so the regression can
         factor each row's design on its own nonzero columns.
 
         The hot path of the integral regression. The trigonometry of the measured angles is
