@@ -22,19 +22,66 @@ def gaussian_noise(key, shape, std=1.0):
 
     The Monte Carlo hot path's sampler: on XLA's CPU backend ``jax.random.normal`` in float64
     spends more on its ``erf_inv`` than on the random bits (~100 us per 1441 x 2 deviates);
-    this draws the same bits and takes one polynomial logarithm and the polynomial
-    :func:`~gyrojax.rotations.sincos` per pair (~50 us). A different stream from
+    this draws the same uniforms as ``jax.random.uniform`` (by an unrolled hash, :func:`_uniform64`)
+    and takes one polynomial logarithm and the polynomial :func:`~gyrojax.rotations.sincos` per
+    pair (~36 us against ~69 us). A different stream from
     ``jax.random.normal`` for the same key: :func:`simulate` keeps ``jax.random.normal``, so
     its seeded records are unchanged.
     """
     shape = (shape,) if isinstance(shape, int) else tuple(shape)
     n = int(np.prod(shape, dtype=np.int64))
     half = -(-n // 2)
-    u = jax.random.uniform(key, (2, half), dtype=jnp.float64)
+    u = _uniform64(key, (2, half))
     radius = jnp.sqrt(-2.0 * _log(1.0 - u[0]))  # 1 - u in (0, 1], exact
     s, c = sincos(2.0 * np.pi * u[1])
     z = jnp.concatenate([radius * c, radius * s])[:n]
     return std * z.reshape(shape)
+
+
+def _uniform64(key, shape):
+    """``jax.random.uniform(key, shape, float64)``, the same values, by the threefry-2x32 hash
+    unrolled. jaxlib lowers the hash on the CPU as a rolled 5-iteration loop, each round a
+    separate pass over the counters; straight-line, the 20 rounds fuse into one pass. Run as a
+    scan over two halves of the counters, so the uniforms are materialized once: as plain
+    elementwise code XLA would fuse the hash into each of their consumers (four in
+    :func:`gaussian_noise`). 2 x 1441 uniforms and their Box-Muller: ~36 us against ~69 us (one
+    core, docs/notes.md). Other key implementations, the non-partitionable threefry stream, raw
+    uint32 keys, or 2**32 or more draws go through ``jax.random.uniform``."""
+    n = int(np.prod(shape, dtype=np.int64))
+    if (not jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key) or n >= 2**32
+            or jax.random.key_impl(key) != "threefry2x32"
+            or not jax.config.jax_threefry_partitionable):
+        return jax.random.uniform(key, shape, dtype=jnp.float64)
+    k = jax.random.key_data(key)
+
+    def uniforms(_, index):
+        # the partitionable stream hashes the flat index as (high word, low word): high is 0
+        hi, lo = _threefry2x32(k[0], k[1], jnp.zeros_like(index), index)
+        bits = (hi.astype(jnp.uint64) << np.uint64(32)) | lo.astype(jnp.uint64)
+        # 52 random mantissa bits under the exponent of 1.0: [1, 2) - 1, as jax.random.uniform
+        one_to_two = (bits >> np.uint64(12)) | np.uint64(0x3FF0000000000000)
+        return None, jax.lax.bitcast_convert_type(one_to_two, jnp.float64) - 1.0
+
+    halves = 2 if n % 2 == 0 else 1
+    _, u = jax.lax.scan(uniforms, None, jax.lax.iota(jnp.uint32, n).reshape(halves, -1))
+    return u.reshape(shape)
+
+
+_THREEFRY_ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
+
+
+def _threefry2x32(key1, key2, x0, x1):
+    """The threefry-2x32 hash (20 rounds; Salmon et al. 2011, as ``jax.random``) of the counter
+    pairs ``(x0, x1)`` (uint32 arrays) under the key ``(key1, key2)``."""
+    ks = (key1, key2, key1 ^ key2 ^ np.uint32(0x1BD11BDA))
+    x0, x1 = x0 + ks[0], x1 + ks[1]
+    for i in range(5):
+        for r in _THREEFRY_ROTATIONS[i % 2]:
+            x0 = x0 + x1
+            x1 = ((x1 << np.uint32(r)) | (x1 >> np.uint32(32 - r))) ^ x0
+        x0 = x0 + ks[(i + 1) % 3]
+        x1 = x1 + ks[(i + 2) % 3] + np.uint32(i + 1)
+    return x0, x1
 
 
 # fdlibm's e_log.c: ln 2 in two parts and the minimax coefficients of log(1+f) = 2s + s R(s^2)

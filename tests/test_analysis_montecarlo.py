@@ -63,6 +63,35 @@ def test_staged_trials_equal_the_composed_per_draw_function():
         np.testing.assert_allclose(out["v"], ref["v"], rtol=1e-14)
 
 
+def test_blas_threads_limited_during_the_run_and_restored():
+    """``monte_carlo`` runs with one BLAS/LAPACK thread by default (read inside the run through
+    a host callback), leaves the setting alone with ``blas_threads=None``, restores it after,
+    and rejects a bad value by name."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas_threads():
+        return max((i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"),
+                   default=None)
+
+    seen = []
+
+    def fn(x):
+        def probe(x):
+            seen.append(blas_threads())
+            return x
+        return jax.pure_callback(probe, jax.ShapeDtypeStruct(x.shape, x.dtype), x)
+
+    one = {"chunk_size": 4, "devices": jax.devices()[:1], "vectorized": True}
+    with threadpool_limits(2, user_api="blas"):  # whatever the machine: 2 before the runs
+        assert blas_threads() == 2  # scipy's OpenBLAS is loaded with jax's LAPACK
+        out = monte_carlo(fn, np.arange(4.0), **one)
+        np.testing.assert_array_equal(out, np.arange(4.0))
+        monte_carlo(fn, np.arange(4.0), **one, blas_threads=None)
+        assert seen == [1, 2] and blas_threads() == 2
+    with pytest.raises(ValueError, match="blas_threads=0"):
+        monte_carlo(fn, np.arange(4.0), blas_threads=0)
+
+
 def test_sharded_over_two_host_devices():
     """The same call shards each chunk over every JAX device (here 2 forced CPU devices)."""
     code = textwrap.dedent("""

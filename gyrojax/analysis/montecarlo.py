@@ -7,11 +7,14 @@ is padded, so the jitted batch function compiles once); each chunk is split over
 device runs the batch function on its own slice with no communication (a vmapped ODE solve's
 while loop never waits on another device's lanes). The same call uses every CPU device
 (``XLA_FLAGS=--xla_force_host_platform_device_count=N``), GPU, or, under ``jax.distributed``,
-every host. A progress bar (tqdm) advances between chunks.
+every host. A progress bar (tqdm) advances between chunks. During the run BLAS/LAPACK
+(OpenBLAS, through ``threadpoolctl``) uses one thread: a trial's least-squares problems are small,
+and jaxlib already spreads a batch's LAPACK calls over XLA's threads.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 from collections.abc import Callable
@@ -21,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from threadpoolctl import threadpool_limits
 
 __all__ = ["monte_carlo", "batch_size_of", "staged"]
 
@@ -64,7 +68,8 @@ def staged(first: Callable, second: Callable, *, batch_size: int = 8) -> Callabl
 
 
 def monte_carlo(fn: Callable, draws, *, chunk_size: int = 1024, devices=None,
-                progress: bool | str = False, vectorized: bool = False):
+                progress: bool | str = False, vectorized: bool = False,
+                blas_threads: int | None = 1):
     """Evaluate ``fn`` on every draw; returns the stacked outputs as numpy arrays.
 
     **Arguments:**
@@ -80,12 +85,20 @@ def monte_carlo(fn: Callable, draws, *, chunk_size: int = 1024, devices=None,
       is called on each device's slice of a chunk as is (not vmapped). Use it to run the stages of
       a trial at different batch sizes, e.g. :func:`staged` (simulate vmapped over the slice,
       identify in cache-sized sub-batches).
+    - `blas_threads`: threads BLAS/LAPACK may use during the run (``None``: leave the setting
+      alone). jaxlib's CPU LAPACK kernels (scipy's OpenBLAS) loop over a batch's small problems
+      (the ESG regression's 1440 x 11 QRs) spread over XLA's threads; OpenBLAS's own threads on
+      top only contend: on 2 cores one thread ran the ESG benchmark's trials 1.45x faster
+      (docs/notes.md). Restored when the call returns.
 
     With jaxlib 0.10.2 on the CPU and several host devices, a graph with batched LAPACK calls
     (QR, SVD: every least-squares fit) can deadlock: each device's LAPACK call waits on the shared
     thread pool (docs/notes.md). Run such graphs on one device (``devices=jax.devices()[:1]``).
     """
     n = batch_size_of(draws)
+    if blas_threads is not None and (not isinstance(blas_threads, int) or blas_threads < 1):
+        raise ValueError(f"monte_carlo: blas_threads={blas_threads!r}; give a positive int "
+                         "(threads for BLAS/LAPACK during the run) or None to leave it alone")
     devices = list(devices or jax.devices())
     nd = len(devices)
     chunk = max(nd, int(math.ceil(min(chunk_size, n) / nd)) * nd)
@@ -100,22 +113,25 @@ def monte_carlo(fn: Callable, draws, *, chunk_size: int = 1024, devices=None,
         bar = tqdm(total=n, desc=progress if isinstance(progress, str) else "monte carlo",
                    unit="draw")
     outs = []
-    try:
-        for i in range(n_chunks):
-            lo, hi = i * chunk, min((i + 1) * chunk, n)
+    limit = (contextlib.nullcontext() if blas_threads is None
+             else threadpool_limits(blas_threads, user_api="blas"))
+    with limit:
+        try:
+            for i in range(n_chunks):
+                lo, hi = i * chunk, min((i + 1) * chunk, n)
 
-            def take(x, lo=lo, hi=hi):
-                x = np.asarray(x)[lo:hi]
-                if hi - lo < chunk:  # pad the last chunk by repeating its last draw
-                    pad = np.repeat(x[-1:], chunk - (hi - lo), axis=0)
-                    x = np.concatenate([x, pad], axis=0)
-                return jax.device_put(jnp.asarray(x), sharding)
+                def take(x, lo=lo, hi=hi):
+                    x = np.asarray(x)[lo:hi]
+                    if hi - lo < chunk:  # pad the last chunk by repeating its last draw
+                        pad = np.repeat(x[-1:], chunk - (hi - lo), axis=0)
+                        x = np.concatenate([x, pad], axis=0)
+                    return jax.device_put(jnp.asarray(x), sharding)
 
-            out = batched(jax.tree.map(take, draws))
-            outs.append(jax.tree.map(lambda y, k=hi - lo: np.asarray(y)[:k], out))
+                out = batched(jax.tree.map(take, draws))
+                outs.append(jax.tree.map(lambda y, k=hi - lo: np.asarray(y)[:k], out))
+                if bar is not None:
+                    bar.update(hi - lo)
+        finally:
             if bar is not None:
-                bar.update(hi - lo)
-    finally:
-        if bar is not None:
-            bar.close()
+                bar.close()
     return jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *outs)
