@@ -64,7 +64,8 @@ def test_per_channel_solve_matches_the_stacked_design(scheme, base_param):
     factors; a second method, ``scaled_lstsq`` on the stacked design from ``regression_design``
     (zeros in place, one QR), gives the same estimates, singular values and covariance, also
     where the design is exactly rank-deficient (rotvec: dchi along u; equatorial: theta) and on
-    the parametrisation whose second channel has an extra structural zero (eps_free)."""
+    the parametrisation whose second channel has an extra structural zero (eps_free); its
+    residual RMS, read from the factors, equals that of the residuals formed."""
     from gyrojax.estimate import regression_design
     from gyrojax.estimate._linalg import scaled_lstsq
 
@@ -81,7 +82,10 @@ def test_per_channel_solve_matches_the_stacked_design(scheme, base_param):
     scale = np.max(np.abs(np.asarray(res.values)))
     np.testing.assert_allclose(res.values, p2, rtol=0, atol=1e-9 * scale)
     np.testing.assert_allclose(res.singular_values, s2, rtol=1e-9, atol=1e-12)
-    sigma2 = float(np.sum((np.asarray(b) - np.asarray(a) @ np.asarray(p2)) ** 2)) / (
+    direct = np.asarray(b) - np.asarray(a) @ np.asarray(p2)  # the residuals, formed
+    # the regression reads the residual sum of squares from the triangular factors instead
+    np.testing.assert_allclose(res.residual_rms, np.sqrt(np.mean(direct**2)), rtol=1e-9)
+    sigma2 = float(np.sum(direct**2)) / (
         a.shape[0] - int(np.sum(np.asarray(s2) > 1e-12 * float(s2[0]))))
     np.testing.assert_allclose(res.covariance, sigma2 * np.asarray(cov2), rtol=1e-7,
                                atol=1e-12 * float(np.max(np.abs(res.covariance))))

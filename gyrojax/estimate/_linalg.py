@@ -36,7 +36,7 @@ def scaled_lstsq(a, b, *, rcond: float = 1e-12):
     # [A b] is the column-major matrix LAPACK factors without a copy. Scaled before the QR: on one
     # stacked design, scaling R afterwards measured 1.4-2.4x slower (docs/notes.md).
     ab_t = jnp.concatenate([a.T, b[None]], axis=0) * scale[:, None]
-    return _solve_r(tall_qr_r(ab_t.T), norms, k, rcond)
+    return _solve_r(tall_qr_r(ab_t.T), norms, k, rcond)[:3]
 
 
 def scaled_lstsq_blocks(blocks, columns, k: int, *, rcond: float = 1e-12,
@@ -52,6 +52,9 @@ def scaled_lstsq_blocks(blocks, columns, k: int, *, rcond: float = 1e-12,
     factored once more. The
     column norms come from the stacked factors (they equal the design's: Q is orthogonal), and
     scaling after the QR loses nothing, as Householder QR is backward stable column by column.
+
+    Returns ``(p, cov_unit, singular_values, rss)`` as :func:`scaled_lstsq` plus the residual
+    sum of squares ``|A p - b|^2``, read from the factors (see :func:`_solve_r`).
     """
     stacked = []
     for blk, cols in zip(blocks, columns):
@@ -77,9 +80,14 @@ def _column_norms(a):
 
 
 def _solve_r(r_aug, norms, k, rcond):
-    """The minimum-norm solution, unit covariance and singular values from ``R`` of the
-    column-scaled ``[A b]`` (its last column holds ``Q^T b``, so ``Q`` is never formed). Fewer
-    rows than unknowns (a short record) are padded with zero rows, which leave ``R`` unchanged."""
+    """The minimum-norm solution, unit covariance, singular values and residual sum of squares
+    from ``R`` of the column-scaled ``[A b]`` (its last column holds ``Q^T b``, so ``Q`` is never
+    formed). Fewer rows than unknowns (a short record) are padded with zero rows, which leave
+    ``R`` unchanged.
+
+    As ``[A b] = Q R`` with orthonormal ``Q``, ``|A p - b| = |R[:, :k] p - R[:, k]|`` over all of
+    ``R``'s rows: the residual without the design (its ``Q^T`` part, plus ``R[k, k]``: the part
+    of ``b`` outside the columns' span), as LAPACK's ``xGELS`` reads it."""
     if r_aug.shape[0] < k + 1:
         r_aug = jnp.pad(r_aug, ((0, k + 1 - r_aug.shape[0]), (0, 0)))
     r, qtb = r_aug[:k, :k], r_aug[:k, k]
@@ -88,6 +96,7 @@ def _solve_r(r_aug, norms, k, rcond):
     s_inv = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0)
     p_scaled = vt.T @ (s_inv * (u.T @ qtb))
     cov_scaled = (vt.T * s_inv**2) @ vt
+    rss = jnp.sum((r_aug[:, :k] @ p_scaled - r_aug[:, k]) ** 2)
     p = p_scaled / norms
     cov = cov_scaled / jnp.outer(norms, norms)
-    return p, cov, s
+    return p, cov, s, rss
