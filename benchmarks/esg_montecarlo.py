@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.integrate import solve_ivp
 from scipy.optimize import least_squares
+from threadpoolctl import threadpool_limits
 
 import gyrojax as gj
 from gyrojax import units
@@ -295,15 +296,17 @@ def stage_times(n=512, repeats=5):
 
     y = ode(d) + NOISE
     ab = jax.jit(jax.vmap(design))(y)
-    return {"ode": timed(ode, d),
-            "noise": timed(jax.jit(jax.vmap(lambda k: gaussian_noise(wrap(k), (len(ts), 2)))),
-                           d["key"]),
-            "normal": timed(jax.jit(jax.vmap(lambda k: jax.random.normal(wrap(k),
-                                                                         (len(ts), 2)))),
-                            d["key"]),
-            "regression": timed(sub8(lambda y: integral_regression(
-                rig, BenchRecord(ts, y, rig.channels), cond).values), y),
-            "qr": timed(sub8(lambda blocks: [tall_qr_r(b.T) for b in blocks]), ab)}
+    with threadpool_limits(1, user_api="blas"):  # as monte_carlo runs them
+        return {"ode": timed(ode, d),
+                "noise": timed(jax.jit(jax.vmap(lambda k: gaussian_noise(wrap(k), (len(ts), 2)))),
+                               d["key"]),
+                "normal": timed(jax.jit(jax.vmap(lambda k: jax.random.normal(wrap(k),
+                                                                             (len(ts), 2)))),
+                                d["key"]),
+                "regression": timed(sub8(lambda y: integral_regression(
+                    rig, BenchRecord(ts, y, rig.channels), cond).values), y),
+                "qr": timed(sub8(lambda blocks: [tall_qr_r(b.T, block_rows=1440)
+                                                 for b in blocks]), ab)}
 
 
 def time_monte_carlo(one, n, devices=None, before_timing=None, chunk=512, passes=1):
@@ -567,7 +570,12 @@ def main(argv=None):
               "them: docs/notes.md). Since stop 50 the regression factors each channel's rows on "
               "the columns not zero by construction there and merges the two triangular factors "
               "(~30 % fewer QR operations than the stacked 2880 x 12), and `gaussian_noise` takes "
-              "a polynomial logarithm.",
+              "a polynomial logarithm. Since stop 51 `monte_carlo` runs BLAS/LAPACK on one thread "
+              "(OpenBLAS's own threads on top of jaxlib's batch loop doubled the QR's time on one "
+              "device; the pinned all-cores processes had one already), `gaussian_noise` hashes "
+              "its uniforms once in straight-line code (the same values as `jax.random.uniform`) "
+              "and the regression reads its residual sum of squares from the triangular factors "
+              "instead of forming the residuals.",
               "",
               f"The goal of 100x the scipy loop: at N = {big[0]:,} one device runs "
               f"{big[1] / srate:.0f}x the loop's best in this run (one trial ~{1e6 / big[1]:.0f} "
