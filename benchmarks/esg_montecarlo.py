@@ -357,8 +357,9 @@ def time_monte_carlo(one, n, devices=None, before_timing=None, chunk=512, passes
 def all_cores_run(n, limit_s=300):
     """``n`` trials split over one process per core, each pinned to its core and running
     ``time_monte_carlo`` on one device; the processes compile, meet at a barrier, and the rate is
-    ``n`` over the span from the first start to the last finish. A dict with the rate, the
-    compile time and the process count, or ``{"hung": limit_s}``."""
+    ``n`` over the span from the first start to the last finish. Then each process times
+    back-to-back pairs (``paired_ratios``) with every core busy. A dict with the rate, the
+    compile time, the process count and the per-core paired ratios, or ``{"hung": limit_s}``."""
     cores = len(os.sched_getaffinity(0))
     with tempfile.TemporaryDirectory() as barrier:
         procs = [subprocess.Popen(
@@ -378,21 +379,28 @@ def all_cores_run(n, limit_s=300):
     res = [json.loads(o.strip().splitlines()[-1]) for o, _ in outs]
     span = max(r["end"] for r in res) - min(r["start"] for r in res)
     return {"rate": (n // cores) * cores / span, "compile_s": max(r["compile_s"] for r in res),
-            "processes": cores}
+            "processes": cores, "paired": np.concatenate([r["paired"] for r in res])}
 
 
 def _probe(n, barrier, processes):
-    """One process of ``all_cores_run``: one JSON line with its compile time and timed span."""
-    def wait_for_all():
-        open(os.path.join(barrier, str(os.getpid())), "w").close()
-        while len(os.listdir(barrier)) < processes:
+    """One process of ``all_cores_run``: one JSON line with its compile time, timed span and
+    its paired ratios (``paired_ratios``, after a second barrier, so every core is busy with
+    the same alternation)."""
+    def wait_for_all(tag):
+        open(os.path.join(barrier, f"{tag}-{os.getpid()}"), "w").close()
+        while sum(f.startswith(tag) for f in os.listdir(barrier)) < processes:
             time.sleep(0.01)
-        stamps["start"] = time.time()
+        stamps[tag] = time.time()
 
     stamps = {}
-    _, compile_s = time_monte_carlo(gyrojax_trial_fn(), n, devices=jax.devices()[:1],
-                                    before_timing=wait_for_all)
-    print(json.dumps({"compile_s": compile_s, "start": stamps["start"], "end": time.time()}))
+    one = gyrojax_trial_fn()
+    _, compile_s = time_monte_carlo(one, n, devices=jax.devices()[:1],
+                                    before_timing=lambda: wait_for_all("start"))
+    end = time.time()
+    wait_for_all("pairs")
+    paired = paired_ratios(one, pairs=10)
+    print(json.dumps({"compile_s": compile_s, "start": stamps["start"], "end": end,
+                      "paired": paired.tolist()}))
 
 
 def bench_gauss_newton(n_fits):
@@ -560,6 +568,16 @@ def main(argv=None):
               f"median {med:.0f}x (quartiles {q1:.0f}x-{q3:.0f}x, range {paired.min():.0f}x-"
               f"{paired.max():.0f}x): the one-device ratio with the VM's drift taken out, where "
               "the table's compares each side's fastest timing, minutes apart."]
+    allc = rows[-1][3]
+    if allc and "paired" in allc:
+        pc = allc["paired"]
+        procs = allc["processes"]
+        lines[-1] += (f" All cores, each of the {procs} processes timing such pairs at once: per "
+                      f"core median {np.median(pc):.0f}x (quartiles "
+                      f"{np.percentile(pc, 25):.0f}x-{np.percentile(pc, 75):.0f}x, "
+                      f"{len(pc)} pairs), so ~{procs * np.median(pc):.0f}x for all "
+                      f"{procs} cores against one scipy process (taking the loop to run as "
+                      "fast alone as beside the others).")
     lines += ["", f"The ODE runs on a fixed grid of {grid_steps(*nominal())} Dopri8 steps "
               "(`integrate(..., steps=)`, picked by `grid_steps` from the nominal trajectory; "
               "every step's error estimate of every draw is checked against rtol 1e-10 and the "
