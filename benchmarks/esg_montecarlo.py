@@ -8,10 +8,10 @@ fit. All run in this process on the same machine; throughput is measured after w
 compile time is reported separately. The scipy loop is timed on a subset of trials (its cost is
 linear in N) and reported as trials/s.
 
-The Monte Carlo runs on one JAX device, and at N = 10,000 also on every core: one process per
-core, each pinned to its core and running its share of the trials on one device, timed from a
-barrier after their compiles to the last finish. (Sharding one process's chunks over the cores as
-host devices, ``XLA_FLAGS=--xla_force_host_platform_device_count``, can deadlock jaxlib 0.10.2's
+The Monte Carlo runs on one JAX device, and at N = 10,000 also on every core through the
+library's CPU path, ``monte_carlo(..., processes="all")``: one worker process pinned to each core,
+the chunks handed to whichever is free. (Sharding one process's chunks over the cores as host
+devices, ``XLA_FLAGS=--xla_force_host_platform_device_count``, can deadlock jaxlib 0.10.2's
 batched LAPACK: docs/notes.md.) The scipy loop runs in one process; the table also gives the
 ratio per core against an ideal one-process-per-core scipy pool.
 
@@ -25,11 +25,8 @@ Run:  python benchmarks/esg_montecarlo.py [--quick] [--accelerator] [--out bench
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
 import sys
-import tempfile
 import time
 
 import jax
@@ -226,27 +223,33 @@ def scipy_block_rates(blocks, block=10, seed=1):
     return rates
 
 
-def paired_ratios(one, pairs=20, chunk=512, block=5, seed=6):
-    """One-device gyrojax / scipy-loop throughput ratios from ``pairs`` back-to-back pairs of
-    timings (a 512-draw chunk of ``one``, compiled, then a block of ``block`` scipy trials,
-    each ~0.1-0.2 s): both sides of a pair see the same phase of the VM, whose speed drifts by
-    up to 2x within seconds, so the ratios scatter far less than best-against-best rates
-    timed minutes apart. With BLAS on one thread, as ``monte_carlo`` runs."""
-    dn = jax.tree.map(jnp.asarray, draws(chunk, seed=seed, noise=False))
-    f = jax.jit(one)
-    jax.block_until_ready(f(dn))
+def paired_ratios(one, pairs=20, chunk=512, block=5, seed=6, processes=None):
+    """gyrojax / scipy-loop throughput ratios from ``pairs`` back-to-back pairs of timings (a
+    ``monte_carlo`` call of ``one``, compiled, then a block of ``block`` scipy trials, each
+    ~0.1-0.2 s): both sides of a pair see the same phase of the VM, whose speed drifts by up to
+    2x within seconds, so the ratios scatter far less than best-against-best rates timed
+    minutes apart. One device: a ``chunk``-draw call; ``processes``: a call of ``chunk`` draws
+    per worker process (one chunk each)."""
+    workers = 1 if processes is None else (len(os.sched_getaffinity(0)) if processes == "all"
+                                           else processes)
+    dn = draws(chunk * workers, seed=seed, noise=False)
+    where = ({"devices": jax.devices()[:1]} if processes is None else {"processes": processes})
+
+    def call():
+        monte_carlo(one, dn, chunk_size=chunk, vectorized=True, **where)
+
+    call()  # compile (and start the workers)
     _, trial = _scipy_setup(pairs * block, seed)
     ratios = []
-    with threadpool_limits(1, user_api="blas"):
-        for i in range(pairs):
-            t0 = time.perf_counter()
-            jax.block_until_ready(f(dn))
-            t_gj = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            for j in range(i * block, (i + 1) * block):
-                trial(j)
-            t_sc = time.perf_counter() - t0
-            ratios.append((chunk / t_gj) / (block / t_sc))
+    for i in range(pairs):
+        t0 = time.perf_counter()
+        call()
+        t_gj = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        for j in range(i * block, (i + 1) * block):
+            trial(j)
+        t_sc = time.perf_counter() - t0
+        ratios.append((chunk * workers / t_gj) / (block / t_sc))
     return np.asarray(ratios)
 
 
@@ -265,7 +268,8 @@ def scipy_baseline(one, scipy_trials):
 
 
 def bench_montecarlo(ns, scipy_trials):
-    """Rows (N, gyrojax trials/s, compile s, all-cores result), the scipy rates (the agreement
+    """Rows (N, gyrojax trials/s, compile s, all-cores rate, compile s and paired ratios or
+    None), the scipy rates (the agreement
     run's, then blocks of 10 before and after the gyrojax runs), agreement, the adaptive-step
     rate, the per-trial stage times and the paired one-device ratios."""
     one = gyrojax_trial_fn()
@@ -274,7 +278,11 @@ def bench_montecarlo(ns, scipy_trials):
     rows = []
     for n in ns:
         rate, compile_s = time_monte_carlo(one, n, devices=jax.devices()[:1], passes=3)
-        all_cores = all_cores_run(n) if n >= 10_000 else None
+        all_cores = None
+        if n >= 10_000:
+            ra, ca = time_monte_carlo(one, n, processes="all", passes=3)
+            all_cores = {"rate": ra, "compile_s": ca,
+                         "paired": paired_ratios(one, processes="all")}
         rows.append((n, rate, compile_s, all_cores))
     adaptive = time_monte_carlo(gyrojax_trial_fn(fixed_grid=False), ns[-1],
                                 devices=jax.devices()[:1])
@@ -334,73 +342,26 @@ def stage_times(n=512, repeats=5):
                                                  for b in blocks]), ab)}
 
 
-def time_monte_carlo(one, n, devices=None, before_timing=None, chunk=512, passes=1):
+def time_monte_carlo(one, n, devices=None, processes=None, chunk=512, passes=1):
     """(trials/s, compile s) of ``n`` trials in chunks of ``chunk`` on ``devices`` (default:
-    all); ``before_timing`` is called between the compile and the timed run. With ``passes`` > 1
-    the run is timed that many times and the fastest counts, as for the scipy loop's blocks."""
+    all) or on ``processes`` worker processes (then the compile time includes starting them).
+    With ``passes`` > 1 the run is timed that many times and the fastest counts, as for the
+    scipy loop's blocks."""
     dn = draws(n, seed=2, noise=False)
-    chunk = min(n, chunk)
+    where = {"devices": devices} if processes is None else {"processes": processes}
+    workers = 1 if processes is None else (len(os.sched_getaffinity(0)) if processes == "all"
+                                           else processes)
+    first = min(n, chunk * workers)  # one chunk per worker: every worker compiles
     t0 = time.perf_counter()
-    monte_carlo(one, jax.tree.map(lambda x: x[:chunk], dn), chunk_size=chunk, devices=devices,
-                vectorized=True)  # compile
+    monte_carlo(one, jax.tree.map(lambda x: x[:first], dn), chunk_size=chunk, vectorized=True,
+                **where)
     compile_s = time.perf_counter() - t0
-    if before_timing:
-        before_timing()
     best = np.inf
     for _ in range(passes):
         t0 = time.perf_counter()
-        monte_carlo(one, dn, chunk_size=chunk, devices=devices, vectorized=True)
+        monte_carlo(one, dn, chunk_size=chunk, vectorized=True, **where)
         best = min(best, time.perf_counter() - t0)
     return n / best, compile_s
-
-
-def all_cores_run(n, limit_s=300):
-    """``n`` trials split over one process per core, each pinned to its core and running
-    ``time_monte_carlo`` on one device; the processes compile, meet at a barrier, and the rate is
-    ``n`` over the span from the first start to the last finish. Then each process times
-    back-to-back pairs (``paired_ratios``) with every core busy. A dict with the rate, the
-    compile time, the process count and the per-core paired ratios, or ``{"hung": limit_s}``."""
-    cores = len(os.sched_getaffinity(0))
-    with tempfile.TemporaryDirectory() as barrier:
-        procs = [subprocess.Popen(
-            [sys.executable, __file__, "--all-cores-probe", str(n // cores), "--barrier",
-             barrier, "--processes", str(cores)],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-            preexec_fn=lambda c=c: os.sched_setaffinity(0, {c}))
-            for c in sorted(os.sched_getaffinity(0))]
-        try:
-            outs = [p.communicate(timeout=limit_s) for p in procs]
-        except subprocess.TimeoutExpired:
-            for p in procs:
-                p.kill()
-            return {"hung": limit_s}
-    if any(p.returncode for p in procs):
-        raise RuntimeError("all-cores run failed:\n" + "\n".join(e[-2000:] for _, e in outs))
-    res = [json.loads(o.strip().splitlines()[-1]) for o, _ in outs]
-    span = max(r["end"] for r in res) - min(r["start"] for r in res)
-    return {"rate": (n // cores) * cores / span, "compile_s": max(r["compile_s"] for r in res),
-            "processes": cores, "paired": np.concatenate([r["paired"] for r in res])}
-
-
-def _probe(n, barrier, processes):
-    """One process of ``all_cores_run``: one JSON line with its compile time, timed span and
-    its paired ratios (``paired_ratios``, after a second barrier, so every core is busy with
-    the same alternation)."""
-    def wait_for_all(tag):
-        open(os.path.join(barrier, f"{tag}-{os.getpid()}"), "w").close()
-        while sum(f.startswith(tag) for f in os.listdir(barrier)) < processes:
-            time.sleep(0.01)
-        stamps[tag] = time.time()
-
-    stamps = {}
-    one = gyrojax_trial_fn()
-    _, compile_s = time_monte_carlo(one, n, devices=jax.devices()[:1],
-                                    before_timing=lambda: wait_for_all("start"))
-    end = time.time()
-    wait_for_all("pairs")
-    paired = paired_ratios(one, pairs=10)
-    print(json.dumps({"compile_s": compile_s, "start": stamps["start"], "end": end,
-                      "paired": paired.tolist()}))
 
 
 def bench_gauss_newton(n_fits):
@@ -502,16 +463,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
-    ap.add_argument("--all-cores-probe", type=int, default=0, help=argparse.SUPPRESS)
-    ap.add_argument("--barrier", help=argparse.SUPPRESS)
-    ap.add_argument("--processes", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--accelerator", action="store_true",
                     help="time the Monte Carlo on jax.devices()[0] (e.g. a GPU) at several chunk "
                          "sizes instead, into the section 'esg_accelerator' (extra figures)")
     args = ap.parse_args(argv)
-    if args.all_cores_probe:  # a subprocess of all_cores_run
-        _probe(args.all_cores_probe, args.barrier, args.processes)
-        return
     if args.accelerator:
         ns = (1_000, 10_000) if args.quick else (1_000, 10_000, 100_000)
         configs = (((512, 8), (2_000, 2_000)) if args.quick else
@@ -525,7 +480,7 @@ def main(argv=None):
         ns, scipy_trials=5 if args.quick else 30)
     srate = max(srates)  # the scipy loop at its fastest in this run
     gn = bench_gauss_newton(4 if args.quick else 20)
-    cores = os.cpu_count() or 1
+    cores = len(os.sched_getaffinity(0))
     lines = [
         "## ESG Monte Carlo: simulate 24 h + identify 11 parameters (`benchmarks/esg_montecarlo.py`)",
         "",
@@ -533,9 +488,9 @@ def main(argv=None):
         "(Dopri8 / DOP853 at rtol 1e-10), 1 arcsec noise drawn in the graph, regression of 6 "
         "drifts + theta + dchi (11 columns). gyrojax: `monte_carlo(staged(simulate, identify), "
         "..., vectorized=True)`: the ODE solves vmapped over each 512-draw chunk, the regressions "
-        f"in sub-batches of 8 (`jax.lax.map`). 'All cores': {cores} processes, one pinned to each "
-        "core, each running its share of the trials on one device (see the note below the "
-        "table).",
+        f"in sub-batches of 8 (`jax.lax.map`). 'All cores': the same call with "
+        f"`processes=\"all\"`: {cores} worker processes, one pinned to each core, each running "
+        "the chunks it is handed on its own device (see the note below the table).",
         "",
         "| N trials | gyrojax 1 device, trials/s | gyrojax all cores, trials/s | scipy "
         "solve_ivp + numpy lstsq loop, trials/s | ratio, 1 device | ratio, all cores | ratio per "
@@ -546,22 +501,19 @@ def main(argv=None):
         if allc is None:
             lines.append(f"| {n:,} | {r1:,.0f} | - | {srate:,.1f} | {r1 / srate:,.0f}x | - | - | "
                          f"{c1:.1f} / - |")
-        elif "hung" in allc:
-            lines.append(f"| {n:,} | {r1:,.0f} | hung (> {allc['hung']} s) | {srate:,.1f} | "
-                         f"{r1 / srate:,.0f}x | - | - | {c1:.1f} / - |")
         else:
             ra = allc["rate"]
             lines.append(f"| {n:,} | {r1:,.0f} | {ra:,.0f} | {srate:,.1f} | {r1 / srate:,.0f}x | "
                          f"{ra / srate:,.0f}x | {ra / (srate * cores):,.0f}x | {c1:.1f} / "
                          f"{allc['compile_s']:.1f} |")
-    lines += ["", "All cores: timed from a barrier after every process has compiled to the last "
-              "finish, one timed pass. One device: the fastest of 3 timed passes over all N "
-              "trials (the VM's speed drifts; the scipy loop's rate is its fastest timing too). "
-              "Processes, not one process with every core as a JAX host device: sharding "
-              "the chunks over host devices deadlocks jaxlib 0.10.2 when several devices run "
-              "batched LAPACK (the regression's QR) at once (docs/notes.md); it hung in this "
-              "benchmark once the ODE got faster. The library's own Monte Carlo "
-              "(`mounting_error_budget`, the CLI) runs on one device."]
+    lines += ["", "Both columns: the fastest of 3 timed passes over all N trials (the VM's speed "
+              "drifts; the scipy loop's rate is its fastest timing too); the all-cores compile "
+              "time includes starting the worker processes. Worker processes, not one process "
+              "with every core as a JAX host device: one process runs a trial's graph on one "
+              "core, and sharding the chunks over host devices deadlocks jaxlib 0.10.2 when "
+              "several devices run batched LAPACK (the regression's QR) at once "
+              "(docs/notes.md). `mounting_error_budget` and `gyrojax montecarlo --processes all` "
+              "take the same path."]
     def spread(r):
         q1, q3 = np.percentile(r, [25, 75])
         return f"median {np.median(r):.0f}x (quartiles {q1:.0f}x-{q3:.0f}x, {len(r)} pairs)"
@@ -572,13 +524,10 @@ def main(argv=None):
               "side's fastest timing, minutes apart."]
     allc = rows[-1][3]
     paired_all = None
-    if allc and "paired" in allc:
-        procs = allc["processes"]
-        paired_all = procs * np.median(allc["paired"])
-        lines[-1] += (f" All cores, each of the {procs} processes timing such pairs at once: per "
-                      f"core {spread(allc['paired'])}, so ~{paired_all:.0f}x for all {procs} "
-                      "cores against one scipy process (taking the loop to run as fast alone as "
-                      "beside the others).")
+    if allc:
+        paired_all = np.median(allc["paired"])
+        lines[-1] += (f" All cores, pairs of a `processes=\"all\"` call ({cores} x 512 draws) "
+                      f"and 5 scipy trials: {spread(allc['paired'])}.")
     lines += ["", f"The ODE runs on a fixed grid of {grid_steps(*nominal())} Dopri8 steps "
               "(`integrate(..., steps=)`, picked by `grid_steps` from the nominal trajectory; "
               "every step's error estimate of every draw is checked against rtol 1e-10 and the "
@@ -601,9 +550,8 @@ def main(argv=None):
               ""]
     big = rows[-1]
     paired_goal = f"one device {np.median(paired):.0f}x" + (
-        f", all cores ~{paired_all:.0f}x" if paired_all else "")
-    all_line = (f", all {cores} cores {big[3]['rate'] / srate:.0f}x"
-                if big[3] and "rate" in big[3] else "")
+        f", all cores {paired_all:.0f}x" if paired_all else "")
+    all_line = f", all {cores} cores {big[3]['rate'] / srate:.0f}x" if big[3] else ""
     st = stages
     rest = 1e6 / big[1] - st["ode"] - st["noise"] - st["regression"]
     lines += ["## Where the time goes (one device, measured in this run)", "",

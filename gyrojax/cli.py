@@ -238,9 +238,16 @@ def cmd_montecarlo(args):
     else:
         if args.draws < 1:
             raise UsageError(f"--draws {args.draws} must be >= 1")
+        processes = args.processes
+        if processes is not None and processes != "all":
+            if not processes.isdigit() or int(processes) < 1:
+                raise UsageError(f"--processes {processes!r}: give a number of worker processes "
+                                 ">= 1 or 'all' (one per CPU core)")
+            processes = int(processes)
         bud = mounting_error_budget(jax.random.key(args.seed), args.draws, lat,
                                     noise_arcsec=args.noise_arcsec, alpha20_deg=args.alpha20,
-                                    chunk_size=args.chunk_size, progress="budget")
+                                    chunk_size=args.chunk_size, progress="budget",
+                                    processes=processes)
         print(f"# Monte Carlo error budget: {args.draws} draws per scheme, dchi ~ N(0, 1'), "
               f"theta ~ N(0, 10'), noise {args.noise_arcsec}\", alpha2(0) = {args.alpha20} deg; "
               "RMS drift error in deg/h")
@@ -648,6 +655,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="initial alpha2 in deg (budget; default 30, where all parameters are "
                         "observable in the equatorial scheme)")
     p.add_argument("--chunk-size", type=int, default=512, help="draws per compiled batch")
+    p.add_argument("--processes", metavar="N|all",
+                   help="run the budget's chunks on N worker processes, one pinned to each CPU "
+                        "core ('all': every core; default: this process only)")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed")
     p.add_argument("--json", metavar="FILE", help="write results ('-' = stdout)")
     p.set_defaults(func=cmd_montecarlo)

@@ -112,6 +112,87 @@ def test_sharded_over_two_host_devices():
     assert "OK 2" in res.stdout
 
 
+def _qr_trial(c):
+    """A trial with a small QR (the LAPACK call that deadlocks host devices in one process)
+    whose output also carries how many batch functions its process has compiled so far (read
+    at run time, in the worker, through a host callback)."""
+
+    def compiled(x):
+        from gyrojax.analysis.montecarlo import _batched
+
+        return np.full(x.shape, _batched.cache_info().misses, dtype=np.int64)
+
+    def fn(d):
+        r = jnp.linalg.qr(jnp.outer(d["b"], c))[1]
+        n = jax.pure_callback(compiled, jax.ShapeDtypeStruct((), jnp.int64), d["a"],
+                              vmap_method="broadcast_all")
+        return {"y": jnp.sin(d["a"]) * c.sum() + d["b"][0], "r": r[0, 0], "compiled": n}
+
+    return fn
+
+
+def test_worker_processes_equal_this_process_and_compile_once():
+    """``processes=2``: the chunks (101 draws in chunks of 16, the last padded) run in two
+    worker processes and give the in-process outputs bit for bit; a second call with the same
+    function compiles nothing new in the workers, a new function once."""
+    c = jnp.linspace(0.0, 1.0, 5)
+    fn = _qr_trial(c)
+    draws = {"a": np.arange(101.0), "b": np.arange(202.0).reshape(101, 2)}
+    ref = monte_carlo(fn, draws, chunk_size=16)
+    first = monte_carlo(fn, draws, chunk_size=16, processes=2, progress=True)
+    second = monte_carlo(fn, draws, chunk_size=16, processes=2)
+    for out in (first, second):
+        for k in ("y", "r"):
+            np.testing.assert_array_equal(out[k], ref[k])
+    assert second["compiled"].max() == first["compiled"].max() >= 1
+    # a new function object goes to the workers and compiles there once
+    third = monte_carlo(_qr_trial(jnp.ones(5)), draws, chunk_size=16, processes=2)
+    assert third["compiled"].max() == first["compiled"].max() + 1
+    np.testing.assert_allclose(third["y"], np.sin(draws["a"]) * 5 + draws["b"][:, 0],
+                               rtol=1e-14)
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 cores to pin 2 workers")
+def test_worker_processes_are_pinned_one_per_core():
+    """Each worker runs on one core of this process's affinity set, a different one each (read
+    inside the run through a host callback)."""
+
+    def fn(x):
+        def where(x):
+            return np.full(x.shape, min(os.sched_getaffinity(0)) + 100 * (
+                len(os.sched_getaffinity(0)) - 1), dtype=x.dtype)
+        return jax.pure_callback(where, jax.ShapeDtypeStruct(x.shape, x.dtype), x)
+
+    cores = sorted(os.sched_getaffinity(0))[:2]
+    out = monte_carlo(fn, np.arange(64.0), chunk_size=4, processes=2, vectorized=True)
+    assert set(out.tolist()) == set(float(c) for c in cores), out  # one core each, both used
+
+
+def test_worker_error_is_raised_with_its_traceback_and_the_pool_recovers():
+    def bad(x):
+        def boom(x):
+            raise FloatingPointError("trial 3 diverged")
+        return jax.pure_callback(boom, jax.ShapeDtypeStruct(x.shape, x.dtype), x)
+
+    with pytest.raises(RuntimeError, match=r"(?s)worker process \d.*failed.*trial 3 diverged"):
+        monte_carlo(bad, np.arange(8.0), chunk_size=4, processes=2, vectorized=True)
+    out = monte_carlo(lambda x: 2 * x, np.arange(8.0), chunk_size=4, processes=2)
+    np.testing.assert_array_equal(out, 2 * np.arange(8.0))
+
+
+def test_processes_bad_arguments_name_the_value():
+    import threading
+
+    lock = threading.Lock()
+    with pytest.raises(TypeError, match="cannot be pickled"):
+        monte_carlo(lambda x: x + (lock is None), np.arange(4.0), processes=2)
+    for bad in (0, -1, True, "many", 1.5):
+        with pytest.raises(ValueError, match=f"processes={bad!r}"):
+            monte_carlo(lambda x: x, np.arange(4.0), processes=bad)
+    with pytest.raises(ValueError, match="not both"):
+        monte_carlo(lambda x: x, np.arange(4.0), processes=2, devices=jax.devices())
+
+
 @pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_mounting_budget_joint_estimation_beats_drift_only():
     """Monte Carlo over random mounting errors, noise-free (alpha2(0) = 30 deg where every

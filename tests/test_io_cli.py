@@ -115,6 +115,8 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
      "--table-run is for the imu rig"),
     (["diagnose", "r.nc", "--rig", "imu", "--table-run", "0:60", "--json", "x.json"],
      "--table-run '0:60': give T0:T1:RATE"),
+    (["montecarlo", "--study", "budget", "--processes", "0", "--json", "x.json"],
+     "--processes '0': give a number of worker processes >= 1 or 'all'"),
 ])
 def test_cli_bad_input_exit_2_one_line_nothing_written(tmp_path, capsys, monkeypatch, argv,
                                                       match):

@@ -1,6 +1,7 @@
 """Analysis: observability, Monte Carlo, mounting-error studies, gyrotheodolite vibration error."""
 
 from .montecarlo import monte_carlo as monte_carlo
+from .montecarlo import shutdown_processes as shutdown_processes
 from .montecarlo import staged as staged
 from .mounting import (
     MountingBudget as MountingBudget,

@@ -7,7 +7,9 @@ is padded, so the jitted batch function compiles once); each chunk is split over
 device runs the batch function on its own slice with no communication (a vmapped ODE solve's
 while loop never waits on another device's lanes). The same call uses every CPU device
 (``XLA_FLAGS=--xla_force_host_platform_device_count=N``), GPU, or, under ``jax.distributed``,
-every host. A progress bar (tqdm) advances between chunks. During the run BLAS/LAPACK
+every host. On the CPU, ``processes=k`` instead hands the chunks to ``k`` worker processes, one
+pinned to each core (one process's graph runs on one core). A progress bar (tqdm) advances
+between chunks. During the run BLAS/LAPACK
 (OpenBLAS, through ``threadpoolctl``) uses one thread: a trial's least-squares problems are small,
 and jaxlib already spreads a batch's LAPACK calls over XLA's threads.
 """
@@ -26,7 +28,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from threadpoolctl import threadpool_limits
 
-__all__ = ["monte_carlo", "batch_size_of", "staged"]
+__all__ = ["monte_carlo", "batch_size_of", "staged", "shutdown_processes"]
 
 
 @functools.lru_cache(maxsize=64)
@@ -69,7 +71,7 @@ def staged(first: Callable, second: Callable, *, batch_size: int = 8) -> Callabl
 
 def monte_carlo(fn: Callable, draws, *, chunk_size: int = 1024, devices=None,
                 progress: bool | str = False, vectorized: bool = False,
-                blas_threads: int | None = 1):
+                blas_threads: int | None = 1, processes: int | str | None = None):
     """Evaluate ``fn`` on every draw; returns the stacked outputs as numpy arrays.
 
     **Arguments:**
@@ -91,47 +93,114 @@ def monte_carlo(fn: Callable, draws, *, chunk_size: int = 1024, devices=None,
       top only contend: on 2 cores one thread ran the ESG benchmark's trials 1.45x faster
       (docs/notes.md). Restored when the call returns.
 
+    - `processes`: run the chunks on this many worker processes instead (CPU only), each
+      pinned to one core and running its chunks on its own CPU device; ``"all"``: one per core
+      this process may use. ``None`` (default): in this process. This is how a CPU Monte Carlo
+      uses every core: one process runs a trial's graph on one core, and several host devices
+      in one process deadlock jaxlib 0.10.2's batched LAPACK (below). The workers stay up
+      between calls, so passing the same ``fn`` again reuses their compilations
+      (:func:`shutdown_processes` stops them); ``fn`` goes to them through ``cloudpickle``.
+      On 2 cores the ESG benchmark's trials ran 1.7-2.0x faster than in one process
+      (benchmarks/RESULTS.md).
+
     With jaxlib 0.10.2 on the CPU and several host devices, a graph with batched LAPACK calls
     (QR, SVD: every least-squares fit) can deadlock: each device's LAPACK call waits on the shared
-    thread pool (docs/notes.md). Run such graphs on one device (``devices=jax.devices()[:1]``).
+    thread pool (docs/notes.md). Run such graphs on one device (``devices=jax.devices()[:1]``),
+    or on several cores with ``processes``.
     """
     n = batch_size_of(draws)
     if blas_threads is not None and (not isinstance(blas_threads, int) or blas_threads < 1):
         raise ValueError(f"monte_carlo: blas_threads={blas_threads!r}; give a positive int "
                          "(threads for BLAS/LAPACK during the run) or None to leave it alone")
-    devices = list(devices or jax.devices())
-    nd = len(devices)
-    chunk = max(nd, int(math.ceil(min(chunk_size, n) / nd)) * nd)
-    mesh = Mesh(np.array(devices), ("batch",))
-    sharding = NamedSharding(mesh, PartitionSpec("batch"))
-    batched = _batched(fn, bool(vectorized), mesh)
+    workers = _worker_count(processes, devices)
+    if workers is None:
+        devices = list(devices or jax.devices())
+        nd = len(devices)
+        chunk = max(nd, int(math.ceil(min(chunk_size, n) / nd)) * nd)
+    else:  # balance the chunks over the workers; each worker has one device
+        chunk = min(chunk_size, int(math.ceil(n / workers)))
     n_chunks = int(math.ceil(n / chunk))
+    bounds = [(i * chunk, min((i + 1) * chunk, n)) for i in range(n_chunks)]
+    host = jax.tree.map(np.asarray, draws)
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=n, desc=progress if isinstance(progress, str) else "monte carlo",
                    unit="draw")
-    outs = []
+    try:
+        if workers is None:
+            outs = _run_here(fn, host, bounds, chunk, devices, bool(vectorized), blas_threads,
+                             bar)
+        else:
+            from . import _processes
+
+            outs = _processes.run_chunks(
+                fn, [_padded(host, lo, hi, chunk) for lo, hi in bounds], workers,
+                {"chunk_size": chunk, "vectorized": bool(vectorized),
+                 "blas_threads": blas_threads},
+                lambda i: bar is not None and bar.update(bounds[i][1] - bounds[i][0]))
+    finally:
+        if bar is not None:
+            bar.close()
+    outs = [jax.tree.map(lambda y, k=hi - lo: np.asarray(y)[:k], out)
+            for out, (lo, hi) in zip(outs, bounds, strict=True)]
+    return jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *outs)
+
+
+def shutdown_processes():
+    """Stop the worker processes of ``monte_carlo(..., processes=...)`` (they start again on the
+    next such call; they also stop when Python exits)."""
+    from . import _processes
+
+    _processes.shutdown()
+
+
+def _worker_count(processes, devices) -> int | None:
+    if processes is None:
+        return None
+    if devices is not None:
+        raise ValueError("monte_carlo: give devices (shard each chunk in this process) or "
+                         "processes (one worker process per core), not both")
+    if processes == "all":
+        from ._processes import available_cores
+
+        return len(available_cores())
+    if isinstance(processes, bool) or not isinstance(processes, int) or processes < 1:
+        raise ValueError(f"monte_carlo: processes={processes!r}; give a positive int, 'all' "
+                         "(one worker process per core) or None (run in this process)")
+    if jax.default_backend() != "cpu":
+        raise ValueError(f"monte_carlo: processes={processes!r} runs CPU worker processes, but "
+                         f"JAX's backend here is {jax.default_backend()!r}; use devices= (every "
+                         "device of this backend by default) and processes=None")
+    return processes
+
+
+def _padded(host, lo: int, hi: int, chunk: int):
+    """Draws ``lo:hi`` of every leaf, padded to ``chunk`` by repeating the last draw (so every
+    chunk has the compiled shape)."""
+
+    def take(x):
+        x = x[lo:hi]
+        if hi - lo < chunk:
+            x = np.concatenate([x, np.repeat(x[-1:], chunk - (hi - lo), axis=0)], axis=0)
+        return x
+
+    return jax.tree.map(take, host)
+
+
+def _run_here(fn, host, bounds, chunk, devices, vectorized, blas_threads, bar):
+    mesh = Mesh(np.array(devices), ("batch",))
+    sharding = NamedSharding(mesh, PartitionSpec("batch"))
+    batched = _batched(fn, vectorized, mesh)
     limit = (contextlib.nullcontext() if blas_threads is None
              else threadpool_limits(blas_threads, user_api="blas"))
+    outs = []
     with limit:
-        try:
-            for i in range(n_chunks):
-                lo, hi = i * chunk, min((i + 1) * chunk, n)
-
-                def take(x, lo=lo, hi=hi):
-                    x = np.asarray(x)[lo:hi]
-                    if hi - lo < chunk:  # pad the last chunk by repeating its last draw
-                        pad = np.repeat(x[-1:], chunk - (hi - lo), axis=0)
-                        x = np.concatenate([x, pad], axis=0)
-                    return jax.device_put(jnp.asarray(x), sharding)
-
-                out = batched(jax.tree.map(take, draws))
-                outs.append(jax.tree.map(lambda y, k=hi - lo: np.asarray(y)[:k], out))
-                if bar is not None:
-                    bar.update(hi - lo)
-        finally:
+        for lo, hi in bounds:
+            chunk_draws = jax.tree.map(lambda x: jax.device_put(jnp.asarray(x), sharding),
+                                       _padded(host, lo, hi, chunk))
+            outs.append(jax.tree.map(np.asarray, batched(chunk_draws)))
             if bar is not None:
-                bar.close()
-    return jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *outs)
+                bar.update(hi - lo)
+    return outs

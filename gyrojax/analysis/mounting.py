@@ -154,13 +154,15 @@ def mounting_error_budget(key, n_draws: int, latitude_deg: float = 55.75, *, sch
                           drift: float = 0.01, dchi_std_arcmin: float = 1.0,
                           theta_std_arcmin: float = 10.0, noise_arcsec: float = 0.0,
                           hours: float = 24.0, sample_s: float = 60.0, alpha20_deg: float = 0.0,
-                          chunk_size: int = 512, progress=False) -> MountingBudget:
+                          chunk_size: int = 512, progress=False,
+                          processes: int | str | None = None) -> MountingBudget:
     """Monte Carlo error budget over random mounting errors for each scheme.
 
     Each draw: ``dchi ~ N(0, dchi_std)`` (rotation vector, 3 axes), ``theta ~ N(0, theta_std)``
     (2 axes), white angle noise; simulate the exact model; regress (a) the six drifts only and
     (b) drifts + theta + dchi (the rank-deficient direction dchi || u is dropped by the
-    minimum-norm solution). Returns the drift errors in deg/h.
+    minimum-norm solution). Returns the drift errors in deg/h. ``processes``: as in
+    :func:`~gyrojax.analysis.monte_carlo` (``"all"``: one worker process per CPU core).
     """
     if n_draws < 1:
         raise ValueError(f"n_draws={n_draws}: need at least one Monte Carlo draw")
@@ -208,7 +210,8 @@ def mounting_error_budget(key, n_draws: int, latitude_deg: float = 55.75, *, sch
 
     e_only, e_joint = monte_carlo(staged(simulate, identify), (sidx, dchi, theta, keys),
                                   chunk_size=chunk_size, progress=progress,
-                                  devices=jax.devices()[:1], vectorized=True)
+                                  devices=jax.devices()[:1] if processes is None else None,
+                                  vectorized=True, processes=processes)
     drift_only = {s: e_only[sidx == i] for i, s in enumerate(schemes)}
     joint = {s: e_joint[sidx == i] for i, s in enumerate(schemes)}
     return MountingBudget(schemes, drift_only, joint, n_draws)
