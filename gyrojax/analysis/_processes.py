@@ -45,6 +45,11 @@ def _pin(core, pid=0):
         os.sched_setaffinity(pid, {core})
 
 
+class _LoadError:
+    def __init__(self, text):
+        self.text = text
+
+
 def _worker(conn, core):
     """A worker's loop: messages ("fn", token, bytes), ("drop", token),
     ("run", token, index, draws, kwargs) -> ("ok", index, outputs) | ("err", index, text),
@@ -66,13 +71,20 @@ def _worker(conn, core):
         if kind == "stop":
             return
         if kind == "fn":
-            fns[msg[1]] = cloudpickle.loads(msg[2])
+            try:
+                fns[msg[1]] = cloudpickle.loads(msg[2])
+            except BaseException:  # noqa: BLE001 - e.g. a module the worker cannot import
+                fns[msg[1]] = _LoadError(traceback.format_exc())
         elif kind == "drop":
             fns.pop(msg[1], None)
         elif kind == "run":
             _, token, index, draws, kwargs = msg
             try:
-                out = monte_carlo(fns[token], draws, devices=jax.devices()[:1], **kwargs)
+                fn = fns[token]
+                if isinstance(fn, _LoadError):
+                    raise RuntimeError("the trial function could not be unpickled in the "
+                                       f"worker process:\n{fn.text}")
+                out = monte_carlo(fn, draws, devices=jax.devices()[:1], **kwargs)
                 conn.send(("ok", index, out))
             except BaseException:  # noqa: BLE001 - the parent re-raises it with the traceback
                 conn.send(("err", index, traceback.format_exc()))
