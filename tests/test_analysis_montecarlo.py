@@ -193,6 +193,13 @@ def test_processes_bad_arguments_name_the_value():
         monte_carlo(lambda x: x, np.arange(4.0), processes=2, devices=jax.devices())
 
 
+def test_processes_refused_off_the_cpu(monkeypatch):
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    for procs in (2, "all"):
+        with pytest.raises(ValueError, match="backend here is 'gpu'"):
+            monte_carlo(lambda x: x, np.arange(4.0), processes=procs)
+
+
 @pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_mounting_budget_joint_estimation_beats_drift_only():
     """Monte Carlo over random mounting errors, noise-free (alpha2(0) = 30 deg where every

@@ -162,17 +162,18 @@ def _worker_count(processes, devices) -> int | None:
     if devices is not None:
         raise ValueError("monte_carlo: give devices (shard each chunk in this process) or "
                          "processes (one worker process per core), not both")
-    if processes == "all":
-        from ._processes import available_cores
-
-        return len(available_cores())
-    if isinstance(processes, bool) or not isinstance(processes, int) or processes < 1:
+    if processes != "all" and (isinstance(processes, bool) or not isinstance(processes, int)
+                               or processes < 1):
         raise ValueError(f"monte_carlo: processes={processes!r}; give a positive int, 'all' "
                          "(one worker process per core) or None (run in this process)")
     if jax.default_backend() != "cpu":
         raise ValueError(f"monte_carlo: processes={processes!r} runs CPU worker processes, but "
                          f"JAX's backend here is {jax.default_backend()!r}; use devices= (every "
                          "device of this backend by default) and processes=None")
+    if processes == "all":
+        from ._processes import available_cores
+
+        return len(available_cores())
     return processes
 
 
