@@ -38,6 +38,7 @@ from threadpoolctl import threadpool_limits
 
 import gyrojax as gj
 from gyrojax import units
+from gyrojax.analysis._processes import available_cores
 from gyrojax.analysis.montecarlo import monte_carlo, staged
 from gyrojax.estimate import fit_trajectory, integral_regression
 from gyrojax.models.esg import DRIFT_NAMES
@@ -223,6 +224,15 @@ def scipy_block_rates(blocks, block=10, seed=1):
     return rates
 
 
+def _placement(devices=None, processes=None):
+    """``monte_carlo``'s keyword arguments for where to run (``devices`` in this process, or
+    ``processes`` workers) and how many chunks run at once there."""
+    if processes is None:
+        return {"devices": devices}, 1
+    return {"processes": processes}, (len(available_cores()) if processes == "all"
+                                      else processes)
+
+
 def paired_ratios(one, pairs=20, chunk=512, block=5, seed=6, processes=None):
     """gyrojax / scipy-loop throughput ratios from ``pairs`` back-to-back pairs of timings (a
     ``monte_carlo`` call of ``one``, compiled, then a block of ``block`` scipy trials, each
@@ -230,10 +240,8 @@ def paired_ratios(one, pairs=20, chunk=512, block=5, seed=6, processes=None):
     2x within seconds, so the ratios scatter far less than best-against-best rates timed
     minutes apart. One device: a ``chunk``-draw call; ``processes``: a call of ``chunk`` draws
     per worker process (one chunk each)."""
-    workers = 1 if processes is None else (len(os.sched_getaffinity(0)) if processes == "all"
-                                           else processes)
+    where, workers = _placement(jax.devices()[:1], processes)
     dn = draws(chunk * workers, seed=seed, noise=False)
-    where = ({"devices": jax.devices()[:1]} if processes is None else {"processes": processes})
 
     def call():
         monte_carlo(one, dn, chunk_size=chunk, vectorized=True, **where)
@@ -348,9 +356,7 @@ def time_monte_carlo(one, n, devices=None, processes=None, chunk=512, passes=1):
     With ``passes`` > 1 the run is timed that many times and the fastest counts, as for the
     scipy loop's blocks."""
     dn = draws(n, seed=2, noise=False)
-    where = {"devices": devices} if processes is None else {"processes": processes}
-    workers = 1 if processes is None else (len(os.sched_getaffinity(0)) if processes == "all"
-                                           else processes)
+    where, workers = _placement(devices, processes)
     first = min(n, chunk * workers)  # one chunk per worker: every worker compiles
     t0 = time.perf_counter()
     monte_carlo(one, jax.tree.map(lambda x: x[:first], dn), chunk_size=chunk, vectorized=True,
@@ -480,7 +486,7 @@ def main(argv=None):
         ns, scipy_trials=5 if args.quick else 30)
     srate = max(srates)  # the scipy loop at its fastest in this run
     gn = bench_gauss_newton(4 if args.quick else 20)
-    cores = len(os.sched_getaffinity(0))
+    cores = len(available_cores())
     lines = [
         "## ESG Monte Carlo: simulate 24 h + identify 11 parameters (`benchmarks/esg_montecarlo.py`)",
         "",
