@@ -22,7 +22,7 @@ def _display(name, value):
     return float(SPACE[name].to_display(value))
 
 
-@pytest.mark.parametrize("periods", [0.5, 4])
+@pytest.mark.parametrize("periods", [0.5, pytest.param(4, marks=pytest.mark.slow)])  # 4: ~17 s
 def test_cramer_rao_bounds_and_weak_pairs(periods):
     ob = schuler_observability(RIG, COND, periods * T)
     assert ob.rank == 12  # full rank from half a period on

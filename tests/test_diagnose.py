@@ -836,6 +836,7 @@ def test_advised_design_reads_the_esg_advice_labels():
         advised_design("second amplitude 7 g (table)", d)
 
 
+@pytest.mark.slow  # ~60 s: a diagnosis, then another on the advised design's record
 def test_rotor_tilt_design_advice_closed_loop(tmp_path):
     """Spec §6 G6, equatorial -> theta: an 18-arcsec rotor tilt on the equatorial scheme, where
     to first order it has no signature (spec esg-drift §9). The advisor's first design for it

@@ -185,6 +185,7 @@ def test_null_draws_of_the_calibrated_level_follow_the_data_residual(records):
     assert 0.0 < rep.multiplicity["global_p"] <= 1.0
 
 
+@pytest.mark.slow  # ~22 s: a second whole diagnosis, the design-shift split
 def test_design_shift_split_sees_what_the_train_design_cannot(records, capsys):
     """Spec §4.2 stage 4 / G7: hidden D_oo on a 9 + 7 g test. The design-shift split trains on
     the 9 g run only, where D_oo has no signature: the train rows show nothing, yet the 7 g
@@ -250,6 +251,7 @@ def test_hidden_base_misalignment_from_the_cli(tmp_path, capsys):
     assert "anisoelastic_oo (g2), base_misalignment (mounting)" in capsys.readouterr().out
 
 
+@pytest.mark.slow  # ~30 s: every catalogue column against the ODE model's
 def test_catalogue_columns_match_the_ode_model():
     """The diagnosis's linear columns of every catalogue effect (block means of the (S22)
     kinematics, per unit coefficient) against the ODE model with the rig's effect groups: the

@@ -357,6 +357,7 @@ def test_projected_overlapping_allan_traces_match_the_dense_form():
         assert projected_overlapping_allan_traces(sums, m) == pytest.approx(exact, rel=1e-10)
 
 
+@pytest.mark.slow  # ~22 s: Allan moments of many full-rate null draws
 def test_full_rate_tau_cells_hold_their_level_with_the_fit_columns_removed():
     """White pieces whose slow columns a mean fit removed (bias, ramp, warm-up exponentials,
     coefficients shared over two pieces): against the plain white reference the longest cells'

@@ -180,6 +180,7 @@ def _with_temperature(rec, k_gz_deg_s_per_c, period_s=120.0):
                        rec.channels + ("temp",), rec.attrs)
 
 
+@pytest.mark.slow  # ~22 s: a diagnosis with a temperature channel
 def test_aux_axis_localises_a_temperature_bias():
     """A gyro bias following the record's temperature channel (0.002 deg/s per deg C on wz, out
     of the catalogue) lights the aux axis: the joint cell of the temperature bins on wz is the
@@ -214,6 +215,7 @@ def test_aux_axis_localises_a_temperature_bias():
         diagnose(bad, rig="imu")
 
 
+@pytest.mark.slow  # ~22 s: a full-rate diagnosis
 def test_noise_effect_localised_on_the_full_rate_tau_band():
     """Static 10-min records at 50 Hz. With gyro angle quantization (2 arcsec) the quantization
     row is significant and the report's full-rate tau band (reported, not decided on) puts the
@@ -294,6 +296,7 @@ def test_rate_table_runs_measure_scale_factor_and_misalignment_analytically():
         IMUProblem(overlap)
 
 
+@pytest.mark.slow  # ~80 s: a diagnosis, then another on the advised design's record
 def test_design_advice_closed_loop_rate_table_resolves_gyro_scale_factor_and_misalignment(
         tmp_path):
     """Spec §6 G6, cw/ccw rotation -> sf vs misalignment, one case each: on the 12-pose still
@@ -348,6 +351,7 @@ def test_table_runs_fit_the_horizontal_earth_rate_as_a_turning_nuisance():
         assert abs(np.angle(np.exp(1j * (got - want)))) < np.radians(2.0)
 
 
+@pytest.mark.slow  # ~30 s: a whole CLI diagnosis of a table-run record
 def test_cli_diagnoses_a_rate_table_csv_with_table_run_options(tmp_path, capsys):
     """A CSV carries no conditions: ``--table-run T0:T1:RATE`` gives the table's runs and the
     diagnosis attributes a hidden gyro scale factor (invisible on the still poses) with its
@@ -374,7 +378,8 @@ def test_cli_diagnoses_a_rate_table_csv_with_table_run_options(tmp_path, capsys)
 
 @pytest.mark.parametrize("hidden,truth", [
     ("temperature", {"tgx": 20.0, "taz": 0.5}),  # deg/h/degC, mg/degC
-    ("temperature_rate", {"rgy": 20.0}),  # deg/h per degC/min
+    pytest.param("temperature_rate", {"rgy": 20.0},  # deg/h per degC/min
+                 marks=pytest.mark.slow),  # ~18 s, the same path as the first
 ])
 def test_temperature_effects_attributed_from_the_temp_channel(hidden, truth):
     """A 12-pose record under a thermal cycle (2 deg C, 200-s period) with a ``temp`` channel
@@ -445,6 +450,7 @@ def test_ar_noise_level_is_unbiased_after_the_full_model_fit():
     assert np.mean(plain) < 0.985
 
 
+@pytest.mark.slow  # ~95 s: the K = 40 diagnosis through the CLI and 70 refit-all refits
 def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, capsys):
     """``per_coefficient``: every coefficient of the IMU's error model screened as an effect of
     its own (spec D1's question, which term; K = 40 on six channels). Each split signature is

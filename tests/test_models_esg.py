@@ -163,6 +163,7 @@ def test_drift_step_sensitivity_equals_central_difference():
         assert np.abs(jac - fd).max() < 1e-5 * np.abs(fd).max(), onset_h
 
 
+@pytest.mark.slow  # ~25 s: four forward-mode solves of the exact model
 def test_vector_transient_and_step_are_sums_of_single_ones():
     """The transient's amplitudes (with ``k_tr``) and the step's sizes (with ``t_step``) may be
     vectors, one transient / step per entry (the diagnosis linearizes at every grid value in

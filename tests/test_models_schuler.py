@@ -217,6 +217,7 @@ def test_exact_error_model_matches_nonlinear_model_to_second_order(periods, fact
     assert np.max(np.abs(e[:, 4] - da)) < 0.05 * factor**2 * units.ARCMIN
 
 
+@pytest.mark.slow  # ~27 s: a forward-mode Jacobian and central differences of the error model
 def test_smooth_drift_step_sensitivity_equals_central_difference():
     """The diagnosis screens the drift step by its forward sensitivity at zero amplitude, where
     the primal does not move and the step-size control, left to itself, strides over the 60-s

@@ -268,6 +268,7 @@ def test_diagnosis_finds_d_oo_absorbed_with_exact_aliases():
     assert rows2[0].visible_fraction > 0.01 and rows2[0].flag != "structurally confounded"
 
 
+@pytest.mark.slow  # ~25 s: every candidate schedule's Jacobian
 def test_design_tool_ranks_and_improves_on_table1():
     """Fisher information of designs: Table 1 at (9 g, 7 g) has full rank; the (0 g, 2 g) pair's
     worst standard error is ~10.3x larger (the cross terms, spec §11 check 3); the exchange search
@@ -312,6 +313,7 @@ def test_kalman_filter_equals_batch_regression(tests_1_and_2):
     assert all(_group_max(err)[g] < SOURCE_TEST1[g] for g in GROUPS)
 
 
+@pytest.mark.slow  # ~27 s: the instantaneous ODE model over the whole schedule
 def test_original_model_with_measured_acceleration_vs_averaged():
     """Beyond the paper (a): on records simulated with the instantaneous law (S10) at 15 Hz, the
     regression of the original model with the measured vibration (1 + A1 = f . n per sample) and
