@@ -168,8 +168,10 @@ def _gauss_newton_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, n
     k = sig.shape[0]
 
     def step(u):
-        r = resid(u)
-        jac = jax.jacfwd(resid)(u) * mask
+        # the residual from the Jacobian's own primal pass (a separate call would trace and run
+        # the solver once more)
+        jac, r = jax.jacfwd(lambda v: (lambda x: (x, x))(resid(v)), has_aux=True)(u)
+        jac = jac * mask
         a = jnp.concatenate([jac, jnp.diag(mask)], axis=0)
         b = -jnp.concatenate([r, u * mask])
         delta, cov, _ = scaled_lstsq(a, b)
