@@ -1,9 +1,22 @@
-"""Small dense least-squares kernels shared by the estimators (no normal equations)."""
+"""Small dense least-squares kernels shared by the estimators (no normal equations), and the
+forward Jacobian with its value."""
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+
+
+def value_and_jacfwd(fn):
+    """``x -> (fn(x), jax.jacfwd(fn)(x))`` from one forward-mode pass: the value is the JVP's own
+    primal, so a model behind ``fn`` (a diffrax solve) is traced, compiled and run once, not once
+    more for the value."""
+    def both(x):
+        jac, value = jax.jacfwd(lambda v: (lambda out: (out, out))(fn(v)), has_aux=True)(x)
+        return value, jac
+
+    return both
 
 
 def tall_qr_r(a, *, block_rows: int = 480):

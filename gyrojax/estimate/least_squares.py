@@ -19,7 +19,7 @@ import optimistix as optx
 
 from ..record import BenchRecord
 from ..simulate import integrate
-from ._linalg import scaled_lstsq
+from ._linalg import scaled_lstsq, value_and_jacfwd
 from ._result import AbstractNamedEstimate
 
 __all__ = ["FitResult", "fit_trajectory", "trajectory_jacobian"]
@@ -90,8 +90,7 @@ def _fit(rig, free, solver_name, base, conditions, ts, y, rtol, atol, max_steps,
     sol = optx.least_squares(fn, solver, x0, options=dict(jac="fwd"), max_steps=max_steps,
                              throw=False)
     x = sol.value
-    res = fn(x, None)
-    jac = jax.jacfwd(lambda z: fn(z, None))(x)
+    res, jac = value_and_jacfwd(lambda z: fn(z, None))(x)
     _, cov_unit, s = scaled_lstsq(jac, res)
     k = jnp.sum(s > 1e-12 * s[0])
     dof = jnp.maximum(res.shape[0] - k, 1)

@@ -26,7 +26,7 @@ from ..models.platform import (
     platform_matrix,
     specific_force_direction,
 )
-from ._linalg import scaled_lstsq
+from ._linalg import scaled_lstsq, value_and_jacfwd
 from ._result import AbstractNamedEstimate
 
 __all__ = ["amplitude_first_harmonic", "kappa_from_accelerometers", "forgetting_blend",
@@ -290,7 +290,7 @@ def _kalman_scan(angles, conds, p_d, noise_std, q_coeff, dt, free, stride):
 
         def sample(c, z):
             x, pm = c
-            fx, jac = f(x), jax.jacfwd(f)(x)
+            fx, jac = value_and_jacfwd(f)(x)
             pm = jac @ pm @ jac.T + q
             s = h @ pm @ h.T + r
             gain = jnp.linalg.solve(s, h @ pm).T
@@ -363,8 +363,7 @@ def _gn_solve(ts, angles, conds, x0, free, rtol, atol, max_steps):
     sol = optx.least_squares(residual, optx.GaussNewton(rtol=rtol, atol=atol), x0,
                              options=dict(jac="fwd"), max_steps=max_steps, throw=False)
     x = sol.value
-    res = residual(x, None)
-    jac = jax.jacfwd(lambda z: residual(z, None))(x)
+    res, jac = value_and_jacfwd(lambda z: residual(z, None))(x)
     _, cov_unit, s = scaled_lstsq(jac, res)
     return x, cov_unit, jnp.sum(res**2), sol.result, sol.stats["num_steps"]
 

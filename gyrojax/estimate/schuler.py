@@ -38,7 +38,7 @@ from ..models.schuler import (
 )
 from ..rotations import matrix_to_rotvec, rotvec_to_matrix
 from ..simulate import integrate, trajectory
-from ._linalg import scaled_lstsq
+from ._linalg import scaled_lstsq, value_and_jacfwd
 from ._result import AbstractNamedEstimate
 from .kalman import rts_smoother, square_root_filter
 
@@ -168,9 +168,7 @@ def _gauss_newton_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, n
     k = sig.shape[0]
 
     def step(u):
-        # the residual from the Jacobian's own primal pass (a separate call would trace and run
-        # the solver once more)
-        jac, r = jax.jacfwd(lambda v: (lambda x: (x, x))(resid(v)), has_aux=True)(u)
+        r, jac = value_and_jacfwd(resid)(u)
         jac = jac * mask
         a = jnp.concatenate([jac, jnp.diag(mask)], axis=0)
         b = -jnp.concatenate([r, u * mask])
