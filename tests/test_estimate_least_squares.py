@@ -79,3 +79,23 @@ def test_levenberg_marquardt_agrees_and_bad_input():
         fit_trajectory(rig, rec, cond, start, free=free, method="newton")
     with pytest.raises(ValueError, match="unknown parameter name"):
         fit_trajectory(rig, rec, cond, start, free=("m99",))
+
+
+def test_value_and_jacfwd_is_the_value_and_jacobian_from_one_trace():
+    """The estimators' one-pass residual and Jacobian equal the two separate calls, with the
+    model traced once (against twice for ``fn(x), jax.jacfwd(fn)(x)``)."""
+    from gyrojax.estimate._linalg import value_and_jacfwd
+
+    traces = []
+
+    def fn(x):
+        traces.append(1)
+        return jnp.stack([jnp.sin(x[0]) * x[1], jnp.exp(x[1]) - x[0] ** 3, x[0] * x[1]])
+
+    x = jnp.asarray([0.3, -1.2])
+    value, jac = value_and_jacfwd(fn)(x)
+    assert len(traces) == 1
+    np.testing.assert_array_equal(value, fn(x))
+    np.testing.assert_array_equal(jac, jax.jacfwd(fn)(x))
+    np.testing.assert_allclose(jac, [[np.cos(0.3) * -1.2, np.sin(0.3)],
+                                     [-3 * 0.3 ** 2, np.exp(-1.2)], [-1.2, 0.3]], rtol=1e-14)

@@ -125,7 +125,7 @@ def _masked_gauss_newton(rig, p, conditions, ts, y, w, cols, free, mask, line_on
         return wh((y - model)[:, None])[:, 0] - ct @ beta
 
     # The loop is rotated so that the residual and the Jacobian are each traced once (a second
-    # copy of the solver for the starting residual cost ~a fifth of the compile): each pass
+    # copy of the solver for the starting residual cost ~a tenth of the compile): each pass
     # line-searches the step of the pass before (none on the first, whose "search" is the
     # starting residual), then linearises at the point reached. Iterates, stop rule and
     # iteration count are the plain loop's: Jacobian, step, search, stop if no step lowers the
