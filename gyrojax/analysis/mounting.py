@@ -189,16 +189,17 @@ def mounting_error_budget(key, n_draws: int, latitude_deg: float = 55.75, *, sch
     steps = None if None in counts else max(counts)
 
     def simulate(draw):
-        i, dc, th, kd = draw
+        i, dc, th, _ = draw
         c = jax.tree.map(lambda x: x[i], conds)
         p = base | {"theta1": th[0], "theta2": th[1], "dchi1": dc[0], "dchi2": dc[1],
                     "dchi3": dc[2]}
-        y = integrate(rig, p, c, ts, steps=steps)
-        if noise == 0.0:  # noise-free budgets draw no deviates
-            return y
-        return y + gaussian_noise(jax.random.wrap_key_data(kd), y.shape, noise)
+        return integrate(rig, p, c, ts, steps=steps)
 
     def identify(draw, y):
+        # noise in the regression's sub-batch, where the record is in cache (see `staged`);
+        # noise-free budgets draw no deviates
+        if noise != 0.0:
+            y = y + gaussian_noise(jax.random.wrap_key_data(draw[3]), y.shape, noise)
         c = jax.tree.map(lambda x: x[draw[0]], conds)
         rec = BenchRecord(ts, y, rig.channels)
         a, b, _ = regression_design(rig, rec, c, names=joint_names)
