@@ -343,10 +343,8 @@ def stage_times(n=512, repeats=5):
     ab = jax.jit(jax.vmap(design))(y)
     with threadpool_limits(1, user_api="blas"):  # as monte_carlo runs them
         return {"ode": timed(ode, d),
-                "noise": timed(jax.jit(jax.vmap(lambda k: gaussian_noise(wrap(k), (len(ts), 2)))),
-                               d["key"]),
-                "normal": timed(jax.jit(jax.vmap(lambda k: jax.random.normal(wrap(k),
-                                                                             (len(ts), 2)))),
+                "noise": timed(sub8(lambda k: gaussian_noise(wrap(k), (len(ts), 2))), d["key"]),
+                "normal": timed(sub8(lambda k: jax.random.normal(wrap(k), (len(ts), 2))),
                                 d["key"]),
                 "regression": timed(sub8(lambda y: integral_regression(
                     rig, BenchRecord(ts, y, rig.channels), cond).values), y),
@@ -497,8 +495,8 @@ def main(argv=None):
         f"{machine_line()} Scheme {SCHEME}, 1441 samples (1-min), exact model "
         "(Dopri8 / DOP853 at rtol 1e-10), 1 arcsec noise drawn in the graph, regression of 6 "
         "drifts + theta + dchi (11 columns). gyrojax: `monte_carlo(staged(simulate, identify), "
-        "..., vectorized=True)`: the ODE solves vmapped over each 512-draw chunk, the regressions "
-        f"in sub-batches of 8 (`jax.lax.map`). 'All cores': the same call with "
+        "..., vectorized=True)`: the ODE solves vmapped over each 512-draw chunk, the noise and "
+        f"the regressions in sub-batches of 8 (`jax.lax.map`). 'All cores': the same call with "
         f"`processes=\"all\"`: {cores} worker processes, one pinned to each core, each running "
         "the chunks it is handed on its own device (see the note below the table).",
         "",
@@ -566,7 +564,8 @@ def main(argv=None):
     rest = 1e6 / big[1] - st["ode"] - st["noise"] - st["regression"]
     lines += ["## Where the time goes (one device, measured in this run)", "",
               f"Per trial, best of 5 on a chunk of 512: the exact-model ODE solves (vmapped, "
-              f"fixed grid) ~{st['ode']:.0f} us; 1441 x 2 normal deviates ~{st['noise']:.0f} us "
+              f"fixed grid) ~{st['ode']:.0f} us; 1441 x 2 normal deviates in sub-batches of 8 "
+              f"~{st['noise']:.0f} us "
               f"(`gaussian_noise`, Box-Muller; `jax.random.normal`'s erf_inv ~{st['normal']:.0f} "
               f"us); the regression in sub-batches of 8 ~{st['regression']:.0f} us, of which the "
               f"QR of each channel's [A_c b_c] on its own nonzero columns (1440 x 10 each, "
@@ -585,7 +584,10 @@ def main(argv=None):
               "device; the pinned all-cores processes had one already), `gaussian_noise` hashes "
               "its uniforms once in straight-line code (the same values as `jax.random.uniform`) "
               "and the regression reads its residual sum of squares from the triangular factors "
-              "instead of forming the residuals.",
+              "instead of forming the residuals. Since stop 54 the trial draws its noise in the "
+              "regression's sub-batch (`staged`'s second stage), where the record stays in cache, "
+              "instead of beside the vmapped solves (a chunk-sized array written and read back): "
+              "~15 % of a trial.",
               "",
               f"The goal of 100x the scipy loop: at N = {big[0]:,} one device runs "
               f"{big[1] / srate:.0f}x the loop's best in this run (one trial ~{1e6 / big[1]:.0f} "
