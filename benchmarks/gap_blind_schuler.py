@@ -1,6 +1,6 @@
 """Blind validation of the gap diagnosis on the Schuler test (spec gap-diagnosis §5-6, design D5).
 
-One sealed suite: 2 Schuler periods at 10 s, the 12 nominal errors drawn from the prior, nulls,
+One sealed suite: D5's 4 h (~2.84 Schuler periods) at 10 s, the 12 nominal errors drawn from the prior, nulls,
 the six visible catalogue effects at noncentrality 8/16/32/64 and two out-of-library effects.
 Also reports how separable the catalogue is on this design (largest projected canonical
 correlation of each effect with another one, spec §5.6 "separable": <= 0.9). Writes the section
@@ -51,7 +51,7 @@ def main(argv=None):
                          "localisation of spec §6 G8 (onset, decay time)")
     ap.add_argument("--g8-periods", type=float, nargs="*", default=[],
                     help="also localise drift steps on records of these many Schuler periods "
-                         "(D5 has 2): --g8-cases / 2 drift_step cases each, same seed")
+                         "(D5's 4 h are ~2.84): --g8-cases / 2 drift_step cases each, same seed")
     one_design_main(ap.parse_args(argv), bench_schuler, bench_schuler.SchulerDesign(), suite,
                     name="schuler", title="Gap diagnosis, Schuler-test D5 null run",
                     label="design D5 (the 12 nominal errors drawn from the prior per case)")
@@ -92,7 +92,8 @@ def suite(args, work, design):
 def g8_periods_line(args, work, design, periods: float) -> str:
     """G8's drift-step onset on a longer (or shorter) record than D5's: ``args.g8_cases / 2``
     sealed drift steps at lambda 32/64 (the other settings of D5 unchanged)."""
-    longer = dataclasses.replace(design, periods=periods)
+    longer = bench_schuler.SchulerDesign.of_periods(
+        periods, **{k: v for k, v in dataclasses.asdict(design).items() if k != "hours"})
     n = args.g8_cases // 2
     g8, secs = g8_suite(bench_schuler, os.path.join(work, f"periods_{periods:g}"), n,
                         seed=args.seed + 3, design=longer, families=("drift_step",))

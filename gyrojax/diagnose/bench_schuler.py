@@ -47,9 +47,10 @@ CHANNELS = ("V1", "V2", "rot1", "rot2", "rot3")
 
 @dataclasses.dataclass(frozen=True)
 class SchulerDesign:
-    """D5: the Schuler test on a fixed stand, ``periods`` Schuler periods at ``sample_s``."""
+    """D5: the Schuler test on a fixed stand, ``hours`` long (the spec's 4 h, ~2.84 Schuler
+    periods; 2 periods before stop 54) at ``sample_s``."""
 
-    periods: float = 2.0
+    hours: float = 4.0
     sample_s: float = 10.0
     sigma_v: float = 0.05  # m/s
     sigma_arcmin: float = 1.0
@@ -61,8 +62,19 @@ class SchulerDesign:
         return SchulerConditions.create(self.latitude_deg)
 
     @property
+    def periods(self) -> float:
+        """The record's length in Schuler periods."""
+        return 3600.0 * self.hours / float(self.conditions.schuler_period)
+
+    @classmethod
+    def of_periods(cls, periods: float, **kw) -> SchulerDesign:
+        """The design with a record of ``periods`` Schuler periods (the other settings ``kw``)."""
+        cond = SchulerConditions.create(kw.get("latitude_deg", cls.latitude_deg))
+        return cls(hours=periods * float(cond.schuler_period) / 3600.0, **kw)
+
+    @property
     def ts(self) -> np.ndarray:
-        span = self.periods * float(self.conditions.schuler_period)
+        span = 3600.0 * self.hours
         return np.arange(0.0, span + 0.5 * self.sample_s, self.sample_s)
 
     @property
