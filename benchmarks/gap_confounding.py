@@ -172,7 +172,7 @@ def main(argv=None):
         detail.append(f"- {label} (seed {seed}): families confounded on the truth "
                       f"side / flagged / cases (truth-side visible fraction range): "
                       f"{fams or 'none confounded, none flagged'}.")
-        print(rows[-1], flush=True)
+        print(rows[-1], detail[-1], sep="\n", flush=True)
     if args.no_publish:
         return
     lines = ["## Gap diagnosis: confounding recall and precision (`benchmarks/gap_confounding.py`)",

@@ -88,6 +88,27 @@ def test_sup_pvalue_matches_brute_force_in_sample_space():
         assert abs(fast - brute) < 4 * np.sqrt(brute * (1 - brute) / 10000) + 1e-3, (obs, fast, brute)
 
 
+def test_grid_scores_of_stacked_bases_are_each_values_residual_drop():
+    """``_grid_lm`` scores every grid value with one product of the stacked bases; each value's
+    score must be the drop of the residual sum of squares when ``e`` is regressed on that
+    value's columns alone (lstsq), a value without tested directions scoring 0, for one
+    residual and for a batch of them."""
+    from gyrojax.diagnose._stats import SignatureDesign, _grid_lm
+
+    rng = np.random.default_rng(11)
+    m = 300
+    cols = [rng.standard_normal((m, k)) for k in (2, 0, 3, 1, 0)]
+    bases = [np.linalg.qr(c)[0] if c.shape[1] else np.zeros((m, 0)) for c in cols]
+    des = SignatureDesign(None, [], [], [], bases, None, [])
+    e = rng.standard_normal((m, 7))
+    want = np.array([[float(e[:, j] @ e[:, j]) - (float(np.sum(
+        (e[:, j] - c @ np.linalg.lstsq(c, e[:, j], rcond=None)[0]) ** 2)) if c.shape[1]
+        else float(e[:, j] @ e[:, j])) for j in range(e.shape[1])] for c in cols])
+    np.testing.assert_allclose(_grid_lm(des, e), want, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(_grid_lm(des, e[:, 3]), want[:, 3], rtol=1e-10, atol=1e-10)
+    assert _grid_lm(des, e)[1].tolist() == [0.0] * 7
+
+
 def test_score_equals_refit_drop_in_the_linear_regime():
     """LM = s^T I^-1 s equals the drop of the residual sum of squares when the effect is refitted
     jointly with the nominal parameters (exact for a linear model)."""
