@@ -1,7 +1,8 @@
 """Blind validation of the gap diagnosis on the Schuler test (spec gap-diagnosis §5-6, design D5).
 
-One sealed suite: D5's 4 h (~2.84 Schuler periods) at 10 s, the 12 nominal errors drawn from the prior, nulls,
-the six visible catalogue effects at noncentrality 8/16/32/64 and two out-of-library effects.
+One sealed suite: D5's 4 h (~2.84 Schuler periods) at 10 s, the 12 nominal errors drawn from
+the prior, nulls, the six visible catalogue effects at noncentrality 8/16/32/64 and two
+out-of-library effects.
 Also reports how separable the catalogue is on this design (largest projected canonical
 correlation of each effect with another one, spec §5.6 "separable": <= 0.9). Writes the section
 ``gap_blind_schuler`` of RESULTS.md.

@@ -124,6 +124,21 @@ def test_schuler_blind_harness(tmp_path):
     assert g8["g8_transient_decay"] is None
 
 
+def test_schuler_blind_design_is_the_specs_four_hours():
+    """Spec gap-diagnosis §5.2: D5 records 4 h (1441 samples at 10 s, ~2.84 Schuler periods);
+    ``of_periods`` gives a record of whole periods on the same sample grid."""
+    from gyrojax.diagnose import bench_schuler as bs
+
+    d = bs.SchulerDesign()
+    period = float(SchulerConditions.create(d.latitude_deg).schuler_period)
+    assert d.ts[0] == 0.0 and d.ts[-1] == 4 * 3600.0 and len(d.ts) == 1441
+    assert d.periods == pytest.approx(4 * 3600.0 / period, rel=1e-12)
+    assert 2.8 < d.periods < 2.9
+    two = bs.SchulerDesign.of_periods(2.0)
+    np.testing.assert_array_equal(two.ts, np.arange(0.0, 2 * period + 5.0, 10.0))
+    assert two.periods == pytest.approx(2.0, rel=1e-12) and two.n_train == 760
+
+
 def test_schuler_localisation_scores_by_hand(tmp_path):
     """Spec §6 G8 on a 2-period record (~169 min, tolerance ~8.4 min): the truth in minutes (the
     parameters' display unit) against grids in hours; decay grid step ratio 12^(1/7)."""
