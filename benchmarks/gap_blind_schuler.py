@@ -93,8 +93,7 @@ def suite(args, work, design):
 def g8_periods_line(args, work, design, periods: float) -> str:
     """G8's drift-step onset on a longer (or shorter) record than D5's: ``args.g8_cases / 2``
     sealed drift steps at lambda 32/64 (the other settings of D5 unchanged)."""
-    longer = bench_schuler.SchulerDesign.of_periods(
-        periods, **{k: v for k, v in dataclasses.asdict(design).items() if k != "hours"})
+    longer = design.with_periods(periods)
     n = args.g8_cases // 2
     g8, secs = g8_suite(bench_schuler, os.path.join(work, f"periods_{periods:g}"), n,
                         seed=args.seed + 3, design=longer, families=("drift_step",))

@@ -126,7 +126,7 @@ def test_schuler_blind_harness(tmp_path):
 
 def test_schuler_blind_design_is_the_specs_four_hours():
     """Spec gap-diagnosis §5.2: D5 records 4 h (1441 samples at 10 s, ~2.84 Schuler periods);
-    ``of_periods`` gives a record of whole periods on the same sample grid."""
+    ``of_periods`` and ``with_periods`` give a record of whole periods on the same sample grid."""
     from gyrojax.diagnose import bench_schuler as bs
 
     d = bs.SchulerDesign()
@@ -137,6 +137,10 @@ def test_schuler_blind_design_is_the_specs_four_hours():
     two = bs.SchulerDesign.of_periods(2.0)
     np.testing.assert_array_equal(two.ts, np.arange(0.0, 2 * period + 5.0, 10.0))
     assert two.periods == pytest.approx(2.0, rel=1e-12) and two.n_train == 760
+    other = bs.SchulerDesign(sample_s=20.0, latitude_deg=40.0, holdout=0.5).with_periods(3.0)
+    assert (other.sample_s, other.latitude_deg, other.holdout) == (20.0, 40.0, 0.5)
+    assert other.periods == pytest.approx(3.0, rel=1e-12)
+    assert other.hours * 3600.0 == pytest.approx(3 * float(other.conditions.schuler_period), rel=1e-12)
 
 
 def test_schuler_localisation_scores_by_hand(tmp_path):

@@ -69,8 +69,11 @@ class SchulerDesign:
     @classmethod
     def of_periods(cls, periods: float, **kw) -> SchulerDesign:
         """The design with a record of ``periods`` Schuler periods (the other settings ``kw``)."""
-        cond = SchulerConditions.create(kw.get("latitude_deg", cls.latitude_deg))
-        return cls(hours=periods * float(cond.schuler_period) / 3600.0, **kw)
+        return cls(**kw).with_periods(periods)
+
+    def with_periods(self, periods: float) -> SchulerDesign:
+        """This design with a record of ``periods`` Schuler periods, its other settings kept."""
+        return dataclasses.replace(self, hours=periods * float(self.conditions.schuler_period) / 3600.0)
 
     @property
     def ts(self) -> np.ndarray:
