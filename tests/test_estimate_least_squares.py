@@ -99,3 +99,39 @@ def test_value_and_jacfwd_is_the_value_and_jacobian_from_one_trace():
     np.testing.assert_array_equal(jac, jax.jacfwd(fn)(x))
     np.testing.assert_allclose(jac, [[np.cos(0.3) * -1.2, np.sin(0.3)],
                                      [-3 * 0.3 ** 2, np.exp(-1.2)], [-1.2, 0.3]], rtol=1e-14)
+
+
+def _steps_in_standard_errors(rig, cond, rec, params, free):
+    """The Gauss-Newton step left at ``params`` in standard errors (its Mahalanobis length under
+    the linearised fit's covariance), recomputed in numpy from the Jacobian and the residual."""
+    jac = np.asarray(trajectory_jacobian(rig, params, cond, rec.t, free))
+    r = np.asarray(gj.integrate(rig, params, cond, rec.t) - rec.y).reshape(-1)
+    norms = np.linalg.norm(jac, axis=0)
+    step, *_ = np.linalg.lstsq(jac / norms, r, rcond=1e-12)
+    sigma2 = r @ r / (r.size - len(free))
+    return float(np.sqrt(np.sum(((jac / norms) @ step) ** 2) / sigma2))
+
+
+@pytest.mark.slow  # ~25 s: a fit, and the Jacobian twice
+def test_weakly_observable_fit_is_converged_by_its_remaining_step():
+    """README tour: equatorial scheme, alpha2(0) = 30 deg, drifts + base misalignment free. The
+    direction m11 + 0.72 mc2 + 0.56 eps3 has relative singular value 3e-4, and the adaptive ODE's
+    error control keeps moving it by ~1e-3 arcsec of eps3 per Gauss-Newton step (its standard
+    error: 49 arcsec), so optimistix's test on the steps (rtol 1e-6 of the values) never passes
+    on this record; the fit is converged by the statistical test (remaining step < 1e-2 standard
+    errors); recomputed here in numpy, it is under 1e-3 (2.4e-4 measured)."""
+    from gyrojax.estimate import fit
+
+    rig = gj.ESGRig.for_scheme("equatorial", latitude_deg=55.75)
+    cond = gj.ESGConditions.from_scheme("equatorial", latitude_deg=55.75)
+    truth = rig.param_space.make({"m11": 0.15, "mc2": -0.15, "eps3": 60.0, "alpha20": 30.0},
+                                 display=True)
+    rec = gj.simulate(rig, truth, cond, TS_24H, key=jax.random.key(1), noise_std=units.ARCSEC)
+    rep = fit(rig, rec, cond, effects=("base_misalignment",), method="gauss-newton")
+    assert rep.converged
+    free = rep.free
+    start = fit(rig, rec, cond, effects=("base_misalignment",), method="regression").params
+    at_start = _steps_in_standard_errors(rig, cond, rec, start, free)
+    at_fit = _steps_in_standard_errors(rig, cond, rec, rep.params, free)
+    assert at_start > 0.1, at_start  # the first-order regression is not the exact model's minimum
+    assert at_fit < 1e-3, at_fit
