@@ -879,7 +879,7 @@ def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band
     base = {"heldout_gap_before": g_nom, "heldout_null_band": list(band)}
     if not detected:
         return {"kind": "no-gap", "effects": [], "heldout_gap_after": None, **base,
-                "reason": f"no gap-map cell or library test significant at q < {alpha}"}
+                "reason": f"no gap-map cell or library test significant at q < {alpha:.3g}"}
     sig_rows = [r for r in rows if rejected(r.p, getattr(r, "q", 1.0), alpha)]
     shifted = [x for x in cells if x["axis"] == "heldout" and x.get("significant")]
     if not sig_rows and shifted and shift_hidden and not any(
