@@ -135,3 +135,5 @@ def test_weakly_observable_fit_is_converged_by_its_remaining_step():
     at_fit = _steps_in_standard_errors(rig, cond, rec, rep.params, free)
     assert at_start > 0.1, at_start  # the first-order regression is not the exact model's minimum
     assert at_fit < 1e-3, at_fit
+    # the fit's own figure, from its Jacobian in scaled parameters, is the same length
+    assert rep.extra["remaining_step_se"] == pytest.approx(at_fit, rel=1e-6)

@@ -79,6 +79,7 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     assert main(["fit", str(rec), "--effects", "rotor_tilt", "--json", str(out)]) == 0
     fit = json.loads(out.read_text())
     assert fit["converged"] is True
+    assert fit["remaining_step_se"] < 1e-2  # Gauss-Newton's step left, in standard errors
     assert fit["parameters"]["m11"]["unit"] == "deg/h"
     assert fit["parameters"]["m11"]["value"] == pytest.approx(0.3, abs=5 * fit["parameters"]["m11"]["stderr"])
     assert fit["parameters"]["theta1"]["unit"] == "arcsec"

@@ -104,6 +104,7 @@ def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "
         p, stderr = res.params, res.stderr_dict()
         converged = bool(res.converged)
         extra["num_steps"] = int(res.num_steps)
+        extra["remaining_step_se"] = float(res.remaining_step_se)
     elif method == "kalman":
         sigma = noise_std if noise_std is not None else _noise_from_regression(reg)
         k = transient_k if "drift_transient" in effects else None

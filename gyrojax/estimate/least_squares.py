@@ -40,9 +40,10 @@ class FitResult(AbstractNamedEstimate):
     - `names`: free parameters; `params`: the full parameter dict at the solution.
     - `values`, `stderr`, `covariance`: of the free parameters (internal units).
     - `residual_rms`: RMS of the output residual; `noise_std`: its estimate ``sqrt(SSR / dof)``.
+    - `remaining_step_se`: the Gauss-Newton step left at the solution, in standard errors (its
+      Mahalanobis length under `covariance`).
     - `result`: an ``optimistix.RESULTS`` code; `converged`: bool, optimistix's test passed or
-      the Gauss-Newton step left at the solution is under ``STATIONARY_SE`` (1e-2) standard
-      errors; `num_steps`.
+      `remaining_step_se` is under ``STATIONARY_SE`` (1e-2); `num_steps`.
     """
 
     names: tuple[str, ...] = eqx.field(static=True)
@@ -54,6 +55,7 @@ class FitResult(AbstractNamedEstimate):
     noise_std: jax.Array
     converged: jax.Array
     num_steps: jax.Array
+    remaining_step_se: jax.Array
     result: optx.RESULTS
 
 
@@ -108,13 +110,13 @@ def _fit(rig, free, solver_name, base, conditions, ts, y, rtol, atol, max_steps,
     sigma2 = jnp.sum(res**2) / dof
     # the step still to take, in standard errors (its Mahalanobis length under the fit's own
     # covariance): |J step|^2 / sigma^2 is the chi-square it would gain
-    stationary = jnp.sum((jac @ gn_step) ** 2) <= STATIONARY_SE**2 * sigma2
+    step_se = jnp.sqrt(jnp.sum((jac @ gn_step) ** 2) / sigma2)
     sc = space.scales(free)
     cov = sigma2 * cov_unit * jnp.outer(sc, sc)
     values = x * sc
     return (space.unflatten(x, base, free), values, jnp.sqrt(jnp.diag(cov)), cov,
             jnp.sqrt(jnp.mean(res**2)), jnp.sqrt(sigma2), sol.result, sol.stats["num_steps"],
-            stationary)
+            step_se)
 
 
 def fit_trajectory(rig, record: BenchRecord, conditions, params0: Mapping, *,
@@ -146,8 +148,8 @@ def fit_trajectory(rig, record: BenchRecord, conditions, params0: Mapping, *,
     base = {k: jnp.asarray(v, dtype=float) for k, v in params0.items()}
     out = _fit(rig, free, method, base, conditions, record.t, record.y, rtol, atol, max_steps,
                ode_rtol, ode_atol, ode_max_steps, ode_solver)
-    params, values, se, cov, rms, sig, result, nsteps, stationary = out
-    converged = (result == optx.RESULTS.successful) | stationary
+    params, values, se, cov, rms, sig, result, nsteps, step_se = out
+    converged = (result == optx.RESULTS.successful) | (step_se <= STATIONARY_SE)
     if throw:
         converged_all = bool(jnp.all(converged))
         if not converged_all:
@@ -157,4 +159,5 @@ def fit_trajectory(rig, record: BenchRecord, conditions, params0: Mapping, *,
                                "or free fewer parameters (see gyrojax observability).")
     return FitResult(names=free, params=params, values=values, stderr=se, covariance=cov,
                      residual_rms=rms, noise_std=sig, converged=converged, num_steps=nsteps,
+                     remaining_step_se=step_se,
                      result=result)
