@@ -39,6 +39,7 @@ def fit(args, load, emit_json):
     import jax.numpy as jnp
 
     from . import units
+    from .estimate.least_squares import convergence_text
     from .estimate.platform import (
         kappa_from_accelerometers,
         platform_gauss_newton,
@@ -90,6 +91,11 @@ def fit(args, load, emit_json):
         elif method == "gauss-newton":
             res = platform_gauss_newton(ts, recs, conds, start=res.as_dict(), noise_std=noise)
         est, se = res.as_dict(), res.stderr_dict()
+    # a regression (joint, s21) is a direct solve and the filter one pass: only Gauss-Newton
+    # can stop short of its solution
+    fit_info = ({"converged": bool(res.converged), "num_steps": int(res.num_steps),
+                 "remaining_step_se": float(res.remaining_step_se)}
+                if method == "gauss-newton" else {"converged": True})
     print(f"platform fit ({method}); kappa from the accelerometers: "
           + ", ".join(f"{k:.4f}" for k in kappas) + f"; angle noise {noise / units.ARCSEC:.3f} "
           "arcsec")
@@ -101,8 +107,10 @@ def fit(args, load, emit_json):
         e = float(p.to_display(se[n])) if n in se else None
         out[n] = {"value": v, "stderr": e, "unit": p.display_unit}
         print(f"{n:12s} {v:12.5f} {'' if e is None else f'{e:10.2g}'}  {p.display_unit}")
+    if method == "gauss-newton":
+        print(convergence_text(res.converged, res.num_steps, res.remaining_step_se))
     emit_json({"method": method, "parameters": out, "kappa": kappas,
-               "noise_std_arcsec": noise / units.ARCSEC, "converged": True}, args.json)
+               "noise_std_arcsec": noise / units.ARCSEC} | fit_info, args.json)
 
 
 def observability(args, emit_json):

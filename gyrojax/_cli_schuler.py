@@ -104,11 +104,13 @@ def fit(args, load, emit_json):
     print(f"pass/fail: period {periods[0]['period_min']:.3f} min (V1), "
           f"{periods[1]['period_min']:.3f} min (V2); theory {periods[0]['theoretical_min']:.3f} min")
     print(est.table())
+    if args.method == "gauss-newton":
+        print(f"converged: {bool(est.converged)} ({int(est.iterations)} iterations)")
     space = rig.param_space
     emit_json({"rig": "schuler", "method": args.method, "latitude_deg": lat,
                "period_min": [p["period_min"] for p in periods],
                "theoretical_period_min": periods[0]["theoretical_min"],
-               "iterations": int(est.iterations),
+               "iterations": int(est.iterations), "converged": bool(est.converged),
                "parameters": {n: {"value": float(space[n].to_display(v)),
                                   "stderr": float(space[n].to_display(s)),
                                   "unit": space[n].display_unit}

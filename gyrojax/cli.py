@@ -162,6 +162,7 @@ def cmd_simulate(args):
 def cmd_fit(args):
     from . import units
     from .estimate import fit
+    from .estimate.least_squares import convergence_text
 
     if args.rig == "platform":
         from . import _cli_platform
@@ -180,11 +181,10 @@ def cmd_fit(args):
     print(f"# fit of {args.record} ({rec0.n_samples} samples), rig esg, scheme {scheme}, "
           f"latitude {lat} deg, method {args.method}, effects {list(effects) or 'none'}")
     print(report.table())
-    steps = (f" ({report.extra['num_steps']} steps; the step left: "
-             f"{report.extra['remaining_step_se']:.2g} standard errors)"
-             if "remaining_step_se" in report.extra else "")
-    print(f"residual RMS {report.to_json()['residual_rms_arcsec']:.4g} arcsec; "
-          f"converged: {report.converged}{steps}")
+    ex = report.extra
+    conv = (convergence_text(report.converged, ex["num_steps"], ex["remaining_step_se"])
+            if "remaining_step_se" in ex else f"converged: {report.converged}")
+    print(f"residual RMS {report.to_json()['residual_rms_arcsec']:.4g} arcsec; {conv}")
     _emit_json(report.to_json() | {"rig": "esg", "scheme": scheme, "latitude_deg": lat,
                                    "effects": list(effects)}, args.json)
 

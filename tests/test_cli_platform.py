@@ -44,13 +44,19 @@ def test_fit_methods_agree_and_unknown_method_refused(tmp_path, capsys):
     sched.write_text(json.dumps({"dwell_s": 10, "table_amplitudes_g": [9, 7]}))
     rec = tmp_path / "p.nc"
     assert main(["simulate", "--rig", "platform", "--schedule", str(sched), "--out", str(rec)]) == 0
-    out = {}
-    for m in ("joint", "kalman"):
+    out, info = {}, {}
+    for m in ("joint", "kalman", "gauss-newton"):
         assert main(["fit", str(rec), "--rig", "platform", "--method", m, "--json",
                      str(tmp_path / f"{m}.json")]) == 0
-        out[m] = json.loads((tmp_path / f"{m}.json").read_text())["parameters"]
-    for name in TRUE_TABLE2:  # the EKF ends on the regression (the model is linear in D)
-        assert abs(out["kalman"][name]["value"] - out["joint"][name]["value"]) < \
-            0.05 * out["joint"][name]["stderr"]
+        info[m] = json.loads((tmp_path / f"{m}.json").read_text())
+        out[m] = info[m]["parameters"]
+    # the EKF and the batch Gauss-Newton end on the regression (the model is linear in D)
+    for m in ("kalman", "gauss-newton"):
+        for name in TRUE_TABLE2:
+            assert abs(out[m][name]["value"] - out["joint"][name]["value"]) < \
+                0.05 * out["joint"][name]["stderr"], (m, name)
+    gn = info["gauss-newton"]  # started from the regression: converged, nothing left to step
+    assert gn["converged"] is True and gn["num_steps"] < 20 and gn["remaining_step_se"] < 1e-2
+    assert "converged: True (" in capsys.readouterr().out
     assert main(["fit", str(rec), "--rig", "platform", "--method", "levenberg-marquardt"]) == 2
     assert "not a platform method" in capsys.readouterr().err

@@ -60,6 +60,7 @@ def test_single_pass_filter_is_one_gauss_newton_step():
     assert np.max(np.abs(np.asarray((kf.values - gn1.values) / SIG))) < 1e-3
     np.testing.assert_allclose(kf.stderr, gn1.stderr, rtol=1e-4)
     gn = fit_schuler(RIG, ts, ys[0], COND)
+    assert not bool(gn1.converged) and bool(gn.converged)  # one step from 0 is not the solution
     kf2, extras2 = schuler_filter(RIG, ts, ys[0], COND,
                                   params_ref=dict(zip(PARAM_NAMES, gn.values, strict=True)))
     assert np.max(np.abs(np.asarray((kf2.values - gn.values) / gn.stderr))) < 1e-3
@@ -92,7 +93,7 @@ def test_monte_carlo_one_period():
     rms = _display(np.sqrt(np.mean(err**2, axis=0)))
     assert np.all(_display(np.mean(np.asarray(gn.stderr), axis=0))[:9] < SOURCE / 3)
     assert np.all(rms[:9] < 1.3 * SOURCE / 3), rms
-    assert np.all(np.asarray(gn.iterations) <= 6)
+    assert np.all(np.asarray(gn.iterations) <= 6) and np.all(np.asarray(gn.converged))
     kf_err = np.asarray(kf.values - thetas)
     kf_rms = _display(np.sqrt(np.mean(kf_err**2, axis=0)))
     assert 0.02 < kf_rms[0] < 0.2  # nu1 (deg/h): the source's order

@@ -342,7 +342,11 @@ def test_original_model_with_measured_acceleration_vs_averaged():
 def test_batch_gauss_newton_equals_regression(tests_1_and_2):
     """Batch Gauss-Newton on the averaged ODE model (30 coefficients + 84 initial angles, forward
     sensitivities through diffrax), started from zero, lands on the regression (S22) estimate
-    to 0.05 standard errors, with the same standard errors (first 20 s of every dwell)."""
+    to 0.05 standard errors, with the same standard errors (first 20 s of every dwell), and says
+    it converged. Stopped after 2 steps it says it did not: the step it reports left, in
+    standard errors, is the square root of the chi-square the remaining steps remove (the
+    residual variances of the two fits, same dof; ~0.4 here: 2 steps come close, not close
+    enough)."""
     from gyrojax.estimate.platform import platform_gauss_newton
 
     n = 801
@@ -353,6 +357,17 @@ def test_batch_gauss_newton_equals_regression(tests_1_and_2):
     d = np.abs(np.asarray(gn.values - reg.values) / np.asarray(reg.stderr))
     assert d.max() < 0.05, d.max()
     np.testing.assert_allclose(gn.stderr, reg.stderr, rtol=0.02)
+    assert bool(gn.converged) and int(gn.num_steps) < 20
+    assert float(gn.remaining_step_se) < 1e-2
+    # the noise estimated from the residuals (noise_std None): the same dof at both ends
+    full = platform_gauss_newton(TS[:n], recs, conds)
+    short = platform_gauss_newton(TS[:n], recs, conds, max_steps=2)
+    assert bool(full.converged) and not bool(short.converged)
+    s_full, s_short = float(full.noise_std) ** 2, float(short.noise_std) ** 2
+    dof = sum(r.size for r in recs) - (30 + 3 * sum(r.shape[0] for r in recs))
+    chi2_gain = (s_short - s_full) * dof / s_short
+    assert 0.05 < chi2_gain < 25, chi2_gain  # neither converged nor far off
+    assert float(short.remaining_step_se) ** 2 == pytest.approx(chi2_gain, rel=0.05)
 
 
 def test_shock_mount_response_and_transient():

@@ -186,9 +186,9 @@ class SchulerProblem:
         scale = jnp.asarray(sp.scales(names))
         u0 = jnp.asarray([float(params0.get(k, 0.0)) for k in names]) / scale
         n = self.n_train
-        theta, _, _, _ = _gauss_newton(self.rig, self.conditions, self.t[:n], self.y[:n],
-                                       1.0 / np.asarray(sigma, float), scale, u0, 20, 1e-4,
-                                       names, fixed, [float(k in chosen) for k in names])
+        theta, *_ = _gauss_newton(self.rig, self.conditions, self.t[:n], self.y[:n],
+                                  1.0 / np.asarray(sigma, float), scale, u0, 20, 1e-4,
+                                  names, fixed, [float(k in chosen) for k in names])
         p = fixed | dict(zip(names, theta, strict=True))
         coeffs = {k: float(sp[k].to_display(p[k])) for sig, _ in sig_choices for k in sig.names}
         return self.predict(p), coeffs, p

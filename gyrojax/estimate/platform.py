@@ -143,8 +143,13 @@ def regression_design(ts, angles, conditions, acc=None):
 
 
 class PlatformFit(AbstractNamedEstimate):
-    """Regression estimate of the free coefficients (internal rad/s); ``noise_std`` is the angle
-    residual std (rad); ``singular_values`` of the column-normalised design."""
+    """Estimate of the free coefficients (internal rad/s); ``noise_std`` is the angle residual
+    std (rad); ``singular_values`` of the column-normalised design (the regression's).
+
+    Batch Gauss-Newton (:func:`platform_gauss_newton`) also reports ``converged`` (optimistix's
+    test passed, or the step left at the solution is under ``STATIONARY_SE``), ``num_steps`` and
+    ``remaining_step_se`` (that step in standard errors); a regression is a direct solve: True,
+    0 and 0."""
 
     names: tuple[str, ...] = eqx.field(static=True)
     values: jax.Array
@@ -153,6 +158,9 @@ class PlatformFit(AbstractNamedEstimate):
     noise_std: jax.Array
     singular_values: jax.Array
     n_positions: int = eqx.field(static=True)
+    converged: jax.Array | bool = True
+    num_steps: jax.Array | int = 0
+    remaining_step_se: jax.Array | float = 0.0
 
     def full(self, fixed=None) -> dict:
         """All 30 coefficients: the free ones estimated, the others at ``fixed`` (default 0)."""
@@ -339,12 +347,13 @@ def platform_kalman(ts, records: Sequence, conditions: Sequence, *,
 
 
 @eqx.filter_jit
-def _gn_solve(ts, angles, conds, x0, free, rtol, atol, max_steps):
+def _gn_solve(ts, angles, conds, x0, free, rtol, atol, max_steps, noise_var):
     import diffrax
     import optimistix as optx
 
     from ..models.platform import PlatformRig
     from ..simulate import integrate
+    from .least_squares import stationary_converged
 
     rig = PlatformRig()
     base = rig.param_space.make()
@@ -364,8 +373,12 @@ def _gn_solve(ts, angles, conds, x0, free, rtol, atol, max_steps):
                              options=dict(jac="fwd"), max_steps=max_steps, throw=False)
     x = sol.value
     res, jac = value_and_jacfwd(lambda z: residual(z, None))(x)
-    _, cov_unit, s = scaled_lstsq(jac, res)
-    return x, cov_unit, jnp.sum(res**2), sol.result, sol.stats["num_steps"]
+    minus_step, cov_unit, s = scaled_lstsq(jac, res)
+    # the noise given (> 0), or the residual's with the fit's dof
+    sigma2 = jnp.where(noise_var > 0, noise_var,
+                       jnp.sum(res**2) / max(res.shape[0] - x.shape[0], 1))
+    converged, step_se = stationary_converged(sol.result, jac, minus_step, sigma2)
+    return x, cov_unit, sigma2, converged, sol.stats["num_steps"], step_se
 
 
 def platform_gauss_newton(ts, records: Sequence, conditions: Sequence, *,
@@ -374,18 +387,20 @@ def platform_gauss_newton(ts, records: Sequence, conditions: Sequence, *,
                           max_steps: int = 20) -> PlatformFit:
     """Batch Gauss-Newton (optimistix, forward sensitivities through diffrax) of the averaged ODE
     model on the gimbal-angle records: unknowns the free coefficients and the initial angles of
-    every dwell; started from ``start`` (e.g. the regression estimate) or zero."""
+    every dwell; started from ``start`` (e.g. the regression estimate) or zero. ``noise_std``
+    (rad): the angle noise for the covariance (default: the residual's). The result's
+    ``converged`` says whether the fit ended at a solution within ``max_steps``; it does not
+    raise when not."""
     free = tuple(free)
     angles = jnp.concatenate([jnp.asarray(a) for a in records])
     conds = jax.tree.map(lambda *c: jnp.concatenate(c), *conditions)
     scale = _scales(free)
     d0 = jnp.array([float((start or {}).get(n, 0.0)) for n in free]) / scale
     x0 = jnp.concatenate([d0, jnp.zeros(3 * angles.shape[0])])
-    x, cov_unit, rss, result, steps = _gn_solve(jnp.asarray(ts), angles, conds, x0, free, rtol,
-                                                atol, max_steps)
+    noise_var = jnp.asarray(-1.0 if noise_std is None else float(noise_std) ** 2)
+    x, cov_unit, sigma2, converged, steps, step_se = _gn_solve(
+        jnp.asarray(ts), angles, conds, x0, free, rtol, atol, max_steps, noise_var)
     k = len(free)
-    m = angles.size
-    sigma2 = rss / max(m - x.shape[0], 1) if noise_std is None else jnp.asarray(noise_std) ** 2
     cov = sigma2 * cov_unit[:k, :k] * jnp.outer(scale, scale)
     return PlatformFit(free, x[:k] * scale, jnp.sqrt(jnp.diag(cov)), cov, jnp.sqrt(sigma2),
-                       jnp.zeros(0), int(angles.shape[0]))
+                       jnp.zeros(0), int(angles.shape[0]), converged, steps, step_se)

@@ -72,6 +72,8 @@ class SchulerEstimate(AbstractNamedEstimate):
     - ``iterations``: Gauss-Newton iterations (0 for the filter); ``residual_rms`` (5,): RMS of
       the final residuals per channel (m/s, rad).
     - ``method``: ``"gauss-newton"`` or ``"kalman"``.
+    - ``converged``: Gauss-Newton's last step was under its ``tol`` (False when it stopped at
+      ``max_iter`` still moving); True for the filter, a single pass.
     """
 
     names: tuple[str, ...] = eqx.field(static=True)
@@ -81,6 +83,7 @@ class SchulerEstimate(AbstractNamedEstimate):
     iterations: jax.Array
     residual_rms: jax.Array
     method: str = eqx.field(static=True)
+    converged: jax.Array | bool = True
 
     def correlation(self):
         s = self.stderr
@@ -145,7 +148,10 @@ def _gauss_newton(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names
 
     ``weights`` broadcast to per-sample (N, 5), the mask and the loop limits passed as arrays
     before the jit boundary, so every caller (a staged first pass, refits of different effect
-    sets over one superset ``names``, a different ``max_iter``) reuses one compiled solver."""
+    sets over one superset ``names``, a different ``max_iter``) reuses one compiled solver.
+
+    Returns ``(theta, covariance, iterations, residual RMS per channel, converged)``: converged
+    when the last step's largest change was under ``tol`` prior standard deviations."""
     y = jnp.asarray(y, dtype=float)
     weights = jnp.broadcast_to(jnp.asarray(weights, dtype=float), y.shape)
     mask = jnp.ones(len(names)) if mask is None else jnp.asarray(mask, dtype=float)
@@ -184,10 +190,11 @@ def _gauss_newton_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, n
         _, it, change, _ = carry
         return (it < max_iter) & (change > tol)
 
-    u, it, _, cov = jax.lax.while_loop(cond, body, (u0, 0, jnp.inf, jnp.eye(k)))
+    u, it, change, cov = jax.lax.while_loop(cond, body, (u0, 0, jnp.inf, jnp.eye(k)))
     params = fixed | dict(zip(names, u * sig, strict=True))
     r = schuler_residuals(rig, conditions, ts, y, params)
-    return u * sig, cov * jnp.outer(sig, sig), it, jnp.sqrt(jnp.mean(r**2, axis=0))
+    return (u * sig, cov * jnp.outer(sig, sig), it, jnp.sqrt(jnp.mean(r**2, axis=0)),
+            change <= tol)
 
 
 def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_v: float = 0.05,
@@ -217,11 +224,13 @@ def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_
     if staged and float(ts[-1] - ts[0]) > 1.2 * period:
         n1 = int(np.searchsorted(np.asarray(ts), float(ts[0]) + period)) + 1
         first = (jnp.arange(y.shape[0]) < n1)[:, None]
-        theta, _, _, _ = _gauss_newton(rig, conditions, ts, y, w * first, sig, u, max_iter, tol)
+        theta, *_ = _gauss_newton(rig, conditions, ts, y, w * first, sig, u, max_iter, tol)
         u = theta / sig
-    theta, cov, it, rms = _gauss_newton(rig, conditions, ts, y, w, sig, u, max_iter, tol)
+    theta, cov, it, rms, converged = _gauss_newton(rig, conditions, ts, y, w, sig, u, max_iter,
+                                                   tol)
     return SchulerEstimate(names=THETA_NAMES, values=theta, stderr=jnp.sqrt(jnp.diagonal(cov)),
-                           covariance=cov, iterations=it, residual_rms=rms, method="gauss-newton")
+                           covariance=cov, iterations=it, residual_rms=rms, method="gauss-newton",
+                           converged=converged)
 
 
 # -- linearised Kalman filter (§9.2) -------------------------------------------------------
