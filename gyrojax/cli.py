@@ -23,11 +23,32 @@ class UsageError(Exception):
     """Bad user input: printed as one line, exit status 2."""
 
 
+# the rigs each command serves (the others are refused with this list and where to go instead)
+COMMAND_RIGS = {"simulate": ("esg", "schuler", "platform", "gyrotheodolite"),
+                "fit": ("esg", "schuler", "platform", "imu"),
+                "observability": ("esg", "schuler", "platform"),
+                "montecarlo": ("esg",), "demo": ("esg",)}
+_ELSEWHERE = {"imu": "gyrojax diagnose --rig imu (sim-to-real) or gyrojax fit --rig imu "
+                     "(multi-position calibration); gyrojax.models.imu.simulate_imu in Python",
+              "gyrotheodolite": "gyrojax observer (observer gains, poles, bandwidths), gyrojax "
+                                "simulate or diagnose --rig gyrotheodolite",
+              "schuler": "gyrojax simulate, fit, observability or diagnose --rig schuler",
+              "platform": "gyrojax simulate, fit, observability or diagnose --rig platform"}
+
+
+def _refuse_rig(args):
+    command = getattr(args, "command", None) or "this command"
+    rigs = COMMAND_RIGS.get(command, ("esg",))
+    where = _ELSEWHERE.get(args.rig)
+    raise UsageError(f"--rig {args.rig!r}: gyrojax {command} serves --rig {', '.join(rigs)}"
+                     + (f"; for {args.rig} use {where}" if where else ""))
+
+
 def _rig_and_conditions(args, record=None):
     from .models.esg import SCHEMES, ESGConditions, ESGRig
 
     if args.rig != "esg":
-        raise UsageError(f"--rig {args.rig!r} is not available yet; rigs: esg")
+        _refuse_rig(args)
     conds = dict(record.conditions) if record is not None else {}
     scheme = getattr(args, "scheme", None) or conds.get("scheme")
     lat = getattr(args, "latitude", None)
@@ -168,6 +189,10 @@ def cmd_fit(args):
         from . import _cli_platform
 
         return _cli_platform.fit(args, _load, _emit_json)
+    if args.rig == "imu":
+        from . import _cli_imu
+
+        return _cli_imu.fit(args, _load_imu, _emit_json, UsageError)
     args.method = args.method or "gauss-newton"
     if args.rig == "schuler":
         from . import _cli_schuler
@@ -231,7 +256,7 @@ def cmd_montecarlo(args):
     from .analysis.mounting import mounting_error_budget, mounting_error_tables
 
     if args.rig != "esg":
-        raise UsageError(f"--rig {args.rig!r} is not available yet; rigs: esg")
+        _refuse_rig(args)
     lat = args.latitude if args.latitude is not None else 55.75
     if args.study == "tables":
         tab = mounting_error_tables(lat)
@@ -537,8 +562,8 @@ def _common(p, *, record=False, scheme=True):
                    choices=["esg", "schuler", "platform", "imu", "gyrotheodolite"],
                    help="rig: esg (default), schuler (platform INS Schuler test), platform "
                         "(three-gimbal platform under vibration), imu (strapdown IMU on a "
-                        "stand; diagnose only) or gyrotheodolite (north-seeking run; simulate "
-                        "and diagnose)")
+                        "stand; fit: multi-position calibration, and diagnose) or "
+                        "gyrotheodolite (north-seeking run; simulate and diagnose)")
     p.add_argument("--schedule", metavar="JSON",
                    help="platform: test schedule file (positions_deg, table_amplitudes_g, "
                         "attenuation, frequency_hz, dwell_s, sample_s, latitude_deg, mounting); "
@@ -607,7 +632,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="PRNG seed for the noise (default 0)")
     p.set_defaults(func=cmd_simulate)
 
-    p = sub.add_parser("fit", help="identify drift (and effects) from a record")
+    p = sub.add_parser("fit", help="identify drift (and effects) from a record; calibrate an IMU")
     _common(p, record=True)
     p.add_argument("--effects", default="",
                    help="comma-separated effects to estimate: rotor_tilt, base_misalignment, "
@@ -617,7 +642,10 @@ def build_parser() -> argparse.ArgumentParser:
                             "s21"],
                    help="estimator (esg and schuler: default gauss-newton; platform: joint "
                         "regression of all amplitudes (default), s21 (the source's two-amplitude "
-                        "resolution), kalman (the source's EKF) or gauss-newton)")
+                        "resolution), kalman (the source's EKF) or gauss-newton; imu: the "
+                        "multi-position calibration, a Levenberg-Marquardt fit of |f| = g over "
+                        "the record's static poses and of the turns between them for the gyros; "
+                        "RECORD may be dataset:NAME)")
     p.add_argument("--noise-arcsec", type=float,
                    help="angle noise for --method kalman (default: estimated)")
     _schuler_options(p, length=False)
@@ -750,6 +778,9 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        rig = getattr(args, "rig", None)
+        if rig is not None and rig not in COMMAND_RIGS.get(args.command, (rig,)):
+            _refuse_rig(args)  # before any record is read
         args.func(args)
     except UsageError as exc:
         print(f"gyrojax {args.command}: error: {exc}", file=sys.stderr)

@@ -25,6 +25,7 @@ from gyrojax.estimate.multiposition import (
 from gyrojax.io import save_record
 from gyrojax.models.imu import IMURig, Pose, cube_poses, imu_noise, simulate_imu
 from gyrojax.plots import plot_allan
+from gyrojax.record import BenchRecord
 
 SPACE = IMURig().param_space
 BIAS = dict(bax=0.05, bay=-0.03, baz=0.08, bgx=0.01, bgy=-0.02, bgz=0.005)
@@ -44,11 +45,11 @@ def test_multiposition_calibration_recovers_the_generating_parameters():
     assert all(t0 <= s.t0 and s.t1 <= t1 for s, (t0, t1) in zip(segs, truth))
     means, _ = segment_means(rec, segs)
     acc = calibrate_accelerometer(means, units.G0)
-    assert acc.determined
+    assert acc.determined and acc.converged
     for k in ACCEL_NAMES:
         assert abs(acc.params[k] - (BIAS | CAL)[k]) < 4 * acc.stderr[k], k
     gyr = calibrate_gyro(rec, segs, acc)
-    assert gyr.determined and gyr.n_turns == 19
+    assert gyr.determined and gyr.converged and gyr.n_turns == 19
     for k in GYRO_NAMES:
         assert abs(gyr.params[k] - CAL[k]) < 4 * gyr.stderr[k], k
     lopo = leave_one_position_out(means, units.G0)
@@ -56,6 +57,37 @@ def test_multiposition_calibration_recovers_the_generating_parameters():
     # six poses cannot determine nine terms: said, not guessed
     few = calibrate_accelerometer(means[:6], units.G0)
     assert not few.determined and "not determined" in few.message
+
+
+def test_cli_fit_calibrates_a_multiposition_record(tmp_path, capsys):
+    """``gyrojax fit --rig imu``: the 20-pose record above, written to NetCDF, calibrated from
+    the command line; every accelerometer and gyro term within 4 of its standard errors of the
+    generating value (display units: mg, ppm, mrad), both fits converged and determined, the
+    pose-left-out |f| - g RMS under 2 mm/s^2. Refused, exit 2: a record without accelerometers,
+    a --method the calibration does not have, and a rig fit does not serve (with where to go)."""
+    rec = simulate_imu(SPACE.make(BIAS | CAL), cube_poses(20, 5.0), arw=2e-4, vrw=1e-3,
+                       key=jax.random.PRNGKey(1))
+    path, out = tmp_path / "multi.nc", tmp_path / "cal.json"
+    save_record(rec, path)
+    assert main(["fit", str(path), "--rig", "imu", "--json", str(out)]) == 0
+    rep = json.loads(out.read_text())
+    assert rep["converged"] is True and rep["determined"] is True and rep["poses"] == 20
+    assert rep["gyro"]["turns"] == 19
+    assert rep["accelerometer"]["leave_one_position_out_rms_mps2"] < 2e-3
+    for name in ACCEL_NAMES + GYRO_NAMES:
+        p = rep["parameters"][name]
+        truth = float(SPACE[name].to_display((BIAS | CAL)[name]))
+        assert p["unit"] == SPACE[name].display_unit
+        assert abs(p["value"] - truth) < 4 * p["stderr"], (name, p, truth)
+    assert "converged: True" in capsys.readouterr().out
+    gyros_only = BenchRecord(rec.t, rec.y[:, :3], ("wx", "wy", "wz"), rec.attrs)
+    save_record(gyros_only, tmp_path / "gyros.nc")
+    for argv, msg in (([str(tmp_path / "gyros.nc")], "no ax ay az channel"),
+                      ([str(path), "--method", "kalman"], "omit --method"),
+                      ([str(path)], "gyrojax observer")):
+        rig = "gyrotheodolite" if msg == "gyrojax observer" else "imu"
+        assert main(["fit", *argv, "--rig", rig]) == 2
+        assert msg in capsys.readouterr().err
 
 
 def test_noise_likelihood_fit_recovers_white_and_rate_random_walk(tmp_path):

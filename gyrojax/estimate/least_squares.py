@@ -40,6 +40,7 @@ def stationary_converged(result, jac, minus_step, sigma2):
     under the covariance ``sigma2 (J^T J)^+``: ``|J step|^2 / sigma2`` is the chi-square it would
     gain), and the convergence rule of every optimistix Gauss-Newton fit in gyrojax: the solver's
     own test passed (``result``) or that step is under ``STATIONARY_SE``."""
+    sigma2 = jnp.maximum(sigma2, jnp.finfo(jnp.result_type(float)).tiny)  # a noise-free fit
     step_se = jnp.sqrt(jnp.sum((jac @ minus_step) ** 2) / sigma2)
     return (result == optx.RESULTS.successful) | (step_se <= STATIONARY_SE), step_se
 

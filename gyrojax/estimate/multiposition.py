@@ -24,6 +24,8 @@ import optimistix as optx
 
 from ..datasets import masked
 from ..record import BenchRecord
+from ._linalg import scaled_lstsq
+from .least_squares import stationary_converged
 
 __all__ = ["Segment", "detect_static", "calibrate_accelerometer", "calibrate_gyro",
            "AccelCalibration", "GyroCalibration", "leave_one_position_out", "time_ordered_split",
@@ -131,7 +133,18 @@ def _accel_fit(th0, means, w, gravity):
     args = (means, w, gravity)
     sol = optx.least_squares(_accel_resid, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12), th0,
                              args, max_steps=200, throw=False)
-    return sol.value, jax.jacfwd(_accel_resid)(sol.value, args), _accel_resid(sol.value, args)
+    return _at_solution(_accel_resid, sol, args)
+
+
+def _at_solution(resid, sol, args):
+    """``(value, Jacobian, residual, converged)`` at an optimistix least-squares solution;
+    converged by the rule of every Gauss-Newton fit in gyrojax (the solver's test passed, or the
+    step left is under ``STATIONARY_SE`` standard errors: ``stationary_converged``)."""
+    jac = jax.jacfwd(resid)(sol.value, args)
+    r = resid(sol.value, args)
+    minus_step = scaled_lstsq(jac, r)[0]
+    sigma2 = jnp.sum(r**2) / max(r.shape[0] - jac.shape[1], 1)
+    return sol.value, jac, r, stationary_converged(sol.result, jac, minus_step, sigma2)[0]
 
 
 @dataclasses.dataclass
@@ -146,6 +159,7 @@ class AccelCalibration:
     determined: bool
     message: str
     gravity: float
+    converged: bool = True  # the Levenberg-Marquardt fit ended at its solution
 
     def correct(self, f_meas):
         th = jnp.asarray([self.params[n] for n in ACCEL_NAMES])
@@ -163,7 +177,7 @@ def calibrate_accelerometer(means, gravity: float, *, weights=None) -> AccelCali
     w = np.ones(n) if weights is None else np.asarray(weights, float)
     th0 = np.zeros(9)
     th0[:3] = means.mean(0) * (n >= 6)
-    th, jac, r = (np.asarray(x) for x in _accel_fit(th0, means, w, float(gravity)))
+    th, jac, r, converged = (np.asarray(x) for x in _accel_fit(th0, means, w, float(gravity)))
     sv = np.linalg.svd(jac, compute_uv=False)
     rank = int(np.sum(sv > 1e-9 * sv[0]))
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
@@ -179,9 +193,15 @@ def calibrate_accelerometer(means, gravity: float, *, weights=None) -> AccelCali
         msg = (f"{n} poses give rank {rank} of 9 (condition {cond:.3g}): the 9-term accelerometer "
                "model is not determined by these poses; record more orientations (>= 12, spread "
                "over the sphere)")
+    msg += _not_converged(converged, 200)
     return AccelCalibration(dict(zip(ACCEL_NAMES, np.asarray(th).tolist())),
                             dict(zip(ACCEL_NAMES, se.tolist())), r / np.sqrt(w), rank, cond,
-                            determined, msg, gravity)
+                            determined, msg, gravity, bool(converged))
+
+
+def _not_converged(converged, max_steps) -> str:
+    return ("" if converged else f"; the Levenberg-Marquardt fit did not converge in {max_steps} "
+            "steps: these values are not a solution (check the poses' means and units)")
 
 
 # -- gyro: gravity propagation ----------------------------------------------------------------
@@ -219,7 +239,7 @@ def _gyro_fit(u0, u1, wt, live, dt):
     args = (u0, u1, wt, live, dt)
     sol = optx.least_squares(_gyro_resid, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12),
                              jnp.zeros(9), args, max_steps=100, throw=False)
-    return sol.value, jax.jacfwd(_gyro_resid)(sol.value, args), _gyro_resid(sol.value, args)
+    return _at_solution(_gyro_resid, sol, args)
 
 
 @dataclasses.dataclass
@@ -231,6 +251,7 @@ class GyroCalibration:
     n_turns: int
     determined: bool
     message: str
+    converged: bool = True  # the Levenberg-Marquardt fit ended at its solution
 
 
 def calibrate_gyro(record: BenchRecord, segments, accel: AccelCalibration, *, bias=None,
@@ -266,7 +287,7 @@ def calibrate_gyro(record: BenchRecord, segments, accel: AccelCalibration, *, bi
         live[j, : i1 - i0] = 1.0
     u0 = np.stack([ups[k] for k, _, _ in turns])
     u1 = np.stack([ups[k + 1] for k, _, _ in turns])
-    th, jac, r = (np.asarray(x) for x in _gyro_fit(u0, u1, wt, live, dt))
+    th, jac, r, converged = (np.asarray(x) for x in _gyro_fit(u0, u1, wt, live, dt))
     r = r.reshape(-1, 3)
     pred = u1 + r
     ang = np.degrees(np.arccos(np.clip(np.sum(np.asarray(pred) * np.asarray(u1), 1)
@@ -282,9 +303,10 @@ def calibrate_gyro(record: BenchRecord, segments, accel: AccelCalibration, *, bi
     else:
         se = np.full(9, np.nan)
         msg = (f"{len(turns)} turns give rank {rank} of 9: turn about all three axes (>= 5 turns)")
+    msg += _not_converged(converged, 100)
     return GyroCalibration(dict(zip(GYRO_NAMES, np.asarray(th).tolist())),
                            dict(zip(GYRO_NAMES, se.tolist())), b, ang, len(turns), determined,
-                           msg)
+                           msg, bool(converged))
 
 
 # -- held-out checks --------------------------------------------------------------------------
