@@ -287,7 +287,7 @@ def cmd_effects(args):
     from .models import RIGS
 
     if args.rig not in RIGS:
-        raise UsageError(f"--rig {args.rig!r} is not available yet; rigs: {', '.join(RIGS)}")
+        raise UsageError(f"--rig {args.rig!r} is not a rig of gyrojax; rigs: {', '.join(RIGS)}")
     space = RIGS[args.rig]().param_space
     nominal = ", ".join(space.nominal_names()) or "none outside the groups below"
     print(f"rig {args.rig}: ungrouped nominal parameters: {nominal}")
@@ -604,6 +604,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="gyrojax",
         description="Differentiable estimation for gyroscope and INS bench tests. Engineering units "
                     "at the command line (deg/h, arcsec, deg); SI in files.")
+    from . import __version__
+
+    ap.add_argument("--version", action="version", version=f"gyrojax {__version__}")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("demo", help="fit and diagnose the built-in example record (the main job)")

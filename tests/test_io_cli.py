@@ -135,3 +135,13 @@ def test_cli_help_explains_every_option(capsys):
     text = capsys.readouterr().out
     for opt in ("--effects", "--method", "--latitude", "--scheme", "--json"):
         assert opt in text
+
+
+def test_cli_version_is_the_installed_distribution(capsys):
+    """``gyrojax --version`` prints the package's version, the one pyproject.toml installed."""
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"gyrojax {version('gyrojax')}"
