@@ -15,6 +15,18 @@ ACCELEROMETERS = ("ax", "ay", "az")
 GYROS = ("wx", "wy", "wz")
 
 
+def _rms(x):
+    """RMS over the finite entries (NaN: a pose left out where the rest do not determine the
+    calibration); None when there are none."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(x**2))) if x.size else None
+
+
+def _mm(x) -> str:
+    return "-" if x is None else f"{x * 1e3:.3f}"
+
+
 def fit(args, load_imu, emit_json, usage_error):
     from .estimate.multiposition import (
         ACCEL_NAMES,
@@ -55,18 +67,12 @@ def fit(args, load_imu, emit_json, usage_error):
             gyro_note = str(exc)
 
     space = IMURig().param_space
-    def rms(x):  # over the finite entries (a pose left out where the rest do not determine)
-        x = np.asarray(x, float)
-        x = x[np.isfinite(x)]
-        return float(np.sqrt(np.mean(x**2))) if x.size else None
-
     raw = np.linalg.norm(means, axis=1) - gravity
     print(f"# multi-position calibration of {args.record}: {rec.n_samples} samples, "
           f"{len(segs)} static poses, gravity {gravity:.5f} m/s^2")
     print(f"accelerometers: {acc.message}; converged: {acc.converged}")
-    mm = lambda x: "-" if x is None else f"{x * 1e3:.3f}"  # noqa: E731
-    print(f"  |f| - g RMS over the poses: uncalibrated {mm(rms(raw))} mm/s^2, calibrated "
-          f"{mm(rms(acc.residual))}, each pose left out {mm(rms(lopo))}")
+    print(f"  |f| - g RMS over the poses: uncalibrated {_mm(_rms(raw))} mm/s^2, calibrated "
+          f"{_mm(_rms(acc.residual))}, each pose left out {_mm(_rms(lopo))}")
     print(f"gyros: {gyro_note}" + ("" if gyro is None else f"; converged: {gyro.converged}; "
                                    f"turn residual median {np.median(gyro.residual_deg):.3f} "
                                    "deg"))
@@ -88,9 +94,9 @@ def fit(args, load_imu, emit_json, usage_error):
                "poses": len(segs), "gravity_mps2": gravity,
                "accelerometer": {"message": acc.message, "converged": acc.converged,
                                  "determined": acc.determined,
-                                 "residual_rms_mps2": rms(acc.residual),
-                                 "uncalibrated_rms_mps2": rms(raw),
-                                 "leave_one_position_out_rms_mps2": rms(lopo)},
+                                 "residual_rms_mps2": _rms(acc.residual),
+                                 "uncalibrated_rms_mps2": _rms(raw),
+                                 "leave_one_position_out_rms_mps2": _rms(lopo)},
                "gyro": None if gyro is None else {
                    "message": gyro.message, "converged": gyro.converged,
                    "determined": gyro.determined, "turns": gyro.n_turns,
