@@ -255,8 +255,6 @@ def cmd_montecarlo(args):
 
     from .analysis.mounting import mounting_error_budget, mounting_error_tables
 
-    if args.rig != "esg":
-        _refuse_rig(args)
     lat = args.latitude if args.latitude is not None else 55.75
     if args.study == "tables":
         tab = mounting_error_tables(lat)

@@ -24,7 +24,7 @@ import optimistix as optx
 
 from ..datasets import masked
 from ..record import BenchRecord
-from ._linalg import scaled_lstsq
+from ._linalg import scaled_lstsq, value_and_jacfwd
 from .least_squares import stationary_converged
 
 __all__ = ["Segment", "detect_static", "calibrate_accelerometer", "calibrate_gyro",
@@ -109,6 +109,7 @@ def segment_means(record: BenchRecord, segments, channels=("ax", "ay", "az")):
 
 # -- accelerometer: |f| = g ------------------------------------------------------------------
 ACCEL_NAMES = ("bax", "bay", "baz", "sax", "say", "saz", "maxy", "maxz", "mayz")
+ACCEL_MAX_STEPS = 200  # Levenberg-Marquardt budget of the |f| = g fit
 
 
 def _accel_matrix(theta):
@@ -132,7 +133,7 @@ def _accel_fit(th0, means, w, gravity):
     leave-one-position-out loop and repeated units reuse it)."""
     args = (means, w, gravity)
     sol = optx.least_squares(_accel_resid, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12), th0,
-                             args, max_steps=200, throw=False)
+                             args, max_steps=ACCEL_MAX_STEPS, throw=False)
     return _at_solution(_accel_resid, sol, args)
 
 
@@ -140,8 +141,7 @@ def _at_solution(resid, sol, args):
     """``(value, Jacobian, residual, converged)`` at an optimistix least-squares solution;
     converged by the rule of every Gauss-Newton fit in gyrojax (the solver's test passed, or the
     step left is under ``STATIONARY_SE`` standard errors: ``stationary_converged``)."""
-    jac = jax.jacfwd(resid)(sol.value, args)
-    r = resid(sol.value, args)
+    r, jac = value_and_jacfwd(lambda x: resid(x, args))(sol.value)
     minus_step = scaled_lstsq(jac, r)[0]
     sigma2 = jnp.sum(r**2) / max(r.shape[0] - jac.shape[1], 1)
     return sol.value, jac, r, stationary_converged(sol.result, jac, minus_step, sigma2)[0]
@@ -193,7 +193,7 @@ def calibrate_accelerometer(means, gravity: float, *, weights=None) -> AccelCali
         msg = (f"{n} poses give rank {rank} of 9 (condition {cond:.3g}): the 9-term accelerometer "
                "model is not determined by these poses; record more orientations (>= 12, spread "
                "over the sphere)")
-    msg += _not_converged(converged, 200)
+    msg += _not_converged(converged, ACCEL_MAX_STEPS)
     return AccelCalibration(dict(zip(ACCEL_NAMES, np.asarray(th).tolist())),
                             dict(zip(ACCEL_NAMES, se.tolist())), r / np.sqrt(w), rank, cond,
                             determined, msg, gravity, bool(converged))
@@ -206,6 +206,7 @@ def _not_converged(converged, max_steps) -> str:
 
 # -- gyro: gravity propagation ----------------------------------------------------------------
 GYRO_NAMES = ("sgx", "sgy", "sgz", "mgxy", "mgxz", "mgyx", "mgyz", "mgzx", "mgzy")
+GYRO_MAX_STEPS = 100  # Levenberg-Marquardt budget of the turns' fit
 
 
 def _gyro_matrix(theta):
@@ -238,7 +239,7 @@ def _gyro_resid(theta, args):
 def _gyro_fit(u0, u1, wt, live, dt):
     args = (u0, u1, wt, live, dt)
     sol = optx.least_squares(_gyro_resid, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12),
-                             jnp.zeros(9), args, max_steps=100, throw=False)
+                             jnp.zeros(9), args, max_steps=GYRO_MAX_STEPS, throw=False)
     return _at_solution(_gyro_resid, sol, args)
 
 
@@ -303,7 +304,7 @@ def calibrate_gyro(record: BenchRecord, segments, accel: AccelCalibration, *, bi
     else:
         se = np.full(9, np.nan)
         msg = (f"{len(turns)} turns give rank {rank} of 9: turn about all three axes (>= 5 turns)")
-    msg += _not_converged(converged, 100)
+    msg += _not_converged(converged, GYRO_MAX_STEPS)
     return GyroCalibration(dict(zip(GYRO_NAMES, np.asarray(th).tolist())),
                            dict(zip(GYRO_NAMES, se.tolist())), b, ang, len(turns), determined,
                            msg, bool(converged))
