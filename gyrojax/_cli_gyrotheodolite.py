@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
+from .record import sample_times
 
 CHANNELS = ("alpha",)
 DEFAULT_HOURS = 40 / 60
@@ -40,9 +40,11 @@ def simulate(args, parse_sets, emit_json, usage_error):
     space = rig.param_space
     sets = parse_sets(args.set, space)
     params = rig.default_params(**sets)
-    ts = np.arange(0.0, hours * 3600 + 0.5 * sample, sample)
-    if ts.size < 3:
-        raise usage_error(f"--hours {hours} with --sample {sample} s gives {ts.size} samples")
+    try:
+        ts = sample_times(hours * 3600, sample, span=f"--hours {hours:g}",
+                          sample=f"--sample {sample:g}")
+    except ValueError as exc:
+        raise usage_error(str(exc)) from None
     out = Path(args.out)
     if out.suffix.lower() not in (".nc", ".csv"):
         raise usage_error(f"--out {args.out!r}: use a .nc or .csv file name")

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .record import sample_times
+
 CHANNELS = ("V1", "V2", "rot1", "rot2", "rot3")
 
 
@@ -64,7 +66,8 @@ def simulate(args, parse_sets, emit_json):
     sets = parse_sets(args.set, space)  # the 12 errors, or an unmodelled effect's parameters
     params = space.make(given | sets)
     shown = PARAM_NAMES + tuple(n for n in EFFECT_NAMES if n in sets)
-    ts = np.arange(0.0, span + 0.5 * args.sample, args.sample)
+    ts = sample_times(span, args.sample, span=f"--periods {args.periods:g}",
+                      sample=f"--sample {args.sample:g}")
     out = Path(args.out)
     if out.suffix.lower() not in (".nc", ".csv"):
         raise ValueError(f"--out {args.out!r}: use a .nc or .csv file name")

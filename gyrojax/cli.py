@@ -122,6 +122,16 @@ def _positive(name, value):
     return value
 
 
+def _sample_times(hours, sample_s):
+    from .record import sample_times
+
+    try:
+        return sample_times(hours * 3600, sample_s, span=f"--hours {hours:g}",
+                            sample=f"--sample {sample_s:g}")
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
 # -- commands ------------------------------------------------------------------------------
 def cmd_simulate(args):
     import jax
@@ -149,17 +159,13 @@ def cmd_simulate(args):
     _positive("--sample", args.sample)
     if args.noise_arcsec < 0:
         raise UsageError(f"--noise-arcsec {args.noise_arcsec} must be >= 0")
-    n = int(round(args.hours * 3600 / args.sample)) + 1
-    if n < 3:
-        raise UsageError(f"--hours {args.hours} with --sample {args.sample} s gives {n} samples; "
-                         "need at least 3")
+    ts = _sample_times(args.hours, args.sample)
     space = rig.param_space
     default = {"m11": 0.15, "m12": -0.15, "m21": 0.15, "m22": -0.075, "mc1": 0.15, "mc2": -0.15}
     given = {k: space[k].from_display(v) for k, v in default.items()} | \
         _parse_sets(args.set, space)
     params = space.make(given | {"alpha10": args.alpha0[0] * units.DEG,
                                  "alpha20": args.alpha0[1] * units.DEG} if args.alpha0 else given)
-    ts = np.arange(n) * args.sample
     out = Path(args.out)
     if out.suffix.lower() not in (".nc", ".csv"):
         raise UsageError(f"--out {args.out!r}: use a .nc or .csv file name")
@@ -173,9 +179,9 @@ def cmd_simulate(args):
     from .io import save_record
 
     save_record(rec, out)
-    print(f"wrote {out}: {n} samples over {args.hours} h, scheme {scheme}, latitude {lat} deg")
+    print(f"wrote {out}: {ts.size} samples over {args.hours} h, scheme {scheme}, latitude {lat} deg")
     print(space.table(params, names=[k for k in space.names if float(params[k]) != space[k].null]))
-    _emit_json({"record": str(out), "samples": n, "parameters": {
+    _emit_json({"record": str(out), "samples": int(ts.size), "parameters": {
         k: {"value": float(space[k].to_display(v)), "unit": space[k].display_unit}
         for k, v in params.items()}}, args.json)
 
@@ -234,8 +240,7 @@ def cmd_observability(args):
     params = space.make({n: 0.01 for n in rig.drift_names} |
                         {"alpha10": args.alpha0[0] * units.DEG,
                          "alpha20": args.alpha0[1] * units.DEG})
-    n = int(round(args.hours * 3600 / args.sample)) + 1
-    ts = np.arange(n) * args.sample
+    ts = _sample_times(args.hours, args.sample)
     if args.method == "regression":
         from .estimate._fit import _linear_names
 
@@ -264,6 +269,11 @@ def cmd_montecarlo(args):
     else:
         if args.draws < 1:
             raise UsageError(f"--draws {args.draws} must be >= 1")
+        if args.chunk_size < 1:
+            raise UsageError(f"--chunk-size {args.chunk_size} must be >= 1 (draws per compiled "
+                             "batch; default 512)")
+        if not np.isfinite(args.noise_arcsec) or args.noise_arcsec < 0:
+            raise UsageError(f"--noise-arcsec {args.noise_arcsec} must be >= 0")
         processes = args.processes
         if processes is not None and processes != "all":
             if not processes.isdigit() or int(processes) < 1:
@@ -608,7 +618,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("demo", help="fit and diagnose the built-in example record (the main job)")
-    p.add_argument("--plot", metavar="PNG", help="save trajectory/residual figure")
+    p.add_argument("--plot", metavar="FILE",
+                   help="save trajectory/residual figure (.png, .pdf or .svg)")
     p.add_argument("--json", metavar="FILE", help="write the fits and observability report")
     p.set_defaults(func=cmd_demo)
 
@@ -707,7 +718,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--compensation", type=int, default=0, metavar="DRAWS",
                    help="also run the vibration-compensation Monte Carlo with DRAWS draws")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed (compensation)")
-    p.add_argument("--plot", metavar="PNG", help="save the Fig. 1 comparison")
+    p.add_argument("--plot", metavar="FILE", help="save the Fig. 1 comparison (.png, .pdf or .svg)")
     p.add_argument("--json", metavar="FILE", help="write results ('-' = stdout)")
     p.set_defaults(func=cmd_observer)
 
@@ -765,7 +776,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="residuals drawn from the linearised null to calibrate the BH level to "
                         "a false-alarm rate of exactly --alpha (default 499; 0: plain weighted "
                         "BH at --alpha)")
-    p.add_argument("--plot", metavar="PNG", help="gap map, residuals before/after, ranking")
+    p.add_argument("--plot", metavar="FILE",
+                   help="gap map, residuals before/after, ranking (.png, .pdf or .svg)")
     p.set_defaults(func=cmd_diagnose)
 
     p = sub.add_parser("effects", help="list a rig's catalogue of effects")
@@ -782,6 +794,14 @@ def main(argv=None) -> int:
         rig = getattr(args, "rig", None)
         if rig is not None and rig not in COMMAND_RIGS.get(args.command, (rig,)):
             _refuse_rig(args)  # before any record is read
+        if getattr(args, "plot", None):  # before the work the figure would show
+            from .plots import figure_format
+
+            try:
+                figure_format(args.plot)
+            except ValueError:
+                raise UsageError(f"--plot {args.plot!r}: use a .png, .pdf or .svg file "
+                                 "name") from None
         args.func(args)
     except UsageError as exc:
         print(f"gyrojax {args.command}: error: {exc}", file=sys.stderr)

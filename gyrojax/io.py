@@ -176,14 +176,38 @@ def _attr_value(v):
     return v
 
 
+def _umask() -> int:
+    """The process's file-creation mask (Linux reads it without changing it; elsewhere it is
+    set and restored at once)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write(path, write_fn):
-    """Call ``write_fn(tmp_path)`` then rename over ``path``; the temp file is removed on error."""
+    """Call ``write_fn(tmp_path)`` then rename over ``path``; the temp file is removed on error.
+
+    The file gets the permissions a plain ``open(path, "w")`` would give it: an existing file's
+    mode is kept, a new one gets ``0o666`` less the umask (``mkstemp``'s temp file is private,
+    ``0o600``, and the rename would otherwise carry that over to a record others must read)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        mode = path.stat().st_mode & 0o7777
+    except FileNotFoundError:
+        mode = 0o666 & ~_umask()
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
         write_fn(tmp)
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

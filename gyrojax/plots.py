@@ -16,10 +16,25 @@ def _plt():
     return plt
 
 
+FIGURE_FORMATS = ("png", "pdf", "svg")
+
+
+def figure_format(path) -> str:
+    """The figure format a file name asks for (its suffix: .png, .pdf or .svg)."""
+    from pathlib import Path
+
+    fmt = Path(path).suffix.lower().lstrip(".")
+    if fmt not in FIGURE_FORMATS:
+        raise ValueError(f"figure file {str(path)!r}: use a "
+                         + ", ".join(f".{f}" for f in FIGURE_FORMATS) + " file name")
+    return fmt
+
+
 def _save(fig, path):
     from .io import atomic_write
 
-    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+    fmt = figure_format(path)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format=fmt))
 
 
 def plot_fit(rig, record, conditions, report, path=None):

@@ -14,6 +14,30 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+MAX_SAMPLES = 10_000_000  # ~160 MB per two-channel float64 record
+
+
+def sample_times(span_s: float, sample_s: float, *, span: str = "the test length",
+                 sample: str = "the sampling interval") -> np.ndarray:
+    """Uniform sample times ``0, sample_s, ...`` up to ``span_s`` (inclusive, to half a sample),
+    refusing a test the machine could not hold (more than :data:`MAX_SAMPLES` samples) or one
+    too short to fit (fewer than 3). ``span`` / ``sample`` name the options that set them,
+    with their values as given (``"--hours 24"``, ``"--sample 60"``)."""
+    if not (np.isfinite(span_s) and span_s > 0 and np.isfinite(sample_s) and sample_s > 0):
+        raise ValueError(f"{span} and {sample} must be positive numbers (test length "
+                         f"{span_s} s, sampling interval {sample_s} s)")
+    n = int(span_s / sample_s + 0.5) + 1
+    if n > MAX_SAMPLES:
+        raise ValueError(f"{span} with {sample} s gives {n:.3g} samples "
+                         f"(~{n * 16 / 1e9:.3g} GB per two channels); a simulated record holds at "
+                         f"most {MAX_SAMPLES:,}: shorten the test or lengthen the sampling "
+                         "interval")
+    ts = np.arange(0.0, span_s + 0.5 * sample_s, sample_s)
+    if ts.size < 3:
+        raise ValueError(f"{span} with {sample} s gives {ts.size} samples; "
+                         "need at least 3")
+    return ts
+
 
 class BenchRecord(eqx.Module):
     """A bench test record.

@@ -191,6 +191,14 @@ def test_processes_bad_arguments_name_the_value():
             monte_carlo(lambda x: x, np.arange(4.0), processes=bad)
     with pytest.raises(ValueError, match="not both"):
         monte_carlo(lambda x: x, np.arange(4.0), processes=2, devices=jax.devices())
+    for bad in (0, -3, 2.5, True):  # a chunk of 0 once ran one draw per chunk, silently
+        with pytest.raises(ValueError, match=f"chunk_size={bad!r}"):
+            monte_carlo(lambda x: x, np.arange(4.0), chunk_size=bad)
+    from gyrojax.analysis.mounting import mounting_error_budget
+
+    for field in ("noise_arcsec", "dchi_std_arcmin", "theta_std_arcmin"):
+        with pytest.raises(ValueError, match=f"{field}=-1.0: a standard deviation"):
+            mounting_error_budget(jax.random.key(0), 4, **{field: -1.0})
 
 
 def test_processes_refused_off_the_cpu(monkeypatch):

@@ -250,13 +250,13 @@ def test_frequency_study_matches_spec_closed_forms_and_fig1():
 
 def test_cli_observer_json(tmp_path):
     out = tmp_path / "obs.json"
-    png = tmp_path / "fig1.png"
+    pdf = tmp_path / "fig1.pdf"  # the figure's format follows the file name
     assert main(["observer", "--omega0", "100", "1000", "--json", str(out), "--plot",
-                 str(png)]) == 0
+                 str(pdf)]) == 0
     rep = json.loads(out.read_text())
     rows = rep["observers"]
     assert [r["omega0"] for r in rows] == [100.0, 1000.0]
     np.testing.assert_allclose([rows[1][f"k{i}"] for i in range(1, 5)],
                                RIG.observer_gains(P, COND, 1000.0), rtol=1e-12)
     assert rows[1]["bandwidth"] == pytest.approx(309.0, rel=0.1)
-    assert png.stat().st_size > 10_000
+    assert pdf.read_bytes()[:5] == b"%PDF-" and pdf.stat().st_size > 10_000

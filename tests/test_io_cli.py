@@ -32,6 +32,23 @@ def test_roundtrip(tmp_path, record, suffix):
     assert [p.name for p in tmp_path.iterdir()] == [f"rec{suffix}"]  # no temp files left
 
 
+def test_written_files_get_the_umask_mode_and_keep_an_existing_mode(tmp_path, record):
+    """The atomic write's temp file is private (0o600); the record must come out as a plain
+    open() would make it, and a replaced file keeps its mode."""
+    import os
+    import stat
+
+    old = os.umask(0o027)
+    try:
+        path = save_record(record, tmp_path / "rec.nc")
+        assert stat.S_IMODE(path.stat().st_mode) == 0o640  # 0o666 less the umask
+        os.chmod(path, 0o604)
+        save_record(record, path)
+        assert stat.S_IMODE(path.stat().st_mode) == 0o604
+    finally:
+        os.umask(old)
+
+
 def _write(tmp_path, text, name="bad.csv"):
     p = tmp_path / name
     p.write_text(text)
@@ -118,6 +135,24 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
      "--table-run '0:60': give T0:T1:RATE"),
     (["montecarlo", "--study", "budget", "--processes", "0", "--json", "x.json"],
      "--processes '0': give a number of worker processes >= 1 or 'all'"),
+    (["diagnose", "r.nc", "--plot", "gap.txt"], "--plot 'gap.txt': use a .png, .pdf or .svg"),
+    (["montecarlo", "--study", "budget", "--chunk-size", "0", "--json", "x.json"],
+     "--chunk-size 0 must be >= 1"),
+    (["montecarlo", "--study", "budget", "--noise-arcsec", "-1", "--json", "x.json"],
+     "--noise-arcsec -1.0 must be >= 0"),
+    # a test the machine could not hold: refused before any array is made
+    (["simulate", "--scheme", "polar", "--latitude", "50", "--hours", "1e9", "--out", "x.nc"],
+     "--hours 1e+09 with --sample 60 s gives 6e+10 samples"),
+    (["observability", "--scheme", "polar", "--latitude", "50", "--hours", "-2"],
+     "--hours -2 and --sample 60 must be positive numbers"),
+    (["simulate", "--rig", "schuler", "--periods", "1e9", "--out", "x.nc"],
+     "--periods 1e+09 with --sample 1 s gives 5.06e+12 samples"),
+    (["simulate", "--rig", "gyrotheodolite", "--hours", "1e9", "--out", "x.nc"],
+     "--hours 1e+09 with --sample 1 s gives 3.6e+12 samples"),
+    (["simulate", "--rig", "platform", "--schedule", '{"dwell_s": 1e9}', "--out", "x.nc"],
+     "dwell_s 1e+09 at sample_s 0.025 over 14 positions and 2 amplitude(s) gives 1.12e+12"),
+    (["simulate", "--rig", "platform", "--schedule", '{"frequency_hz": 0}', "--out", "x.nc"],
+     "vibration frequency 0.0 Hz must be positive"),
 ])
 def test_cli_bad_input_exit_2_one_line_nothing_written(tmp_path, capsys, monkeypatch, argv,
                                                       match):

@@ -114,6 +114,10 @@ def monte_carlo(fn: Callable, draws, *, chunk_size: int = 1024, devices=None,
     or on several cores with ``processes``.
     """
     n = batch_size_of(draws)
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int | np.integer) \
+            or chunk_size < 1:
+        raise ValueError(f"monte_carlo: chunk_size={chunk_size!r}; give the draws per compiled "
+                         "batch as a positive int (e.g. 512)")
     if blas_threads is not None and (not isinstance(blas_threads, int) or blas_threads < 1):
         raise ValueError(f"monte_carlo: blas_threads={blas_threads!r}; give a positive int "
                          "(threads for BLAS/LAPACK during the run) or None to leave it alone")

@@ -166,6 +166,10 @@ def mounting_error_budget(key, n_draws: int, latitude_deg: float = 55.75, *, sch
     """
     if n_draws < 1:
         raise ValueError(f"n_draws={n_draws}: need at least one Monte Carlo draw")
+    for name, v in (("dchi_std_arcmin", dchi_std_arcmin), ("theta_std_arcmin", theta_std_arcmin),
+                    ("noise_arcsec", noise_arcsec)):
+        if not np.isfinite(v) or v < 0:
+            raise ValueError(f"{name}={v}: a standard deviation must be finite and >= 0")
     schemes = tuple(schemes)
     rig = ESGRig(base_param="rotvec")
     space = rig.param_space

@@ -37,8 +37,11 @@ __all__ = ["amplitude_first_harmonic", "kappa_from_accelerometers", "forgetting_
 def check_sampling(dt: float, frequency_hz: float):
     """Refuse sampling below the Nyquist rate of the vibration (the estimators need the
     fundamental in band)."""
-    if dt <= 0:
+    if not dt > 0:
         raise ValueError(f"sampling interval {dt} s must be positive")
+    if not (np.isfinite(frequency_hz) and frequency_hz > 0):
+        raise ValueError(f"vibration frequency {frequency_hz} Hz must be positive (the source "
+                         "vibrates at 15 Hz; a static run is an amplitude of 0 g)")
     if 1.0 / dt <= 2.0 * frequency_hz:
         raise ValueError(f"sampling at {1 / dt:g} Hz is below the Nyquist rate of the "
                          f"{frequency_hz:g} Hz vibration ({2 * frequency_hz:g} Hz); sample faster "

@@ -71,6 +71,20 @@ def load_schedule(source) -> dict:
     return s
 
 
+def _check_size(s):
+    """Refuse a schedule whose simulated record the machine could not hold (more than
+    :data:`~gyrojax.record.MAX_SAMPLES` samples)."""
+    from ..record import MAX_SAMPLES
+
+    n = ((round(s["dwell_s"] / s["sample_s"]) + 1) * len(s["positions_deg"])
+         * len(s["table_amplitudes_g"]))  # dwell_times' count, without making the array
+    if n > MAX_SAMPLES:
+        raise ValueError(f"schedule: dwell_s {s['dwell_s']:g} at sample_s {s['sample_s']:g} over "
+                         f"{len(s['positions_deg'])} positions and {len(s['table_amplitudes_g'])} "
+                         f"amplitude(s) gives {n:.3g} samples; a simulated record holds at most "
+                         f"{MAX_SAMPLES:,}: shorten the dwells or lengthen sample_s")
+
+
 def schedule_conditions(s):
     """One stacked PlatformConditions per table amplitude (platform amplitude = table /
     attenuation; vibration phases drawn with a fixed seed, as recorded; each dwell's start
@@ -121,6 +135,7 @@ def simulate_schedule(params, s, key, *, noise_arcsec: float = 1.0, accel_noise_
     from ..record import BenchRecord, freeze
     from ..simulate import integrate
 
+    _check_size(s)
     rig = rig or PlatformRig()
     ts = jnp.asarray(dwell_times(s))
     blocks, t_all, t0 = [], [], 0.0
