@@ -98,10 +98,10 @@ def _parse_sets(items, space):
 
 
 def _emit_json(obj, dest):
-    from .io import write_json
+    from .io import json_text, write_json
 
     if dest == "-":
-        print(json.dumps(obj, indent=2, default=lambda o: np.asarray(o).tolist()))
+        print(json_text(obj))
     elif dest:
         write_json(obj, dest)
         print(f"wrote {dest}", file=sys.stderr)

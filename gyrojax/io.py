@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import tempfile
 from collections.abc import Mapping, Sequence
@@ -21,7 +22,7 @@ import numpy as np
 from .record import BenchRecord, freeze
 
 __all__ = ["RecordFileError", "load_record", "save_record", "validate_samples", "atomic_write",
-           "write_json"]
+           "write_json", "json_text"]
 
 MIN_SAMPLES = 3
 
@@ -249,14 +250,33 @@ def save_record(record: BenchRecord, path) -> Path:
     return path
 
 
+def _plain(o):
+    """``o`` as plain JSON values: NumPy/JAX scalars and arrays to numbers and lists, and a
+    non-finite float to ``None`` (JSON has no NaN or Infinity; Python's ``json`` would write
+    the bare words, which strict readers such as ``JSON.parse`` and many tools refuse)."""
+    if isinstance(o, dict):
+        return {k: _plain(v) for k, v in o.items()}
+    if isinstance(o, list | tuple):
+        return [_plain(v) for v in o]
+    if isinstance(o, str | bool | int) or o is None:
+        return o
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    arr = np.asarray(o)
+    if arr.dtype == object:
+        raise TypeError(f"cannot write {type(o).__name__} to JSON")
+    return _plain(arr.item() if arr.ndim == 0 else arr.tolist())
+
+
+def json_text(obj) -> str:
+    """Strict JSON text of ``obj`` (indented; NumPy/JAX values converted, NaN and infinities
+    written as ``null``)."""
+    return json.dumps(_plain(obj), indent=2, allow_nan=False)
+
+
 def write_json(obj, path) -> Path:
-    """Write JSON atomically (NumPy/JAX scalars and arrays converted)."""
-
-    def default(o):
-        arr = np.asarray(o)
-        return arr.item() if arr.ndim == 0 else arr.tolist()
-
-    text = json.dumps(obj, indent=2, default=default)
+    """Write :func:`json_text` of ``obj`` atomically."""
+    text = json_text(obj)
 
     def write(tmp):
         with open(tmp, "w") as fh:

@@ -49,6 +49,23 @@ def test_written_files_get_the_umask_mode_and_keep_an_existing_mode(tmp_path, re
         os.umask(old)
 
 
+def test_json_is_strict_nan_and_infinity_become_null(tmp_path):
+    import jax.numpy as jnp
+
+    from gyrojax.io import write_json
+
+    def refuse(word):  # a strict reader: JSON has no NaN or Infinity
+        raise ValueError(f"non-JSON constant {word}")
+
+    obj = {"a": float("nan"), "b": np.array([1.5, np.inf, -np.inf]), "c": np.float64(2.0),
+           "d": jnp.arange(3.0), "e": (np.int64(4), True, None, "x"), "f": np.bool_(False)}
+    back = json.loads(write_json(obj, tmp_path / "o.json").read_text(), parse_constant=refuse)
+    assert back == {"a": None, "b": [1.5, None, None], "c": 2.0, "d": [0.0, 1.0, 2.0],
+                    "e": [4, True, None, "x"], "f": False}
+    x = 0.1 + 0.2  # floats round-trip to the last bit
+    assert json.loads(write_json({"x": np.float64(x)}, tmp_path / "x.json").read_text())["x"] == x
+
+
 def _write(tmp_path, text, name="bad.csv"):
     p = tmp_path / name
     p.write_text(text)
