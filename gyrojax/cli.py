@@ -110,6 +110,10 @@ def _emit_json(obj, dest):
 def _load(args, channels):
     from .io import RecordFileError, load_record
 
+    if args.record.startswith("dataset:") and not Path(args.record).exists():
+        raise UsageError(f"{args.record}: the built-in real data sets are strapdown IMU records; "
+                         f"use --rig imu, or give a record file (.nc or .csv) of the "
+                         f"{getattr(args, 'rig', 'esg')} rig")
     try:
         return load_record(args.record, channels=channels)
     except RecordFileError as exc:

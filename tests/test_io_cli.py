@@ -153,6 +153,8 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     (["montecarlo", "--study", "budget", "--processes", "0", "--json", "x.json"],
      "--processes '0': give a number of worker processes >= 1 or 'all'"),
     (["diagnose", "r.nc", "--plot", "gap.txt"], "--plot 'gap.txt': use a .png, .pdf or .svg"),
+    (["fit", "dataset:xsens", "--rig", "schuler"],
+     "dataset:xsens: the built-in real data sets are strapdown IMU records; use --rig imu"),
     (["montecarlo", "--study", "budget", "--chunk-size", "0", "--json", "x.json"],
      "--chunk-size 0 must be >= 1"),
     (["montecarlo", "--study", "budget", "--noise-arcsec", "-1", "--json", "x.json"],
