@@ -793,7 +793,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # named by the command whose options they are not, with its usage
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        sub.choices[args.command].error(f"unrecognized arguments: {' '.join(extra)} (see "
+                                        f"gyrojax {args.command} --help)")
     try:
         rig = getattr(args, "rig", None)
         if rig is not None and rig not in COMMAND_RIGS.get(args.command, (rig,)):

@@ -183,6 +183,16 @@ def test_cli_bad_input_exit_2_one_line_nothing_written(tmp_path, capsys, monkeyp
     assert list(tmp_path.iterdir()) == []
 
 
+def test_cli_unknown_option_is_named_by_its_command(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["fit", "r.nc", "--window", "3"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: gyrojax fit ")
+    assert err.strip().splitlines()[-1] == ("gyrojax fit: error: unrecognized arguments: "
+                                            "--window 3 (see gyrojax fit --help)")
+
+
 def test_cli_help_explains_every_option(capsys):
     with pytest.raises(SystemExit):
         main(["fit", "--help"])
