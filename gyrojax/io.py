@@ -106,7 +106,16 @@ def load_record(path, *, channels: Sequence[str] | None = None,
 
 
 def _read_csv(path: Path):
-    with open(path, newline="") as fh:
+    try:
+        return _read_csv_text(path)
+    except UnicodeDecodeError as exc:
+        raise RecordFileError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason}); save the "
+                              "CSV as UTF-8 (plain ASCII numbers and names)") from None
+
+
+def _read_csv_text(path: Path):
+    # utf-8-sig: a spreadsheet's "CSV UTF-8" starts with a byte-order mark, which is not data
+    with open(path, newline="", encoding="utf-8-sig") as fh:
         reader = csv.reader(fh)
         try:
             header = next(reader)

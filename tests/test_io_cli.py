@@ -88,6 +88,20 @@ def test_bad_files_give_clear_errors(tmp_path, text, match):
     assert str(p) in str(info.value)
 
 
+def test_spreadsheet_csv_with_byte_order_mark_and_crlf_reads(tmp_path, record):
+    text = "t,alpha1,alpha2\r\n" + "".join(
+        f"{t!r},{a!r},{b!r}\r\n" for t, (a, b) in zip(np.asarray(record.t).tolist()[:5],
+                                                       np.asarray(record.y).tolist()[:5]))
+    p = tmp_path / "excel.csv"
+    p.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    back = load_record(p, channels=("alpha1", "alpha2"))
+    np.testing.assert_array_equal(back.y, np.asarray(record.y)[:5])
+    p.write_bytes("t,alpha1,alpha2\n0,0,0\n60,0,0\n120,0,0\n".replace("alpha1", "\u00e9alpha1")
+                  .encode("latin-1"))
+    with pytest.raises(RecordFileError, match="not UTF-8 text .*save the CSV as UTF-8"):
+        load_record(p)
+
+
 def test_missing_and_unknown_files(tmp_path):
     with pytest.raises(RecordFileError, match="no such file"):
         load_record(tmp_path / "nope.csv")
