@@ -165,8 +165,22 @@ def _read_netcdf(path: Path):
     if "t" not in ds.coords and "t" not in ds.variables:
         raise RecordFileError(f"{path}: no time coordinate 't'; name the time axis 't' (seconds)")
     t = np.asarray(ds["t"].values, dtype=float)
+    wide = {str(v): ds[v].dims for v in ds.data_vars if "t" in ds[v].dims and ds[v].dims != ("t",)}
+    if wide:  # not dropped unseen: a record holds one variable per channel
+        v, dims = next(iter(wide.items()))
+        other = next(d for d in dims if d != "t")
+        raise RecordFileError(f"{path}: variable(s) {sorted(wide)} have dims {dims}, not ('t',); "
+                              f"a record holds one variable per channel over t: split each "
+                              f"(xarray: ds[{v!r}].to_dataset(dim={other!r})) and name the "
+                              "channels")
     names = [str(v) for v in ds.data_vars if ds[v].dims == ("t",)]
-    cols = [np.asarray(ds[v].values, dtype=float) for v in names]
+    cols = []
+    for v in names:
+        try:
+            cols.append(np.asarray(ds[v].values, dtype=float))
+        except (TypeError, ValueError):
+            raise RecordFileError(f"{path}: channel {v!r} holds {ds[v].dtype} values, not "
+                                  "numbers; store channels as floats in SI units") from None
     attrs = {k: _attr_value(v) for k, v in ds.attrs.items()}
     return t, cols, names, attrs
 

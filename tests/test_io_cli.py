@@ -102,6 +102,22 @@ def test_spreadsheet_csv_with_byte_order_mark_and_crlf_reads(tmp_path, record):
         load_record(p)
 
 
+def test_netcdf_channels_not_over_t_alone_are_refused_not_dropped(tmp_path):
+    import xarray as xr
+
+    t = np.arange(4.0)
+    xr.Dataset({"alpha1": ("t", t), "gyro": (("t", "axis"), np.zeros((4, 3))),
+                "gain": ((), 2.0)}, coords={"t": t}).to_netcdf(tmp_path / "w.nc",
+                                                               engine="h5netcdf")
+    with pytest.raises(RecordFileError, match=r"\['gyro'\] have dims \('t', 'axis'\).*"
+                       r"to_dataset\(dim='axis'\)"):
+        load_record(tmp_path / "w.nc")
+    xr.Dataset({"alpha1": ("t", t), "label": ("t", np.array(list("abcd")))},
+               coords={"t": t}).to_netcdf(tmp_path / "s.nc", engine="h5netcdf")
+    with pytest.raises(RecordFileError, match="channel 'label' holds <U1 values, not numbers"):
+        load_record(tmp_path / "s.nc")
+
+
 def test_missing_and_unknown_files(tmp_path):
     with pytest.raises(RecordFileError, match="no such file"):
         load_record(tmp_path / "nope.csv")
