@@ -120,6 +120,20 @@ def _load(args, channels):
         raise UsageError(str(exc)) from None
 
 
+def _stage_printer(command):
+    """Progress of a long command on stderr, one line per finished stage (a first call in a
+    process spends most of its time compiling)."""
+    def show(stage, seconds):
+        if stage in SUB_STAGES:
+            return
+        what = "done in" if stage == "total" else stage.replace("_", " ")
+        print(f"gyrojax {command}: {what} {seconds:.1f} s", file=sys.stderr, flush=True)
+    return show
+
+
+SUB_STAGES = ("library_scores",)  # a part of the screening, timed apart for spec §6 G10
+
+
 def _positive(name, value):
     if value is None or not np.isfinite(value) or value <= 0:
         raise UsageError(f"{name} {value} must be a positive number")
@@ -364,7 +378,7 @@ def cmd_demo(args):
     from .diagnose import diagnose
 
     print("\n## sim-to-real diagnosis: the nominal model (drifts only) against this record")
-    gap = diagnose(rec)
+    gap = diagnose(rec, progress=_stage_printer("demo"))
     print(gap.markdown())
     summary["diagnosis"] = gap.to_json()
     v = gap.verdict
@@ -551,7 +565,8 @@ def cmd_diagnose(args):
                       alpha=args.alpha, noise_std=noise, split=args.split,
                       refit_all=args.refit_all, null_draws=args.null_draws,
                       noise_model=args.noise_model, flicker_b=flicker,
-                      nominal_terms=nominal_terms, per_coefficient=args.per_coefficient)
+                      nominal_terms=nominal_terms, per_coefficient=args.per_coefficient,
+                      progress=_stage_printer("diagnose"))
     print(report.markdown())
     _emit_json(report.to_json(), args.json)
     if args.plot:

@@ -1033,9 +1033,17 @@ def test_cli_diagnose(tmp_path, capsys):
     save_record(rec, path)
     out, png = tmp_path / "rep.json", tmp_path / "rep.png"
     assert main(["diagnose", str(path), "--json", str(out), "--plot", str(png)]) == 0
-    text = capsys.readouterr().out
+    cap = capsys.readouterr()
+    text = cap.out
     assert "Verdict: attributed" in text and "rotor_tilt" in text
     js = json.loads(out.read_text())
+    # progress on stderr: one line per stage as it ends, the report's own seconds
+    shown = [ln.split(": ", 1)[1] for ln in cap.err.splitlines()
+             if ln.startswith("gyrojax diagnose: ")]
+    stages = [k.removesuffix("_s") for k in js["timings"] if k != "library_scores_s"]
+    assert [x.rsplit(" ", 2)[0] for x in shown] == [
+        "done in" if k == "total" else k.replace("_", " ") for k in stages]
+    assert shown[-1] == f"done in {js['timings']['total_s']:.1f} s"
     assert js["verdict"]["kind"] == "attributed" and png.stat().st_size > 10_000
     assert main(["diagnose", str(path), "--effects", "wobble"]) == 2
     assert "unknown effect" in capsys.readouterr().err

@@ -254,6 +254,20 @@ def _consistency(row: Screen, prob, n, c, cells) -> float:
     return float(obs @ pr / np.linalg.norm(obs) / np.linalg.norm(pr))
 
 
+class _StageTimes(dict):
+    """Seconds per stage (``"<stage>_s"``), each passed to ``progress(stage, seconds)`` as it is
+    recorded."""
+
+    def __init__(self, progress=None):
+        super().__init__()
+        self._progress = progress
+
+    def __setitem__(self, key, seconds):
+        super().__setitem__(key, seconds)
+        if self._progress is not None:
+            self._progress(key.removesuffix("_s"), seconds)
+
+
 def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=None,
              holdout: float = 0.25,
              alpha: float = 0.05, noise_std=None, design_advice: bool = True,
@@ -261,7 +275,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
              library_share: float = 0.5, split: str | None = None,
              refit_all: bool = False, null_draws: int = 499,
              noise_model: str | None = None, flicker_b=None,
-             nominal_terms=None, per_coefficient: bool = False) -> GapReport:
+             nominal_terms=None, per_coefficient: bool = False, progress=None) -> GapReport:
     """Diagnose the gap between the rig's nominal model and ``record``.
 
     **Arguments:**
@@ -311,13 +325,17 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
       effect as an effect of its own (``g_sensitivity:gsxy``, ``warmup_transient:wgx`` with its
       decay-time grid, ...): "which term of the error model", K = 40 on a six-channel record
       instead of "which family", K = 6. `effects` may then name single coefficients too.
+    - `progress`: called as ``progress(stage, seconds)`` as each stage ends (``"nominal_fit"``,
+      ``"jacobians"``, ``"library_scores"``, ``"calibration"``, ``"screening"``, ``"refit"``,
+      ``"refit_all"``, ``"design_advice"``, ``"total"``), e.g. to show a long first call's
+      compilation (the CLI prints them); the same seconds are in ``GapReport.timings``.
 
     **Returns:** a :class:`GapReport` (``.to_json()``, ``.markdown()``).
     """
     if null_draws < 0 or (null_draws and np.floor(alpha * (null_draws + 1) + 1e-9) < 1):
         raise ValueError(f"null_draws={null_draws} with alpha={alpha}: give 0 (plain weighted "
                          f"BH) or at least {int(np.ceil(1 / alpha)) - 1} draws (default 499)")
-    timings = {}
+    timings = _StageTimes(progress)
     t_start = time.perf_counter()
     if conditions:
         record = record.with_conditions(**dict(conditions))
