@@ -320,9 +320,50 @@ def simulate(rig: AbstractRig, params, conditions, ts, *, key=None, noise_std=0.
     """
     if key is None and not _is_zero(noise_std):
         raise ValueError("simulate: noise_std > 0 needs a PRNG key; pass key=jax.random.key(seed)")
+    _check_inputs(rig, params, ts, noise_std)
     y = _simulate(rig, _traced(params), conditions, ts, key, jnp.asarray(noise_std, dtype=float),
                   rtol, atol, max_steps, solver, steps)
     return BenchRecord(jnp.asarray(ts, dtype=float), y, rig.channels, freeze(attrs or {}))
+
+
+def _concrete(x):
+    """``x`` as a NumPy array, or None when it is traced (checked inside jit, or not at all)."""
+    try:
+        return np.asarray(x, dtype=float)
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
+        return None
+
+
+def _check_inputs(rig, params, ts, noise_std):
+    """The boundary checks of :func:`simulate` on what is concrete: every parameter a name of the
+    rig's (a misspelt name was ignored, the rig ran on its null value) and finite (NaN made the
+    solver report its step limit), ``ts`` 1-D and strictly increasing (a record's contract;
+    decreasing times integrated backwards), ``noise_std`` finite and >= 0."""
+    names = set(rig.param_space.names)
+    unknown = sorted(k for k in params if k not in names)
+    if unknown:
+        raise ValueError(f"simulate: unknown parameter(s) {unknown} for {type(rig).__name__}; "
+                         f"its parameters: {', '.join(rig.param_space.names)}")
+    for k, v in params.items():
+        a = _concrete(v)
+        if a is not None and not np.all(np.isfinite(a)):
+            raise ValueError(f"simulate: parameter {k} = {v} is not finite; give a number "
+                             "(internal units)")
+    t = _concrete(ts)
+    if t is not None:
+        if t.ndim != 1:
+            raise ValueError(f"simulate: ts has shape {t.shape}; give the sample times as a "
+                             "1-D array (vmap simulate for a batch of records)")
+        bad = np.flatnonzero(~(np.diff(t) > 0))
+        if not np.all(np.isfinite(t)) or bad.size:
+            i = int(bad[0]) + 1 if bad.size else int(np.flatnonzero(~np.isfinite(t))[0])
+            raise ValueError(f"simulate: ts must be finite and strictly increasing, but "
+                             f"ts[{i}] = {float(t[i])!r} follows {float(t[i - 1])!r}; sort the "
+                             "sample times")
+    sd = _concrete(noise_std)
+    if sd is not None and not np.all(np.isfinite(sd) & (sd >= 0)):
+        raise ValueError(f"simulate: noise_std = {noise_std} must be finite and >= 0 (a standard "
+                         "deviation, internal units)")
 
 
 def _traced(params):
@@ -333,7 +374,7 @@ def _traced(params):
 
 
 def _is_zero(x) -> bool:
-    try:
-        return bool(jnp.all(jnp.asarray(x) == 0))
-    except jax.errors.ConcretizationTypeError:
-        return False
+    """Whether ``x`` is known to be zero (False when traced); NumPy, so that it also answers
+    inside ``jax.jit``, where ``jnp`` would stage the comparison out."""
+    a = _concrete(x)
+    return a is not None and bool(np.all(a == 0))

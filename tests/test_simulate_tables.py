@@ -92,6 +92,32 @@ def test_simulate_needs_key_for_noise():
         gj.simulate(rig, p, cond, TS_24H[:10], noise_std=1e-6)
 
 
+@pytest.mark.parametrize("change,match", [
+    # a misspelt name was ignored (the rig ran on that parameter's null value)
+    (dict(params={"m_11": 0.1}), r"unknown parameter\(s\) \['m_11'\] for ESGRig"),
+    # NaN made the solver report "the maximum number of solver steps was reached"
+    (dict(params={"m11": float("nan")}), "parameter m11 = nan is not finite"),
+    # decreasing times were integrated backwards into a record that breaks its contract
+    (dict(ts=TS_24H[:10][::-1]), r"strictly increasing, but ts\[1\] = 480.0 follows 540.0"),
+    (dict(ts=TS_24H[None, :10]), r"ts has shape \(1, 10\); give the sample times as a 1-D"),
+    (dict(noise_std=-1e-6), "noise_std = -1e-06 must be finite and >= 0"),
+])
+def test_simulate_refuses_bad_input_naming_it(change, match):
+    rig, cond, p = design("polar")
+    kw = {"ts": TS_24H[:10], "noise_std": 1e-6} | change
+    params = p | kw.pop("params", {})
+    with pytest.raises(ValueError, match=match):
+        gj.simulate(rig, params, cond, kw.pop("ts"), key=jax.random.key(0), **kw)
+
+
+def test_simulate_inside_jit_without_noise_needs_no_key():
+    """Under jit the times are traced: the checks skip what they cannot see, and a zero noise
+    level (concrete) needs no key (it asked for one inside jit before)."""
+    rig, cond, p = design("polar")
+    got = jax.jit(lambda t: gj.simulate(rig, p, cond, t).y)(TS_24H[:10])
+    np.testing.assert_allclose(got, gj.integrate(rig, p, cond, TS_24H[:10]), rtol=0, atol=1e-15)
+
+
 @pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_fixed_step_grid_is_diffrax_constant_steps_and_checks_its_error():
     """The fixed-grid path (``steps``) against diffrax's own constant-step solve on the same grid
