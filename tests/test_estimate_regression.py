@@ -103,3 +103,18 @@ def test_spiral_fit_initializer_accuracy():
     assert float(sp.residual_rms) / units.ARCSEC < 30
     for i, n in enumerate(("m11", "m12", "m21", "m22")):
         assert abs(float(sp.drift[i]) - m[n]) < 0.3 * max(abs(v) for v in m.values()), n
+
+
+def test_fit_refuses_a_record_it_would_misread():
+    """A record built in memory skips the file checks: a NaN sample made every estimate NaN and
+    channels named otherwise were read by position, both without a word."""
+    from gyrojax.estimate import fit
+
+    rig, cond, p = design("polar")
+    y = np.zeros((10, 2))
+    y[4, 1] = np.nan
+    with pytest.raises(ValueError, match=r"channel 'alpha2' has non-finite value nan at sample 4"):
+        fit(rig, gj.BenchRecord(TS_24H[:10], jnp.asarray(y), rig.channels), cond)
+    with pytest.raises(ValueError, match=r"record channels \['alpha2', 'alpha1'\] are not the "
+                       r"rig's \['alpha1', 'alpha2'\]"):
+        fit(rig, gj.BenchRecord(TS_24H[:10], jnp.zeros((10, 2)), ("alpha2", "alpha1")), cond)

@@ -16,6 +16,7 @@ from gyrojax.estimate.platform import (
     check_sampling,
     forgetting_blend,
     kappa_from_accelerometers,
+    platform_gauss_newton,
     platform_regression,
     two_amplitude_resolution,
 )
@@ -239,6 +240,21 @@ def test_bad_input():
         platform_regression(TS, [], [], free=("D_xx_x",))
     with pytest.raises(ValueError, match="a0="):
         PlatformConditions.create([0, 0, 0], a0=-1.0)
+    # the batch fits' records (a NaN angle made every estimate NaN, unseen)
+    conds = schedule(a0=6.0)
+    ang = np.zeros((14, TS.size, 3))
+    ang[2, 5, 1] = np.nan
+    for fit in (platform_regression, platform_gauss_newton):
+        with pytest.raises(ValueError, match=r"records\[0\] has 1 non-finite angle\(s\), the "
+                           r"first at position 2, sample 5 \(t = 0.125 s\), angle 1"):
+            fit(TS, [ang], [conds])
+        with pytest.raises(ValueError, match=r"records\[0\] has shape \(14, 10, 3\); give "
+                           r"\(positions, 4001, 3\)"):
+            fit(TS, [ang[:, :10]], [conds])
+        with pytest.raises(ValueError, match="1 records but 2 conditions"):
+            fit(TS, [ang], [conds, conds])
+        with pytest.raises(ValueError, match="unknown coefficient"):
+            fit(TS, [], [], free=("D_xx_x",))
 
 
 def test_diagnosis_finds_d_oo_absorbed_with_exact_aliases():
@@ -347,7 +363,6 @@ def test_batch_gauss_newton_equals_regression(tests_1_and_2):
     standard errors, is the square root of the chi-square the remaining steps remove (the
     residual variances of the two fits, same dof; ~0.4 here: 2 steps come close, not close
     enough)."""
-    from gyrojax.estimate.platform import platform_gauss_newton
 
     n = 801
     recs = [tests_1_and_2[a][0][:, :n] for a in (6.0, 7 / 1.5)]

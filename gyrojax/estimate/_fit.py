@@ -59,6 +59,20 @@ def _linear_names(rig, effects):
     return tuple(names)
 
 
+def _check_record(rig, record):
+    """The record a fit is given: the rig's channels, in its order (the fits read the columns by
+    position), and samples as a record file must have them (:func:`gyrojax.io.validate_samples`:
+    finite, strictly increasing times, at least 3). A record built in memory skipped those
+    checks, and a NaN sample made every estimate NaN without a word."""
+    from ..io import validate_samples
+
+    if tuple(record.channels) != tuple(rig.channels):
+        raise ValueError(f"record channels {list(record.channels)} are not the rig's "
+                         f"{list(rig.channels)}; name (and order) the record's channels as the "
+                         "rig's")
+    validate_samples(record.t, record.y, record.channels)
+
+
 def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "gauss-newton",
         noise_std: float | None = None, transient_k: float = 3.0, window: int = 2,
         quadrature: str = "simpson") -> FitReport:
@@ -76,6 +90,7 @@ def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "
     space = rig.param_space
     if method not in METHODS:
         raise ValueError(f"method={method!r}; use one of {', '.join(METHODS)}")
+    _check_record(rig, record)
     for e in effects:
         space.effect_names(e)  # raises with the list of valid effects
     effects = tuple(effects)

@@ -171,6 +171,36 @@ class PlatformFit(AbstractNamedEstimate):
         return out | self.as_dict()
 
 
+def _check_inputs(ts, records, conditions, free) -> tuple:
+    """The batch fits' arguments: known coefficient names, one conditions per record, records
+    of shape ``(P, len(ts), 3)``, finite angles (a NaN sample made every estimate NaN) and
+    strictly increasing dwell times. Returns ``free`` as a tuple."""
+    free = tuple(free)
+    unknown = [n for n in free if n not in COEFF_NAMES]
+    if unknown:
+        raise ValueError(f"unknown coefficient(s) {unknown}; names are D_<term>_<axis>, e.g. "
+                         "D_oo_x")
+    if len(records) != len(conditions):
+        raise ValueError(f"{len(records)} records but {len(conditions)} conditions; give one "
+                         "stacked PlatformConditions per record")
+    t = np.asarray(ts, dtype=float)
+    if t.ndim != 1 or t.size < 3 or not np.all(np.isfinite(t)) or not np.all(np.diff(t) > 0):
+        raise ValueError(f"ts (one dwell's sample times, shape {t.shape}) must be 1-D, finite, "
+                         "strictly increasing and at least 3 samples long")
+    for k, r in enumerate(records):
+        a = np.asarray(r, dtype=float)
+        if a.ndim != 3 or a.shape[1:] != (t.size, 3):
+            raise ValueError(f"records[{k}] has shape {a.shape}; give (positions, {t.size}, 3) "
+                             "gimbal angles in rad, one row per sample of ts")
+        bad = np.argwhere(~np.isfinite(a))
+        if bad.size:
+            p_, i, j = (int(x) for x in bad[0])
+            raise ValueError(f"records[{k}] has {len(bad)} non-finite angle(s), the first at "
+                             f"position {p_}, sample {i} (t = {t[i]:g} s), angle {j}; gyrojax "
+                             "does not drop samples silently: remove or interpolate them")
+    return free
+
+
 def platform_regression(ts, records: Sequence, conditions: Sequence, *,
                         free: Sequence[str] = COEFF_NAMES, noise_std=None,
                         accelerations: Sequence | None = None) -> PlatformFit:
@@ -188,14 +218,7 @@ def platform_regression(ts, records: Sequence, conditions: Sequence, *,
     - `accelerations`: the accelerometer records (one (P, n, 3) array in g per record): use the
       non-averaged drift law with ``1 + A_1 = f . n^p`` at every sample instead of ``kappa``.
     """
-    free = tuple(free)
-    unknown = [n for n in free if n not in COEFF_NAMES]
-    if unknown:
-        raise ValueError(f"unknown coefficient(s) {unknown}; names are D_<term>_<axis>, e.g. "
-                         "D_oo_x")
-    if len(records) != len(conditions):
-        raise ValueError(f"{len(records)} records but {len(conditions)} conditions; give one "
-                         "stacked PlatformConditions per record")
+    free = _check_inputs(ts, records, conditions, free)
     n_pos = sum(int(np.shape(r)[0]) for r in records)
     accs = (None,) * len(records) if accelerations is None else tuple(
         jnp.asarray(a) for a in accelerations)
@@ -394,7 +417,7 @@ def platform_gauss_newton(ts, records: Sequence, conditions: Sequence, *,
     (rad): the angle noise for the covariance (default: the residual's). The result's
     ``converged`` says whether the fit ended at a solution within ``max_steps``; it does not
     raise when not."""
-    free = tuple(free)
+    free = _check_inputs(ts, records, conditions, free)
     angles = jnp.concatenate([jnp.asarray(a) for a in records])
     conds = jax.tree.map(lambda *c: jnp.concatenate(c), *conditions)
     scale = _scales(free)
