@@ -320,7 +320,7 @@ def simulate(rig: AbstractRig, params, conditions, ts, *, key=None, noise_std=0.
     """
     if key is None and not _is_zero(noise_std):
         raise ValueError("simulate: noise_std > 0 needs a PRNG key; pass key=jax.random.key(seed)")
-    _check_inputs(rig, params, ts, noise_std)
+    check_inputs(rig, params, ts, noise_std)
     y = _simulate(rig, _traced(params), conditions, ts, key, jnp.asarray(noise_std, dtype=float),
                   rtol, atol, max_steps, solver, steps)
     return BenchRecord(jnp.asarray(ts, dtype=float), y, rig.channels, freeze(attrs or {}))
@@ -334,35 +334,36 @@ def _concrete(x):
         return None
 
 
-def _check_inputs(rig, params, ts, noise_std):
-    """The boundary checks of :func:`simulate` on what is concrete: every parameter a name of the
-    rig's (a misspelt name was ignored, the rig ran on its null value) and finite (NaN made the
-    solver report its step limit), ``ts`` 1-D and strictly increasing (a record's contract;
-    decreasing times integrated backwards), ``noise_std`` finite and >= 0."""
+def check_inputs(rig, params, ts, noise_std=0.0, *, what: str = "simulate"):
+    """The boundary checks of :func:`simulate` (and of analyses that integrate the rig, named by
+    ``what`` in the message) on what is concrete: every parameter a name of the rig's (a
+    misspelt name was ignored, the rig ran on its null value) and finite (NaN made the solver
+    report its step limit), ``ts`` 1-D and strictly increasing (a record's contract; decreasing
+    times integrated backwards), ``noise_std`` finite and >= 0."""
     names = set(rig.param_space.names)
     unknown = sorted(k for k in params if k not in names)
     if unknown:
-        raise ValueError(f"simulate: unknown parameter(s) {unknown} for {type(rig).__name__}; "
+        raise ValueError(f"{what}: unknown parameter(s) {unknown} for {type(rig).__name__}; "
                          f"its parameters: {', '.join(rig.param_space.names)}")
     for k, v in params.items():
         a = _concrete(v)
         if a is not None and not np.all(np.isfinite(a)):
-            raise ValueError(f"simulate: parameter {k} = {v} is not finite; give a number "
+            raise ValueError(f"{what}: parameter {k} = {v} is not finite; give a number "
                              "(internal units)")
     t = _concrete(ts)
     if t is not None:
         if t.ndim != 1:
-            raise ValueError(f"simulate: ts has shape {t.shape}; give the sample times as a "
+            raise ValueError(f"{what}: ts has shape {t.shape}; give the sample times as a "
                              "1-D array (vmap simulate for a batch of records)")
         bad = np.flatnonzero(~(np.diff(t) > 0))
         if not np.all(np.isfinite(t)) or bad.size:
             i = int(bad[0]) + 1 if bad.size else int(np.flatnonzero(~np.isfinite(t))[0])
-            raise ValueError(f"simulate: ts must be finite and strictly increasing, but "
+            raise ValueError(f"{what}: ts must be finite and strictly increasing, but "
                              f"ts[{i}] = {float(t[i])!r} follows {float(t[i - 1])!r}; sort the "
                              "sample times")
     sd = _concrete(noise_std)
     if sd is not None and not np.all(np.isfinite(sd) & (sd >= 0)):
-        raise ValueError(f"simulate: noise_std = {noise_std} must be finite and >= 0 (a standard "
+        raise ValueError(f"{what}: noise_std = {noise_std} must be finite and >= 0 (a standard "
                          "deviation, internal units)")
 
 

@@ -110,6 +110,14 @@ def test_simulate_refuses_bad_input_naming_it(change, match):
         gj.simulate(rig, params, cond, kw.pop("ts"), key=jax.random.key(0), **kw)
 
 
+def test_observability_refuses_a_nan_parameter():
+    from gyrojax.analysis import observability
+
+    rig, cond, p = design("polar")
+    with pytest.raises(ValueError, match="observability: parameter m12 = nan is not finite"):
+        observability(rig, p | {"m12": float("nan")}, cond, TS_24H[:10], free=("m11",))
+
+
 def test_simulate_inside_jit_without_noise_needs_no_key():
     """Under jit the times are traced: the checks skip what they cannot see, and a zero noise
     level (concrete) needs no key (it asked for one inside jit before)."""

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..estimate.least_squares import trajectory_jacobian
 from ..estimate.regression import regression_design
-from ..simulate import simulate
+from ..simulate import check_inputs, simulate
 
 __all__ = ["ObservabilityReport", "analyse_jacobian", "observability", "format_combination",
            "cramer_rao"]
@@ -177,6 +177,7 @@ def observability(rig, params: Mapping, conditions, ts, *, free: Sequence[str],
       model (6.3) evaluated on the simulated angles (only ``rig.regression_names``).
     """
     free = rig.param_space.check_names(free)
+    check_inputs(rig, params, ts, what="observability")
     if method == "trajectory":
         jac = trajectory_jacobian(rig, params, conditions, ts, free)
     elif method == "regression":
