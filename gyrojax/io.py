@@ -22,7 +22,7 @@ import numpy as np
 from .record import BenchRecord, freeze
 
 __all__ = ["RecordFileError", "load_record", "save_record", "validate_samples", "atomic_write",
-           "write_json", "json_text"]
+           "write_json", "json_text", "check_times"]
 
 MIN_SAMPLES = 3
 
@@ -31,16 +31,12 @@ class RecordFileError(ValueError):
     """A record file or array failed validation; the message names the problem and the fix."""
 
 
-def validate_samples(t, y, channels: Sequence[str], *, source: str = "record",
-                     min_samples: int = MIN_SAMPLES):
-    """Check time and channel arrays; returns them as float64 numpy arrays."""
+def check_times(t, *, source: str = "record", min_samples: int = MIN_SAMPLES) -> np.ndarray:
+    """Sample times as a record must have them: 1-D, at least ``min_samples``, finite, strictly
+    increasing. Returns them as a float64 numpy array."""
     t = np.asarray(t, dtype=float)
-    y = np.asarray(y, dtype=float)
     if t.ndim != 1:
         raise RecordFileError(f"{source}: t must be one-dimensional, got shape {t.shape}")
-    if y.ndim != 2 or y.shape != (t.shape[0], len(channels)):
-        raise RecordFileError(f"{source}: channels have shape {y.shape}, expected "
-                              f"({t.shape[0]}, {len(channels)}) for channels {list(channels)}")
     if t.shape[0] < min_samples:
         raise RecordFileError(f"{source}: {t.shape[0]} samples is too few; a bench test needs at "
                               f"least {min_samples} samples (record longer or sample faster)")
@@ -48,12 +44,22 @@ def validate_samples(t, y, channels: Sequence[str], *, source: str = "record",
     if bad_t.size:
         raise RecordFileError(f"{source}: t has non-finite value {t[bad_t[0]]} at sample "
                               f"{bad_t[0]}; remove or fill that sample")
-    steps = np.diff(t)
-    bad = np.where(steps <= 0)[0]
+    bad = np.where(np.diff(t) <= 0)[0]
     if bad.size:
         i = int(bad[0])
         raise RecordFileError(f"{source}: t must be strictly increasing but t[{i}]={t[i]} and "
                               f"t[{i + 1}]={t[i + 1]}; sort the samples and drop duplicates")
+    return t
+
+
+def validate_samples(t, y, channels: Sequence[str], *, source: str = "record",
+                     min_samples: int = MIN_SAMPLES):
+    """Check time and channel arrays; returns them as float64 numpy arrays."""
+    t = check_times(t, source=source, min_samples=min_samples)
+    y = np.asarray(y, dtype=float)
+    if y.ndim != 2 or y.shape != (t.shape[0], len(channels)):
+        raise RecordFileError(f"{source}: channels have shape {y.shape}, expected "
+                              f"({t.shape[0]}, {len(channels)}) for channels {list(channels)}")
     for j, name in enumerate(channels):
         badc = np.where(~np.isfinite(y[:, j]))[0]
         if badc.size:

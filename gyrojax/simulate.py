@@ -339,12 +339,11 @@ def check_inputs(rig, params, ts, noise_std=0.0, *, what: str = "simulate"):
     ``what`` in the message) on what is concrete: every parameter a name of the rig's (a
     misspelt name was ignored, the rig ran on its null value) and finite (NaN made the solver
     report its step limit), ``ts`` 1-D and strictly increasing (a record's contract; decreasing
-    times integrated backwards), ``noise_std`` finite and >= 0."""
-    names = set(rig.param_space.names)
-    unknown = sorted(k for k in params if k not in names)
-    if unknown:
-        raise ValueError(f"{what}: unknown parameter(s) {unknown} for {type(rig).__name__}; "
-                         f"its parameters: {', '.join(rig.param_space.names)}")
+    times integrated backwards; :func:`gyrojax.io.check_times`), ``noise_std`` finite and
+    >= 0."""
+    from .io import check_times
+
+    rig.param_space.check_names(params, what=f"{type(rig).__name__} parameter")
     for k, v in params.items():
         a = _concrete(v)
         if a is not None and not np.all(np.isfinite(a)):
@@ -352,15 +351,7 @@ def check_inputs(rig, params, ts, noise_std=0.0, *, what: str = "simulate"):
                              "(internal units)")
     t = _concrete(ts)
     if t is not None:
-        if t.ndim != 1:
-            raise ValueError(f"{what}: ts has shape {t.shape}; give the sample times as a "
-                             "1-D array (vmap simulate for a batch of records)")
-        bad = np.flatnonzero(~(np.diff(t) > 0))
-        if not np.all(np.isfinite(t)) or bad.size:
-            i = int(bad[0]) + 1 if bad.size else int(np.flatnonzero(~np.isfinite(t))[0])
-            raise ValueError(f"{what}: ts must be finite and strictly increasing, but "
-                             f"ts[{i}] = {float(t[i])!r} follows {float(t[i - 1])!r}; sort the "
-                             "sample times")
+        check_times(t, source=f"{what}: ts", min_samples=1)
     sd = _concrete(noise_std)
     if sd is not None and not np.all(np.isfinite(sd) & (sd >= 0)):
         raise ValueError(f"{what}: noise_std = {noise_std} must be finite and >= 0 (a standard "

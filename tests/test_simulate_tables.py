@@ -94,12 +94,13 @@ def test_simulate_needs_key_for_noise():
 
 @pytest.mark.parametrize("change,match", [
     # a misspelt name was ignored (the rig ran on that parameter's null value)
-    (dict(params={"m_11": 0.1}), r"unknown parameter\(s\) \['m_11'\] for ESGRig"),
+    (dict(params={"m_11": 0.1}), r"unknown ESGRig parameter name\(s\) \['m_11'\]"),
     # NaN made the solver report "the maximum number of solver steps was reached"
     (dict(params={"m11": float("nan")}), "parameter m11 = nan is not finite"),
     # decreasing times were integrated backwards into a record that breaks its contract
-    (dict(ts=TS_24H[:10][::-1]), r"strictly increasing, but ts\[1\] = 480.0 follows 540.0"),
-    (dict(ts=TS_24H[None, :10]), r"ts has shape \(1, 10\); give the sample times as a 1-D"),
+    (dict(ts=TS_24H[:10][::-1]), r"simulate: ts: t must be strictly increasing but t\[0\]=540.0 "
+                                 r"and t\[1\]=480.0"),
+    (dict(ts=TS_24H[None, :10]), r"simulate: ts: t must be one-dimensional, got shape \(1, 10\)"),
     (dict(noise_std=-1e-6), "noise_std = -1e-06 must be finite and >= 0"),
 ])
 def test_simulate_refuses_bad_input_naming_it(change, match):

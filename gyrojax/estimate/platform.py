@@ -183,10 +183,9 @@ def _check_inputs(ts, records, conditions, free) -> tuple:
     if len(records) != len(conditions):
         raise ValueError(f"{len(records)} records but {len(conditions)} conditions; give one "
                          "stacked PlatformConditions per record")
-    t = np.asarray(ts, dtype=float)
-    if t.ndim != 1 or t.size < 3 or not np.all(np.isfinite(t)) or not np.all(np.diff(t) > 0):
-        raise ValueError(f"ts (one dwell's sample times, shape {t.shape}) must be 1-D, finite, "
-                         "strictly increasing and at least 3 samples long")
+    from ..io import check_times
+
+    t = check_times(ts, source="ts (one dwell's sample times)")
     for k, r in enumerate(records):
         a = np.asarray(r, dtype=float)
         if a.ndim != 3 or a.shape[1:] != (t.size, 3):
