@@ -141,13 +141,11 @@ def _positive(name, value):
 
 
 def _sample_times(hours, sample_s):
+    """The ESG commands' time grid (a ValueError is a usage error: main exits 2 with it)."""
     from .record import sample_times
 
-    try:
-        return sample_times(hours * 3600, sample_s, span=f"--hours {hours:g}",
-                            sample=f"--sample {sample_s:g}")
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+    return sample_times(hours * 3600, sample_s, span=f"--hours {hours:g}",
+                        sample=f"--sample {sample_s:g}")
 
 
 # -- commands ------------------------------------------------------------------------------
