@@ -159,7 +159,8 @@ def plot_gap_report(report, path=None):
             ax.axvline(split, color="k", ls="--", lw=0.8)
         ax.set_ylabel("residual / noise")
         ax.set_title(f"whitened residual, {title} (train | held-out)", fontsize=9)
-        ax.legend(fontsize=7)
+        if res is not None:  # a legend without lines is a matplotlib warning, and empty
+            ax.legend(fontsize=7)
     ax_rank = fig.add_subplot(gs[1:3, 1])
     names = [r["name"] for r in report.ranking][::-1]
     post = [r["posterior"] for r in report.ranking][::-1]

@@ -568,11 +568,17 @@ def tilt_report():
     return diagnose(rec, design_advice=True)
 
 
-def test_null_record_no_gap():
+def test_null_record_no_gap(tmp_path):
+    from gyrojax.plots import plot_gap_report
+
     rep = diagnose(_record(seed=5), design_advice=False)
     assert rep.kind == "no-gap", rep.markdown()
     assert 0.9 < rep.noise["std"][0] / units.ARCSEC < 1.1
     assert rep.refits == []
+    # the figure of a report with no refit: its residual panel has no lines (a legend there was
+    # a matplotlib warning, an error under this suite's filterwarnings)
+    plot_gap_report(rep, tmp_path / "gap.png")
+    assert (tmp_path / "gap.png").stat().st_size > 10_000
 
 
 def test_rotor_tilt_attributed_and_heldout_gap_closes(tilt_report):
@@ -991,6 +997,43 @@ def test_confounded_verdict_needs_a_significant_majority_top():
               row("step", "visible", 0.02, 0.25)]
     v = verdict(spread)
     assert v["kind"] == "ambiguous" and v["effects"] == ["d_oo", "ramp", "step"]
+
+
+def test_ambiguous_verdict_reports_each_members_heldout_gap_and_whether_it_separates():
+    """An ambiguous verdict gives each member's held-out gap after its own refit, and says when
+    the held-out part tells the members apart (one refit removes most of the held-out gap,
+    another fits the train part only); the kind stays ambiguous and the headline gap is the
+    best train refit's, as before."""
+    from types import SimpleNamespace
+
+    from gyrojax.diagnose._diagnose import _verdict
+    from gyrojax.diagnose._stats import ambiguity_set
+
+    rows = [SimpleNamespace(sig=SimpleNamespace(name=n), flag="visible", q=1e-9, p=1e-9,
+                            posterior=0.5) for n in ("misalignment", "scale_factor")]
+
+    def refit(name, train, after, closure):
+        return {"effects": [name], "gap_train_after": train, "heldout_gap_before": 1.13,
+                "heldout_gap_after": after, "closure": closure, "remaining_cells": []}
+
+    def verdict(refits):
+        return _verdict(True, rows, ambiguity_set(rows), refits, None, rows[0], 0.05, [], 1.13,
+                        (0.0, 0.08))
+
+    # the mpu6050 hand-held poses (dataset:mpu6050_multipos_calibration): both refits fit the
+    # train poses, only the scale factors predict the held-out ones
+    v = verdict([refit("misalignment", 0.50, 35.4, False), refit("scale_factor", 0.52, 0.31, False)])
+    assert v["kind"] == "ambiguous" and v["effects"] == ["misalignment", "scale_factor"]
+    assert v["heldout_gap_after"] == 35.4  # the best train refit's, as before
+    assert v["heldout_gap_after_by_effect"] == {"misalignment": 35.4, "scale_factor": 0.31}
+    assert v["heldout_separates"] == {"transfer": ["scale_factor"],
+                                      "do_not_transfer": ["misalignment"]}
+    # both predict it (one closes the gap, one removes more than half): nothing separates them
+    v = verdict([refit("misalignment", 0.50, 0.05, True), refit("scale_factor", 0.52, 0.40, False)])
+    assert "heldout_separates" not in v and v["heldout_gap_after_by_effect"]["scale_factor"] == 0.40
+    # no held-out part: nothing to report per member
+    v = verdict([refit("misalignment", 0.50, None, None), refit("scale_factor", 0.52, None, None)])
+    assert "heldout_gap_after_by_effect" not in v and "heldout_separates" not in v
 
 
 # -- bad input -------------------------------------------------------------------------------

@@ -703,6 +703,26 @@ def _does_not_transfer(refit) -> bool:
     return bool(g1 > 0.5 * g0)
 
 
+def _heldout_by_member(names, single) -> dict:
+    """For an ambiguous verdict: each member's held-out gap after its own refit
+    (``heldout_gap_after_by_effect``) and, where the held-out part tells the members apart (the
+    refits of some predict it, those of others fit the train part only: :func:`_does_not_transfer`),
+    which do and which do not (``heldout_separates``). The train design cannot separate them,
+    which is why the verdict is ambiguous; a held-out part on another design can (spec §4.2,
+    Stage 4: confounded alternatives separate on the design-shift split). The verdict stays
+    ambiguous: the held-out gap is the check of an attribution, not its input."""
+    refit = {rf["effects"][0]: rf for rf in single if rf["effects"][0] in names}
+    if not any(rf.get("closure") is not None for rf in refit.values()):  # no held-out part
+        return {}
+    out = {"heldout_gap_after_by_effect": {n: refit[n]["heldout_gap_after"]
+                                           for n in names if n in refit}}
+    fail = [n for n in names if n in refit and _does_not_transfer(refit[n])]
+    keep = [n for n in names if n in refit and n not in fail]
+    if fail and keep:
+        out["heldout_separates"] = {"transfer": keep, "do_not_transfer": fail}
+    return out
+
+
 def _shift_hidden(rows, cells, jn_all, s_full):
     """Effects with no signature on the train design that have one on the whole record (train
     plus the design-shifted held-out rows): the candidates for a gap seen only held out."""
@@ -937,7 +957,8 @@ def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band
         return {"kind": "ambiguous", "effects": names,
                 "heldout_gap_after": best["heldout_gap_after"] if best else None, **base,
                 "posterior": {r.sig.name: r.posterior for r in amb},
-                "reason": "no single effect holds 90 % of the posterior; see design_advice"}
+                "reason": "no single effect holds 90 % of the posterior; see design_advice",
+                **_heldout_by_member(names, single)}
     chosen = next((rf for rf in refits if rf["effects"] == [top.sig.name]), None)
     if second is not None:
         pair = next((rf for rf in refits if len(rf["effects"]) == 2), None)

@@ -144,9 +144,18 @@ class GapReport:
         g0, g1 = v.get("heldout_gap_before"), v.get("heldout_gap_after")
         band = self.gap.get("heldout_null_band") or [None, None]
         if g0 is not None and math.isfinite(g0):
-            after = f"{g1:.3g}" if g1 is not None else "-"
-            lines.append(f"Held-out gap G = mean(e^2) - 1: before {g0:.3g}, after {after} "
+            each = v.get("heldout_gap_after_by_effect")
+            after = (f"after {g1:.3g}" if g1 is not None else "after -") if not each else (
+                "after refitting each: " + ", ".join(f"{k} {x:.3g}" for k, x in each.items()))
+            lines.append(f"Held-out gap G = mean(e^2) - 1: before {g0:.3g}, {after} "
                          f"(null band <= {band[1]:.3g})")
+            sep = v.get("heldout_separates")
+            if sep:
+                lines.append(f"The held-out part tells them apart: refitted alone, "
+                             f"{', '.join(sep['transfer'])} removes most of its gap, "
+                             f"{', '.join(sep['do_not_transfer'])} fits the train part only "
+                             "(the verdict stays ambiguous: the held-out gap checks an "
+                             "attribution, it does not make one)")
         sig = ", ".join(f"{ch} {_noise_text(self.rig, ch, s)}"
                         for ch, s in zip(self.channels, self.noise["std"]))
         lines += [f"Noise level: {sig} ({self.noise['source']}); train gap {self.gap['train']:.3g}",
@@ -210,12 +219,19 @@ class GapReport:
             lines += ["", "## How much (refit on train, gap on held-out)", "",
                       "| effects | estimate ± std. error | held-out gap before | after | "
                       "reduction | closure | cells left |", "|---|---|---|---|---|---|---|"]
+            no_sig = {d for r in self.ranking for d in r["no_signature_directions"]}
             for rf in self.refits:
                 red = f"{rf['reduction']:.2f}" if rf["reduction"] is not None else "-"
                 se, un = rf.get("std_errors", {}), rf.get("units", {})
+                # a coefficient this bench gives no signature is not estimated (its standard
+                # error is infinite): named once, not printed as a value
+                blind = [k for k in rf["coefficients"]
+                         if k in no_sig and not math.isfinite(se.get(k, 0.0))]
                 est = ", ".join(f"{k} {v:.4g}" + (f" ± {se[k]:.2g}" if k in se else "")
                                 + (f" {un[k]}" if un.get(k) else "")
-                                for k, v in rf["coefficients"].items())
+                                for k, v in rf["coefficients"].items() if k not in blind)
+                if blind:
+                    est += f"; no signature, not estimated: {', '.join(blind)}"
                 lines.append(f"| {' + '.join(rf['effects'])} | {est} | "
                              f"{rf['heldout_gap_before']:.3g} | "
                              f"{rf['heldout_gap_after']:.3g} | {red} | {rf['closure']} | "
