@@ -479,6 +479,14 @@ def test_bh_and_fisher_g():
     # cancel to 0 there (a spurious "largest line" at a flat periodogram)
     assert fisher_g_pvalue(0.003, 539) == 1.0
     np.testing.assert_allclose(fisher_g_pvalue(np.array([0.003, 0.8]), 2), [1.0, 0.4])
+    # long records (q ~ 1000 and up: C(q, j) passes float64's range) give no overflow warning
+    # (an error under this suite's filterwarnings), and far in the tail the series is its
+    # first term, q (1 - g)^(q - 1), to the second term's relative size
+    for q in (1000, 3000):
+        g = np.array([1e-4, 2.0 * np.log(q) / q, 0.02])
+        p = fisher_g_pvalue(g, q)
+        assert p[0] == 1.0 and 0.0 < p[1] < 0.01
+        assert p[2] == pytest.approx(q * (1 - g[2]) ** (q - 1), rel=1e-6)
 
 
 def test_calibrated_level_gives_alpha_on_fresh_nulls_by_the_per_residual_code():

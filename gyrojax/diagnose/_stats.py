@@ -653,7 +653,11 @@ def fisher_g_pvalue(g, q: int):
     j = np.arange(1, jmax + 1, dtype=float)
     logc = special.gammaln(q + 1) - special.gammaln(j + 1) - special.gammaln(q - j + 1)
     x = 1.0 - j[None, :] * g[:, None]
-    term = np.where(x > 0, np.exp(logc + (q - 1) * np.log(np.where(x > 0, x, 1.0))), 0.0)
+    # capped at 1e7: a term beyond 1e6 makes p 1 below, so the cap changes no p-value, and an
+    # uncapped exp overflowed (a RuntimeWarning on the user's terminal) once C(q, j) or a term
+    # passed float64's range (q ~ 1000 and up: the Schuler test's 1-s records)
+    expo = logc + (q - 1) * np.log(np.where(x > 0, x, 1.0))
+    term = np.where(x > 0, np.exp(np.minimum(expo, np.log(1e7))), 0.0)
     total = np.sum(np.where(j % 2 == 1, 1.0, -1.0) * term, axis=1)
     p = np.where(term.max(axis=1) > 1e6, 1.0, np.clip(total, 0.0, 1.0))
     return float(p[0]) if scalar else p
