@@ -1,4 +1,14 @@
-"""``gyrojax fit --rig imu``: multi-position calibration of a strapdown IMU on a stand.
+"""``gyrojax simulate --rig imu`` (a multi-position test record) and ``gyrojax fit --rig imu``:
+multi-position calibration of a strapdown IMU on a stand.
+
+The simulated test: ``--poses`` still poses (the six axis-up poses, then seeded random tilts;
+``cube_poses``) of ``--dwell`` s each, joined by 2-s constant-rate turns, sampled every
+``--sample`` s, with white gyro and accelerometer noise (``--arw`` deg/sqrt(h), ``--vrw``
+m/s/sqrt(h)) and the rig's parameters from ``--set`` in display units (``bgx=10`` deg/h,
+``sax=500`` ppm, ``maxy=1`` mrad, ``gsxz=5`` deg/h/g ...; the default IMU has gyro biases
+10, -5, 3 deg/h and accelerometer biases 5, -3, 2 mg, and no other error). With
+``--latitude`` the record carries the site and the gyros see the vertical Earth rate
+(``k_earth`` 1 unless set).
 
 The static poses are found in the record (``detect_static``); the accelerometer's biases, scale
 factors and misalignments are fitted so that every pose's specific force has the local gravity's
@@ -9,10 +19,75 @@ between poses (``calibrate_gyro``), where the record has the gyro channels and s
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 ACCELEROMETERS = ("ax", "ay", "az")
 GYROS = ("wx", "wy", "wz")
+DEFAULT_ERRORS = {"bgx": 10.0, "bgy": -5.0, "bgz": 3.0, "bax": 5.0, "bay": -3.0, "baz": 2.0}
+TURN_S = 2.0
+
+
+def simulate(args, parse_sets, emit_json, usage_error):
+    import jax
+
+    from . import units
+    from .io import save_record
+    from .models.imu import IMURig, cube_poses, simulate_imu
+    from .record import MAX_SAMPLES
+
+    if args.hours is not None:
+        raise usage_error(f"--hours {args.hours:g}: an IMU record lasts --poses x (--dwell + "
+                          f"{TURN_S:g} s of turn); set those instead")
+    sample = 0.01 if args.sample is None else args.sample
+    for name, v, low in (("--poses", args.poses, 1), ("--dwell", args.dwell, 0),
+                         ("--sample", sample, 0)):
+        if not (np.isfinite(v) and v > low) and not (name == "--poses" and v == low):
+            raise usage_error(f"{name} {v:g} must be {'>= 1' if name == '--poses' else '> 0'}")
+    for name, v in (("--arw", args.arw), ("--vrw", args.vrw)):
+        if not (np.isfinite(v) and v >= 0):
+            raise usage_error(f"{name} {v:g} must be >= 0")
+    rate_hz = 1.0 / sample
+    shortest = min(args.dwell, TURN_S)
+    if sample > shortest:
+        raise usage_error(f"--sample {sample:g} s is longer than "
+                          + (f"--dwell {args.dwell:g} s" if args.dwell < TURN_S
+                             else f"the {TURN_S:g}-s turns between poses")
+                          + f": sample at {shortest:g} s or faster")
+    n = round(args.poses * (args.dwell + TURN_S) * rate_hz)
+    if n > MAX_SAMPLES:
+        raise usage_error(f"--poses {args.poses} x (--dwell {args.dwell:g} + {TURN_S:g} s) at "
+                          f"--sample {sample:g} s gives {n:.3g} samples; a simulated record holds "
+                          f"at most {MAX_SAMPLES:,}: fewer or shorter poses, or sample slower")
+    lat = float("nan") if args.latitude is None else args.latitude
+    if not (np.isnan(lat) or -90 <= lat <= 90):
+        raise usage_error(f"--latitude {lat:g} must be within [-90, 90] degrees")
+    space = IMURig().param_space
+    sets = parse_sets(args.set, space)
+    given = {k: space[k].from_display(v) for k, v in DEFAULT_ERRORS.items()}
+    if not np.isnan(lat):
+        given["k_earth"] = 1.0
+    params = space.make(given | sets)
+    out = Path(args.out)
+    if out.suffix.lower() not in (".nc", ".csv"):
+        raise usage_error(f"--out {args.out!r}: use a .nc or .csv file name")
+    poses = cube_poses(args.poses, args.dwell, seed=args.seed)
+    rec = simulate_imu(params, poses, rate_hz=rate_hz, turn_s=TURN_S, latitude_deg=lat,
+                       arw=args.arw * units.DEG / 60, vrw=args.vrw / 60,
+                       key=jax.random.key(args.seed))
+    rec = rec.with_conditions(rig="imu", arw_deg_per_sqrt_h=args.arw, vrw_mps_per_sqrt_h=args.vrw,
+                         seed=args.seed)
+    save_record(rec, out)
+    shown = [k for k in space.names if float(params[k]) != space[k].null or k in sets]
+    print(f"wrote {out}: {rec.n_samples} samples, {args.poses} poses of {args.dwell:g} s at "
+          f"{rate_hz:g} Hz, ARW {args.arw:g} deg/sqrt(h), VRW {args.vrw:g} m/s/sqrt(h)"
+          + ("" if np.isnan(lat) else f", latitude {lat:g} deg"))
+    print(space.table(params, names=shown))
+    emit_json({"record": str(out), "samples": int(rec.n_samples), "poses": args.poses,
+               "parameters": {k: {"value": float(space[k].to_display(params[k])),
+                                  "unit": space[k].display_unit} for k in shown}}, args.json)
+    return 0
 
 
 def _rms(x):

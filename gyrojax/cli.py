@@ -24,12 +24,11 @@ class UsageError(Exception):
 
 
 # the rigs each command serves (the others are refused with this list and where to go instead)
-COMMAND_RIGS = {"simulate": ("esg", "schuler", "platform", "gyrotheodolite"),
+COMMAND_RIGS = {"simulate": ("esg", "schuler", "platform", "gyrotheodolite", "imu"),
                 "fit": ("esg", "schuler", "platform", "imu"),
                 "observability": ("esg", "schuler", "platform"),
                 "montecarlo": ("esg",), "demo": ("esg",)}
-_ELSEWHERE = {"imu": "gyrojax diagnose --rig imu (sim-to-real) or gyrojax fit --rig imu "
-                     "(multi-position calibration); gyrojax.models.imu.simulate_imu in Python",
+_ELSEWHERE = {"imu": "gyrojax simulate, fit (multi-position calibration) or diagnose --rig imu",
               "gyrotheodolite": "gyrojax observer (observer gains, poles, bandwidths), gyrojax "
                                 "simulate or diagnose --rig gyrotheodolite",
               "schuler": "gyrojax simulate, fit, observability or diagnose --rig schuler",
@@ -168,6 +167,10 @@ def cmd_simulate(args):
         from . import _cli_gyrotheodolite
 
         return _cli_gyrotheodolite.simulate(args, _parse_sets, _emit_json, UsageError)
+    if args.rig == "imu":
+        from . import _cli_imu
+
+        return _cli_imu.simulate(args, _parse_sets, _emit_json, UsageError)
     args.hours = 24.0 if args.hours is None else args.hours
     args.sample = 60.0 if args.sample is None else args.sample
     rig, cond, scheme, lat = _rig_and_conditions(args)
@@ -647,17 +650,28 @@ def build_parser() -> argparse.ArgumentParser:
                    help="test length in h (default 24 for esg, 0.667 for gyrotheodolite)")
     p.add_argument("--sample", type=float,
                    help="sampling interval in s (default 60 for esg, 1 for schuler and "
-                        "gyrotheodolite)")
+                        "gyrotheodolite, 0.01 for imu)")
     _schuler_options(p)
     p.add_argument("--random-errors", action="store_true",
                    help="schuler: draw the 12 errors from their priors (spec §10), then apply --set")
+    p.add_argument("--poses", type=int, default=12,
+                   help="imu: still poses, the six axis-up ones first, then seeded random tilts "
+                        "(default 12), joined by 2-s turns")
+    p.add_argument("--dwell", type=float, default=10.0,
+                   help="imu: seconds per pose (default 10)")
+    p.add_argument("--arw", type=float, default=0.3,
+                   help="imu: gyro angle random walk in deg/sqrt(h) (default 0.3)")
+    p.add_argument("--vrw", type=float, default=0.05,
+                   help="imu: accelerometer velocity random walk in m/s/sqrt(h) (default 0.05)")
     p.add_argument("--noise-arcsec", type=float, default=1.0,
                    help="white angle-noise std in arcsec (default 1)")
     p.add_argument("--alpha0", type=_alpha0, default=[0.0, 0.0],
                    help="initial gimbal angles 'A1,A2' in deg (default 0,0)")
     p.add_argument("--set", action="append", metavar="NAME=VALUE",
                    help="parameter in display units, repeatable (m11=0.15 deg/h, theta1=600 arcsec,"
-                        " eps2=60 arcsec ...); defaults: drifts of +-0.15 deg/h")
+                        " eps2=60 arcsec ...; imu: sax=500 ppm, maxy=1 mrad, bgx=10 deg/h ...); "
+                        "defaults: esg drifts of +-0.15 deg/h, imu biases of 3-10 deg/h and "
+                        "2-5 mg")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed for the noise (default 0)")
     p.set_defaults(func=cmd_simulate)
 

@@ -35,14 +35,31 @@ CAL = dict(sax=2e-3, say=-1e-3, saz=3e-3, maxy=1e-3, maxz=-2e-3, mayz=0.5e-3, sg
 
 
 def test_multiposition_calibration_recovers_the_generating_parameters(tmp_path, capsys):
-    """20 poses joined by 2-s turns: the detector finds every pose inside its true span; the
-    |f| = g fit and the gravity-propagation gyro fit recover every term within 4 stderr, and
-    both say they converged. ``gyrojax fit --rig imu`` on the same record written to NetCDF
-    reports the same calibration in display units (mg, ppm, mrad). Refused, exit 2: a record
-    without accelerometers, a --method the calibration does not have, and a rig ``fit`` does
-    not serve (with where to go)."""
-    rec = simulate_imu(SPACE.make(BIAS | CAL), cube_poses(20, 5.0), arw=2e-4, vrw=1e-3,
-                       key=jax.random.PRNGKey(1))
+    """``gyrojax simulate --rig imu``: 20 poses of 5 s at 100 Hz joined by 2-s turns, the
+    generating errors given with --set in display units; the record's still-pose scatter is the
+    white noise asked for (--arw, --vrw, to 5 %). The detector finds every pose inside its true
+    span; the |f| = g fit and the gravity-propagation gyro fit recover every term within 4
+    stderr, and both say they converged. ``gyrojax fit --rig imu`` on the record reports the
+    same calibration in display units (mg, ppm, mrad). With --latitude the gyros see the
+    vertical Earth rate. Refused, exit 2: a record without accelerometers, a --method the
+    calibration does not have, and a rig ``fit`` does not serve (with where to go)."""
+    from gyrojax.io import load_record
+
+    path, sim_json = tmp_path / "multi.nc", tmp_path / "sim.json"
+    arw, vrw = 2e-4, 1e-3  # rad/s/sqrt(Hz), m/s^2/sqrt(Hz)
+    sets = [a for k, v in (BIAS | CAL).items()
+            for a in ("--set", f"{k}={float(SPACE[k].to_display(v))!r}")]
+    assert main(["simulate", "--rig", "imu", "--out", str(path), "--poses", "20", "--dwell", "5",
+                 "--arw", repr(arw / (units.DEG / 60)), "--vrw", repr(vrw * 60), "--seed", "1",
+                 "--json", str(sim_json), *sets]) == 0
+    sim = json.loads(sim_json.read_text())
+    assert sim["parameters"]["sax"] == {"value": pytest.approx(2000.0), "unit": "ppm"}
+    rec = load_record(path)
+    assert rec.n_samples == sim["samples"] == 20 * 500 + 19 * 200
+    t, y = np.asarray(rec.t), np.asarray(rec.y)
+    still = [(t >= a) & (t <= b) for a, b in np.reshape(rec.conditions["static_s"], (-1, 2))]
+    sd = np.concatenate([y[m] - y[m].mean(0) for m in still]).std(axis=0)
+    np.testing.assert_allclose(sd, np.repeat([arw, vrw], 3) * 10, rtol=0.05)  # x sqrt(100 Hz)
     segs = detect_static(rec)
     truth = np.asarray(rec.conditions["static_s"]).reshape(-1, 2)
     assert len(segs) == 20
@@ -62,8 +79,7 @@ def test_multiposition_calibration_recovers_the_generating_parameters(tmp_path, 
     few = calibrate_accelerometer(means[:6], units.G0)
     assert not few.determined and "not determined" in few.message
 
-    path, out = tmp_path / "multi.nc", tmp_path / "cal.json"
-    save_record(rec, path)
+    out = tmp_path / "cal.json"
     assert main(["fit", str(path), "--rig", "imu", "--json", str(out)]) == 0
     rep = json.loads(out.read_text())
     assert rep["converged"] is True and rep["determined"] is True and rep["poses"] == 20
@@ -85,6 +101,15 @@ def test_multiposition_calibration_recovers_the_generating_parameters(tmp_path, 
         rig = "gyrotheodolite" if msg == "gyrojax observer" else "imu"
         assert main(["fit", *argv, "--rig", rig]) == 2
         assert msg in capsys.readouterr().err
+    site = tmp_path / "site.nc"
+    assert main(["simulate", "--rig", "imu", "--out", str(site), "--poses", "6", "--latitude",
+                 "45", "--arw", "0.01"]) == 0
+    rec = load_record(site)
+    assert rec.conditions["latitude_deg"] == 45.0
+    a, b = rec.conditions["static_s"][:2]  # the first pose: z up; default bgz 3 deg/h
+    t = np.asarray(rec.t)
+    wz = np.asarray(rec.channel("wz"))[(t >= a) & (t <= b)].mean() / units.DEG_PER_HOUR
+    assert wz == pytest.approx(3.0 + 15.041 * np.sin(np.radians(45.0)), abs=1.0)
 
 
 def test_noise_likelihood_fit_recovers_white_and_rate_random_walk(tmp_path):

@@ -202,6 +202,17 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
      "dwell_s 1e+09 at sample_s 0.025 over 14 positions and 2 amplitude(s) gives 1.12e+12"),
     (["simulate", "--rig", "platform", "--schedule", '{"frequency_hz": 0}', "--out", "x.nc"],
      "vibration frequency 0.0 Hz must be positive"),
+    (["simulate", "--rig", "imu", "--out", "x.nc", "--hours", "1"],
+     "an IMU record lasts --poses x (--dwell + 2 s of turn)"),
+    (["simulate", "--rig", "imu", "--out", "x.nc", "--poses", "0"], "--poses 0 must be >= 1"),
+    (["simulate", "--rig", "imu", "--out", "x.nc", "--arw", "-1"], "--arw -1 must be >= 0"),
+    (["simulate", "--rig", "imu", "--out", "x.nc", "--sample", "5"],
+     "--sample 5 s is longer than the 2-s turns between poses: sample at 2 s or faster"),
+    (["simulate", "--rig", "imu", "--out", "x.nc", "--poses", "100000", "--dwell", "1000"],
+     "gives 1e+10 samples; a simulated record holds at most 10,000,000"),
+    (["simulate", "--rig", "imu", "--out", "x.nc", "--latitude", "95"],
+     "--latitude 95 must be within [-90, 90] degrees"),
+    (["simulate", "--rig", "imu", "--out", "x.nc", "--set", "sa_x=1"], "unknown parameter 'sa_x'"),
 ])
 def test_cli_bad_input_exit_2_one_line_nothing_written(tmp_path, capsys, monkeypatch, argv,
                                                       match):
