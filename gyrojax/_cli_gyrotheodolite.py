@@ -9,8 +9,6 @@ Record channel ``alpha`` (azimuth pick-off, rad); conditions as record attribute
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from .record import sample_times
 
 CHANNELS = ("alpha",)
@@ -21,7 +19,7 @@ def simulate(args, parse_sets, emit_json, usage_error):
     import jax
 
     from . import units
-    from .io import save_record
+    from .io import record_path, save_record
     from .models.gyrotheodolite import ODE_OPTIONS, GyrotheodoliteConditions, GyrotheodoliteRig
     from .simulate import simulate as run
 
@@ -42,9 +40,7 @@ def simulate(args, parse_sets, emit_json, usage_error):
     params = rig.default_params(**sets)
     ts = sample_times(hours * 3600, sample, span=f"--hours {hours:g}",  # ValueError: exit 2
                       sample=f"--sample {sample:g}")
-    out = Path(args.out)
-    if out.suffix.lower() not in (".nc", ".csv"):
-        raise usage_error(f"--out {args.out!r}: use a .nc or .csv file name")
+    out = record_path(args.out)  # ValueError: exit 2
     rec = run(rig, params, cond, ts, key=jax.random.key(args.seed),
               noise_std=args.noise_arcsec * units.ARCSEC,
               attrs={"rig": "gyrotheodolite", "latitude_deg": lat,
@@ -55,7 +51,6 @@ def simulate(args, parse_sets, emit_json, usage_error):
           f"pick-off noise {args.noise_arcsec} arcsec")
     if shown:
         print(space.table(params, names=shown))
-    emit_json({"record": str(out), "samples": int(ts.size), "parameters": {
-        k: {"value": float(space[k].to_display(params[k])), "unit": space[k].display_unit}
-        for k in shown}}, args.json)
+    emit_json({"record": str(out), "samples": int(ts.size),
+               "parameters": space.display_json(params, shown)}, args.json)
     return 0

@@ -19,8 +19,6 @@ between poses (``calibrate_gyro``), where the record has the gyro channels and s
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 ACCELEROMETERS = ("ax", "ay", "az")
@@ -33,7 +31,7 @@ def simulate(args, parse_sets, emit_json, usage_error):
     import jax
 
     from . import units
-    from .io import save_record
+    from .io import record_path, save_record
     from .models.imu import IMURig, cube_poses, simulate_imu
     from .record import MAX_SAMPLES
 
@@ -69,9 +67,7 @@ def simulate(args, parse_sets, emit_json, usage_error):
     if not np.isnan(lat):
         given["k_earth"] = 1.0
     params = space.make(given | sets)
-    out = Path(args.out)
-    if out.suffix.lower() not in (".nc", ".csv"):
-        raise usage_error(f"--out {args.out!r}: use a .nc or .csv file name")
+    out = record_path(args.out)  # ValueError: exit 2
     poses = cube_poses(args.poses, args.dwell, seed=args.seed)
     rec = simulate_imu(params, poses, rate_hz=rate_hz, turn_s=TURN_S, latitude_deg=lat,
                        arw=args.arw * units.DEG / 60, vrw=args.vrw / 60,
@@ -85,8 +81,7 @@ def simulate(args, parse_sets, emit_json, usage_error):
           + ("" if np.isnan(lat) else f", latitude {lat:g} deg"))
     print(space.table(params, names=shown))
     emit_json({"record": str(out), "samples": int(rec.n_samples), "poses": args.poses,
-               "parameters": {k: {"value": float(space[k].to_display(params[k])),
-                                  "unit": space[k].display_unit} for k in shown}}, args.json)
+               "parameters": space.display_json(params, shown)}, args.json)
     return 0
 
 

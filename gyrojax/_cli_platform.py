@@ -20,16 +20,17 @@ from .models.platform_schedule import (
 def simulate(args, parse_sets, emit_json):
     import jax
 
-    from .io import save_record
+    from .io import record_path, save_record
     from .models.platform import TRUE_TABLE2, PlatformRig
 
+    out = record_path(args.out)  # ValueError: exit 2, before the simulation
     s = load_schedule(args.schedule) if args.schedule else load_schedule({})
     space = PlatformRig().param_space
     params = space.make(TRUE_TABLE2, display=True) | parse_sets(args.set, space)
     rec = simulate_schedule(params, s, jax.random.key(args.seed), noise_arcsec=args.noise_arcsec)
     ts = dwell_times(s)
-    save_record(rec, args.out)
-    print(f"wrote {args.out}: {len(s['positions_deg'])} positions x "
+    save_record(rec, out)
+    print(f"wrote {out}: {len(s['positions_deg'])} positions x "
           f"{len(s['table_amplitudes_g'])} amplitudes ({s['table_amplitudes_g']} g), "
           f"{len(ts)} samples per dwell")
 

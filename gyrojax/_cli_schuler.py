@@ -7,8 +7,6 @@ t0 from the gimbal angles, rad); conditions as record attributes (``latitude_deg
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from .record import sample_times
@@ -47,7 +45,7 @@ def _duration(args, cond):
 def simulate(args, parse_sets, emit_json):
     import jax
 
-    from .io import save_record
+    from .io import record_path, save_record
     from .models.schuler import EFFECT_NAMES, PARAM_NAMES, SchulerRig, add_measurement_noise
     from .record import BenchRecord, freeze
     from .simulate import integrate
@@ -68,9 +66,7 @@ def simulate(args, parse_sets, emit_json):
     shown = PARAM_NAMES + tuple(n for n in EFFECT_NAMES if n in sets)
     ts = sample_times(span, args.sample, span=f"--periods {args.periods:g}",
                       sample=f"--sample {args.sample:g}")
-    out = Path(args.out)
-    if out.suffix.lower() not in (".nc", ".csv"):
-        raise ValueError(f"--out {args.out!r}: use a .nc or .csv file name")
+    out = record_path(args.out)  # ValueError: exit 2
     y = add_measurement_noise(key_noise, integrate(rig, params, cond, ts), sigma_v=sigma_v,
                               sigma_theta=sigma_theta)
     attrs = {"rig": "schuler", "latitude_deg": lat, "v10": float(cond.v10),
@@ -80,9 +76,8 @@ def simulate(args, parse_sets, emit_json):
     print(f"wrote {out}: {ts.size} samples over {span / 60:.1f} min ({args.periods} Schuler "
           f"periods of {float(cond.schuler_period) / 60:.3f} min), latitude {lat} deg")
     print(space.table(params, names=shown))
-    emit_json({"record": str(out), "samples": int(ts.size), "parameters": {
-        k: {"value": float(space[k].to_display(params[k])), "unit": space[k].display_unit}
-        for k in shown}}, args.json)
+    emit_json({"record": str(out), "samples": int(ts.size),
+               "parameters": space.display_json(params, shown)}, args.json)
 
 
 def fit(args, load, emit_json):

@@ -185,9 +185,9 @@ def cmd_simulate(args):
         _parse_sets(args.set, space)
     params = space.make(given | {"alpha10": args.alpha0[0] * units.DEG,
                                  "alpha20": args.alpha0[1] * units.DEG} if args.alpha0 else given)
-    out = Path(args.out)
-    if out.suffix.lower() not in (".nc", ".csv"):
-        raise UsageError(f"--out {args.out!r}: use a .nc or .csv file name")
+    from .io import record_path, save_record
+
+    out = record_path(args.out)  # ValueError: exit 2
     rec = simulate(rig, params, cond, ts, key=jax.random.key(args.seed),
                    noise_std=args.noise_arcsec * units.ARCSEC,
                    attrs={"latitude_deg": lat, "scheme": scheme, "rig": "esg",
@@ -195,14 +195,11 @@ def cmd_simulate(args):
     if not np.all(np.isfinite(np.asarray(rec.y))):
         raise UsageError("the simulation left the model's domain (gimbal lock, cos alpha2 = 0); "
                          "shorten --hours or change --alpha0/--scheme")
-    from .io import save_record
-
     save_record(rec, out)
     print(f"wrote {out}: {ts.size} samples over {args.hours} h, scheme {scheme}, latitude {lat} deg")
     print(space.table(params, names=[k for k in space.names if float(params[k]) != space[k].null]))
-    _emit_json({"record": str(out), "samples": int(ts.size), "parameters": {
-        k: {"value": float(space[k].to_display(v)), "unit": space[k].display_unit}
-        for k, v in params.items()}}, args.json)
+    _emit_json({"record": str(out), "samples": int(ts.size),
+                "parameters": space.display_json(params, params)}, args.json)
 
 
 def cmd_fit(args):

@@ -245,6 +245,18 @@ def atomic_write(path, write_fn):
         raise
 
 
+RECORD_SUFFIXES = (".nc", ".csv")
+
+
+def record_path(path, option: str = "--out") -> Path:
+    """``path`` as a Path, checked before any work is done to be one :func:`save_record` can
+    write (``.nc`` or ``.csv``); a ValueError naming ``option`` otherwise."""
+    out = Path(path)
+    if out.suffix.lower() not in RECORD_SUFFIXES:
+        raise ValueError(f"{option} {str(path)!r}: use a .nc or .csv file name")
+    return out
+
+
 def save_record(record: BenchRecord, path) -> Path:
     """Write a (single, unbatched) record to ``.nc`` or ``.csv`` atomically."""
     path = Path(path)

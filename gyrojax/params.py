@@ -157,6 +157,12 @@ class ParameterSpace:
     def to_display(self, params: Mapping) -> dict:
         return {k: np.asarray(self[k].to_display(v)) for k, v in params.items() if k in self}
 
+    def display_json(self, params: Mapping, names: Iterable[str]) -> dict:
+        """``{name: {"value": v, "unit": u}}`` in display units: the parameters of a written
+        record, as the CLI's ``--json`` reports them."""
+        return {k: {"value": float(self[k].to_display(params[k])), "unit": self[k].display_unit}
+                for k in names}
+
     def table(self, params: Mapping, stderr: Mapping | None = None, names=None) -> str:
         """Human-readable table in display units."""
         names = names or [n for n in self.names if n in params]

@@ -213,6 +213,9 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     (["simulate", "--rig", "imu", "--out", "x.nc", "--latitude", "95"],
      "--latitude 95 must be within [-90, 90] degrees"),
     (["simulate", "--rig", "imu", "--out", "x.nc", "--set", "sa_x=1"], "unknown parameter 'sa_x'"),
+    # every rig checks the output's type before it simulates (one helper, io.record_path)
+    *[(["simulate", "--rig", rig, "--out", "x.txt"], "--out 'x.txt': use a .nc or .csv file name")
+      for rig in ("imu", "platform", "schuler", "gyrotheodolite")],
 ])
 def test_cli_bad_input_exit_2_one_line_nothing_written(tmp_path, capsys, monkeypatch, argv,
                                                       match):
