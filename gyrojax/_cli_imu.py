@@ -39,13 +39,12 @@ def simulate(args, parse_sets, emit_json, usage_error):
         raise usage_error(f"--hours {args.hours:g}: an IMU record lasts --poses x (--dwell + "
                           f"{TURN_S:g} s of turn); set those instead")
     sample = 0.01 if args.sample is None else args.sample
-    for name, v, low in (("--poses", args.poses, 1), ("--dwell", args.dwell, 0),
-                         ("--sample", sample, 0)):
-        if not (np.isfinite(v) and v > low) and not (name == "--poses" and v == low):
-            raise usage_error(f"{name} {v:g} must be {'>= 1' if name == '--poses' else '> 0'}")
-    for name, v in (("--arw", args.arw), ("--vrw", args.vrw)):
-        if not (np.isfinite(v) and v >= 0):
-            raise usage_error(f"{name} {v:g} must be >= 0")
+    if args.poses < 1:
+        raise usage_error(f"--poses {args.poses} must be >= 1")
+    for name, v, positive in (("--dwell", args.dwell, True), ("--sample", sample, True),
+                              ("--arw", args.arw, False), ("--vrw", args.vrw, False)):
+        if not (np.isfinite(v) and (v > 0 if positive else v >= 0)):
+            raise usage_error(f"{name} {v:g} must be {'> 0' if positive else '>= 0'}")
     rate_hz = 1.0 / sample
     shortest = min(args.dwell, TURN_S)
     if sample > shortest:
@@ -72,8 +71,8 @@ def simulate(args, parse_sets, emit_json, usage_error):
     rec = simulate_imu(params, poses, rate_hz=rate_hz, turn_s=TURN_S, latitude_deg=lat,
                        arw=args.arw * units.DEG / 60, vrw=args.vrw / 60,
                        key=jax.random.key(args.seed))
-    rec = rec.with_conditions(rig="imu", arw_deg_per_sqrt_h=args.arw, vrw_mps_per_sqrt_h=args.vrw,
-                         seed=args.seed)
+    rec = rec.with_conditions(rig="imu", arw_deg_per_sqrt_h=args.arw,
+                              vrw_mps_per_sqrt_h=args.vrw, seed=args.seed)
     save_record(rec, out)
     shown = [k for k in space.names if float(params[k]) != space[k].null or k in sets]
     print(f"wrote {out}: {rec.n_samples} samples, {args.poses} poses of {args.dwell:g} s at "
