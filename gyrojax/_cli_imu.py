@@ -32,7 +32,7 @@ def simulate(args, parse_sets, emit_json, usage_error):
 
     from . import units
     from .io import record_path, save_record
-    from .models.imu import IMURig, cube_poses, simulate_imu
+    from .models.imu import IMUConditions, IMURig, cube_poses, simulate_imu
     from .record import MAX_SAMPLES
 
     if args.hours is not None:
@@ -58,8 +58,7 @@ def simulate(args, parse_sets, emit_json, usage_error):
                           f"--sample {sample:g} s gives {n:.3g} samples; a simulated record holds "
                           f"at most {MAX_SAMPLES:,}: fewer or shorter poses, or sample slower")
     lat = float("nan") if args.latitude is None else args.latitude
-    if not (np.isnan(lat) or -90 <= lat <= 90):
-        raise usage_error(f"--latitude {lat:g} must be within [-90, 90] degrees")
+    IMUConditions(lat)  # ValueError (exit 2) before the work: a latitude outside [-90, 90]
     space = IMURig().param_space
     sets = parse_sets(args.set, space)
     given = {k: space[k].from_display(v) for k, v in DEFAULT_ERRORS.items()}

@@ -447,7 +447,10 @@ def _load_imu(args):
     """An IMU record: a file (any subset of wx wy wz ax ay az) or ``dataset:NAME`` for one of
     the real records in ../shared/data/real (gyrojax.datasets.REAL_DATA_SETS)."""
     from .datasets import REAL_DATA_SETS, DataFileError
+    from .models.imu import IMUConditions
 
+    if args.latitude is not None:  # before reading the record
+        IMUConditions(float(args.latitude))  # ValueError (exit 2): outside [-90, 90]
     if args.record.startswith("dataset:"):
         name = args.record.split(":", 1)[1]
         if name not in REAL_DATA_SETS:
@@ -459,8 +462,6 @@ def _load_imu(args):
     else:
         record = _load(args, None)
     if args.latitude is not None:
-        if not -90.0 <= args.latitude <= 90.0:
-            raise UsageError(f"--latitude {args.latitude} is outside [-90, 90] deg")
         record = record.with_conditions(latitude_deg=float(args.latitude))
     runs = _table_runs(args)
     if runs:

@@ -211,7 +211,9 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     (["simulate", "--rig", "imu", "--out", "x.nc", "--poses", "100000", "--dwell", "1000"],
      "gives 1e+10 samples; a simulated record holds at most 10,000,000"),
     (["simulate", "--rig", "imu", "--out", "x.nc", "--latitude", "95"],
-     "--latitude 95 must be within [-90, 90] degrees"),
+     "latitude 95 deg is outside [-90, 90]; give the test site's latitude (--latitude)"),
+    (["diagnose", "r.nc", "--rig", "imu", "--latitude", "-91", "--json", "x.json"],
+     "latitude -91 deg is outside [-90, 90]"),
     (["simulate", "--rig", "imu", "--out", "x.nc", "--set", "sa_x=1"], "unknown parameter 'sa_x'"),
     # every rig checks the output's type before it simulates (one helper, io.record_path)
     *[(["simulate", "--rig", rig, "--out", "x.txt"], "--out 'x.txt': use a .nc or .csv file name")

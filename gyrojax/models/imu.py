@@ -127,6 +127,12 @@ class IMUConditions(eqx.Module):
     gravity: float = eqx.field(static=True, default=units.G0)
     rate_hz: float = eqx.field(static=True, default=100.0)
 
+    def __check_init__(self):
+        lat = float(self.latitude_deg)
+        if not (np.isnan(lat) or -90.0 <= lat <= 90.0):
+            raise ValueError(f"latitude {lat:g} deg is outside [-90, 90]; give the test site's "
+                             "latitude (--latitude) in degrees North, or none for no Earth rate")
+
     @property
     def vertical_earth_rate(self) -> float:
         lat = self.latitude_deg
