@@ -25,6 +25,19 @@ ACCELEROMETERS = ("ax", "ay", "az")
 GYROS = ("wx", "wy", "wz")
 DEFAULT_ERRORS = {"bgx": 10.0, "bgy": -5.0, "bgz": 3.0, "bax": 5.0, "bay": -3.0, "baz": 2.0}
 TURN_S = 2.0
+SAME_POSE_DEG = 5.0  # static intervals whose gravity directions lie closer are one orientation
+
+
+def orientations(means, *, within_deg: float = SAME_POSE_DEG) -> int:
+    """The number of distinct orientations among static poses' mean specific forces: poses are
+    grouped greedily, each joining the first group whose first pose lies within ``within_deg``."""
+    u = np.asarray(means, float)
+    u = u / np.linalg.norm(u, axis=1, keepdims=True)
+    heads: list = []
+    for v in u:
+        if not any(np.dot(v, h) >= np.cos(np.radians(within_deg)) for h in heads):
+            heads.append(v)
+    return len(heads)
 
 
 def simulate(args, parse_sets, emit_json, usage_error):
@@ -124,6 +137,14 @@ def fit(args, load_imu, emit_json, usage_error):
                           "calibration needs a record of still poses (>= 12, spread over the "
                           "sphere) joined by turns")
     means, _ = segment_means(rec, segs)
+    n_orient = orientations(means)
+    if n_orient < 2:
+        raise usage_error(f"{args.record}: its {len(segs)} static intervals all lie within "
+                          f"{SAME_POSE_DEG:g} deg of one orientation (a still record, broken by "
+                          "gaps or masked knocks), so no term of the calibration is determined; "
+                          "the multi-position calibration needs still poses (>= 12, spread over "
+                          "the sphere) joined by turns. For a still record's noise and drift: "
+                          f"gyrojax diagnose {args.record} --rig imu")
     acc = calibrate_accelerometer(means, gravity)
     lopo = leave_one_position_out(means, gravity)
     gyro, gyro_note = None, "no gyro channels"
@@ -137,29 +158,44 @@ def fit(args, load_imu, emit_json, usage_error):
     space = IMURig().param_space
     raw = np.linalg.norm(means, axis=1) - gravity
     print(f"# multi-position calibration of {args.record}: {rec.n_samples} samples, "
-          f"{len(segs)} static poses, gravity {gravity:.5f} m/s^2")
+          f"{len(segs)} static poses in {n_orient} orientations, gravity {gravity:.5f} m/s^2")
     print(f"accelerometers: {acc.message}; converged: {acc.converged}")
     print(f"  |f| - g RMS over the poses: uncalibrated {_mm(_rms(raw))} mm/s^2, calibrated "
           f"{_mm(_rms(acc.residual))}, each pose left out {_mm(_rms(lopo))}")
     print(f"gyros: {gyro_note}" + ("" if gyro is None else f"; converged: {gyro.converged}; "
                                    f"turn residual median {np.median(gyro.residual_deg):.3f} "
                                    "deg"))
-    print(f"{'term':6s} {'estimate':>13s} {'stderr':>11s}  unit")
-    params = {}
+    params, undetermined, rows = {}, [], []
     for cal, names in ((acc, ACCEL_NAMES), (gyro, GYRO_NAMES)):
         if cal is None:
             continue
         for n in names:
             p = space[n]
+            if n not in cal.determination.terms:  # arbitrary along the poses' null space: no number
+                params[n] = {"value": None, "stderr": None, "unit": p.display_unit,
+                             "determined": False}
+                undetermined.append(n)
+                continue
             v, se = float(p.to_display(cal.params[n])), cal.stderr[n]
             se = None if not np.isfinite(se) else float(p.to_display(se))
-            params[n] = {"value": v, "stderr": se, "unit": p.display_unit}
-            print(f"{n:6s} {v:13.6g} {'' if se is None else f'{se:11.3g}'}  {p.display_unit}")
+            shift = float(p.to_display(cal.determination.shift(n)))
+            params[n] = {"value": v, "stderr": se, "unit": p.display_unit, "determined": True,
+                         "undetermined_shift": shift}
+            rows.append((n, v, se, shift, p.display_unit))
+    print(f"{'term':6s} {'estimate':>13s} {'stderr':>11s}"
+          + (f" {'undet.':>9s}" if undetermined else "") + "  unit")
+    for n, v, se, shift, unit in rows:
+        print(f"{n:6s} {v:13.6g} {'-' if se is None else f'{se:11.3g}':>11s}"
+              + (f" {shift:9.2g}" if undetermined else "") + f"  {unit}")
+    if undetermined:
+        print(f"not determined by this record: {' '.join(undetermined)}")
+        print("undet.: the most the undetermined terms, held at zero, move an estimate when "
+              "they are at their prior scale (10 mg, 1000 ppm, 1 mrad) instead")
     parts = [acc] + ([] if gyro is None else [gyro])
     emit_json({"rig": "imu", "method": "multi-position", "parameters": params,
                "converged": all(c.converged for c in parts),
                "determined": all(c.determined for c in parts),
-               "poses": len(segs), "gravity_mps2": gravity,
+               "poses": len(segs), "orientations": n_orient, "gravity_mps2": gravity,
                "accelerometer": {"message": acc.message, "converged": acc.converged,
                                  "determined": acc.determined,
                                  "residual_rms_mps2": _rms(acc.residual),

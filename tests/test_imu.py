@@ -112,6 +112,97 @@ def test_multiposition_calibration_recovers_the_generating_parameters(tmp_path, 
     assert wz == pytest.approx(3.0 + 15.041 * np.sin(np.radians(45.0)), abs=1.0)
 
 
+def test_few_poses_report_the_terms_they_determine(tmp_path, capsys):
+    """The classic six-position test (the six axis-up poses, ``simulate --rig imu --poses 6``)
+    determines the accelerometer biases and scale factors but not its misalignments, whose |f|
+    signature is second order there. ``gyrojax fit`` says so: those six terms with values that
+    agree with the closed-form up/down formulas (b = (f_up + f_down)/2, s = (f_up - f_down)/(2 g)
+    - 1, a second method) to 2 ppm and within 4 sigma of the generating values (sigma from the
+    asked VRW over the poses' length), the misalignments named as not determined and given no
+    number. The five turns (about y and z only) leave the x-input gyro terms undetermined, and
+    the held-zero fit converges instead of wandering radians along the null space; the gyro
+    misalignment set at 3 mrad is recovered within 4 stderr.
+
+    A z-up/z-down pair determines baz and saz only; its half turn reads an accelerometer x bias
+    as a gyro y scale factor (each tilts the up vectors): ``sgy``'s leak is the analytic
+    2 (10 mg / g) / pi / 1000 ppm = 6.37 of its prior scale, so it is not determined. With the
+    turn cut from the record (a time gap) the gyro calibration says the interval was skipped. A
+    still record broken in two by a gap is refused, exit 2, naming ``gyrojax diagnose``."""
+    from gyrojax.estimate.multiposition import LEAK_TOL
+    from gyrojax.io import load_record
+
+    vrw = 0.05  # m/s/sqrt(h)
+    six, out = tmp_path / "six.nc", tmp_path / "six.json"
+    assert main(["simulate", "--rig", "imu", "--out", str(six), "--poses", "6", "--dwell", "10",
+                 "--arw", "0.3", "--vrw", str(vrw), "--set", "sax=800", "--set", "say=-500",
+                 "--set", "saz=300", "--set", "maxy=1", "--set", "mgxy=3"]) == 0
+    capsys.readouterr()
+    assert main(["fit", str(six), "--rig", "imu", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    rep = json.loads(out.read_text())
+    par = rep["parameters"]
+    acc_terms = ("bax", "bay", "baz", "sax", "say", "saz")
+    assert [k for k in ACCEL_NAMES if par[k]["determined"]] == list(acc_terms)
+    assert "not determined by this record: maxy maxz mayz" in text
+    for k in ("maxy", "maxz", "mayz"):
+        assert par[k]["value"] is None and f"\n{k} " not in text
+    rec = load_record(six)
+    segs = detect_static(rec)
+    means, _ = segment_means(rec, segs)
+    truth = {"bax": 5.0, "bay": -3.0, "baz": 2.0, "sax": 800.0, "say": -500.0, "saz": 300.0}
+    for axis, (up, down), c in (("z", (0, 1), 2), ("x", (2, 3), 0), ("y", (4, 5), 1)):
+        b = (means[up, c] + means[down, c]) / 2
+        s = (means[up, c] - means[down, c]) / (2 * units.G0) - 1
+        assert par[f"ba{axis}"]["value"] == pytest.approx(b / (units.G0 * 1e-3), abs=1e-4)
+        assert par[f"sa{axis}"]["value"] == pytest.approx(s / units.PPM, abs=2.0)
+        dur = np.mean([segs[up].t1 - segs[up].t0, segs[down].t1 - segs[down].t0])
+        sig = vrw / 60 / np.sqrt(dur) / np.sqrt(2)  # m/s^2, of the mean of two poses' means
+        assert abs(par[f"ba{axis}"]["value"] - truth[f"ba{axis}"]) < 4 * sig / (units.G0 * 1e-3)
+        assert abs(par[f"sa{axis}"]["value"] - truth[f"sa{axis}"]) < 4 * sig / units.G0 / units.PPM
+    assert rep["gyro"]["converged"] is True
+    for k in ("sgx", "mgyx", "mgzx"):  # no turn about x
+        assert par[k]["determined"] is False
+    assert par["mgxy"]["determined"] and abs(par["mgxy"]["value"] - 3.0) < 4 * par["mgxy"]["stderr"]
+
+    two = tmp_path / "two.nc"
+    assert main(["simulate", "--rig", "imu", "--out", str(two), "--poses", "2", "--dwell", "10",
+                 "--arw", "0.3", "--vrw", str(vrw)]) == 0  # default biases: bax 5 mg
+    rec = load_record(two)
+    segs = detect_static(rec)
+    means, _ = segment_means(rec, segs)
+    acc = calibrate_accelerometer(means, units.G0)
+    assert acc.determination.terms == ("baz", "saz") and not acc.determined
+    gyr = calibrate_gyro(rec, segs, acc)
+    leak = dict(zip(gyr.determination.names, gyr.determination.leak))
+    assert leak["sgy"] == pytest.approx(2 * (0.01 * units.G0) / units.G0 / np.pi / 1e-3, rel=0.03)
+    assert leak["sgy"] > LEAK_TOL and "sgy" not in gyr.determination.terms
+    t = np.asarray(rec.t)
+    keep = (t <= segs[0].t1 + 0.1) | (t >= segs[1].t0 - 0.1)  # the turn cut out: a time gap
+    cut = BenchRecord(rec.t[keep], rec.y[keep], rec.channels, rec.attrs)
+    capsys.readouterr()
+    assert main(["fit", _saved(cut, tmp_path / "cut.nc"), "--rig", "imu"]) == 0
+    text = capsys.readouterr().out
+    assert "1 interval(s) between poses skipped: a time gap" in text
+    assert "baz" in text and "not determined by this record: bax bay sax" in text
+
+    still = tmp_path / "still.nc"
+    assert main(["simulate", "--rig", "imu", "--out", str(still), "--poses", "1", "--dwell", "30",
+                 "--arw", "0.3", "--vrw", str(vrw)]) == 0
+    rec = load_record(still)
+    t = np.asarray(rec.t)
+    keep = (t < 12.0) | (t > 14.0)
+    broken = BenchRecord(rec.t[keep], rec.y[keep], rec.channels, rec.attrs)
+    assert main(["fit", _saved(broken, tmp_path / "broken.nc"), "--rig", "imu"]) == 2
+    err = capsys.readouterr().err
+    assert "2 static intervals all lie within 5 deg of one orientation" in err
+    assert "gyrojax diagnose" in err
+
+
+def _saved(rec, path):
+    save_record(rec, path)
+    return str(path)
+
+
 def test_noise_likelihood_fit_recovers_white_and_rate_random_walk(tmp_path):
     """White (N = 0.05 deg/sqrt(h)) + RRW (K = 5 deg/h/sqrt(h)), 2000 s at 100 Hz: N within 2 %,
     K within 40 %, the RRW term significant; on white noise alone no term is."""

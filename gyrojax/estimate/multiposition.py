@@ -4,10 +4,16 @@
   against a robust noise level), breaking at time gaps and masked samples.
 - :func:`calibrate_accelerometer`: the |f| = g calibration (Tedaldi et al. 2014): biases, scale
   factors and the three non-orthogonality terms of an upper-triangular gauge, by
-  Levenberg-Marquardt (optimistix) on the static means; says when the poses do not determine it.
+  Levenberg-Marquardt (optimistix) on the static means.
 - :func:`calibrate_gyro`: gyro scale factors and misalignments by propagating the gravity direction
   through the turns between static poses (``du/dt = -w x u`` in the body frame, exact rotation per
-  sample under ``lax.scan``) and matching the next pose's accelerometer direction.
+  sample under ``lax.scan``) and matching the next pose's accelerometer direction; intervals with
+  a time gap or masked samples are not turns.
+- :func:`term_determination`: which terms a few poses determine (an x-up/x-down pair: ``bax`` and
+  ``sax``; the six axis-up poses: the biases and scale factors), from the Jacobian's null space in
+  prior-scaled units; a fit holds the others at zero, reports no number for them, and says how far
+  they could move the determined ones. The gyro's determination carries the accelerometer terms
+  the poses leave open (they tilt the up vectors the turns are matched to).
 - :func:`leave_one_position_out`, :func:`time_ordered_split`: held-out checks.
 
 Model conventions follow :mod:`gyrojax.models.imu`: ``f_meas = b_a + (I + diag(s_a) + M_a) f``.
@@ -23,6 +29,7 @@ import numpy as np
 import optimistix as optx
 
 from ..datasets import masked
+from ..models.imu import IMURig
 from ..record import BenchRecord
 from ._linalg import scaled_lstsq, value_and_jacfwd
 from .least_squares import stationary_converged
@@ -107,6 +114,106 @@ def segment_means(record: BenchRecord, segments, channels=("ax", "ay", "az")):
     return mean, se
 
 
+# -- which terms a calibration's observations determine --------------------------------------
+RANK_TOL = 1e-3  # relative singular value (prior-scaled Jacobian) below which a direction is null
+LEAK_TOL = 0.1  # a term is determined when at most this much of it lies in the null space
+
+
+@dataclasses.dataclass(frozen=True)
+class Determination:
+    """Which of a calibration's ``names`` its observations determine.
+
+    The Jacobian is taken in units of each term's prior scale (the IMU rig's ``Param.scale``: 10
+    mg, 1000 ppm, 1 mrad), so that a bias and a scale factor compare as the errors a catalogue
+    instrument has. Directions with relative singular value below :data:`RANK_TOL` are null. The
+    ``leak`` of term k is ``|P_null e_k|``: moving the undetermined terms along the null space by
+    one prior scale in all (unit norm in scaled units) moves term k's estimate by at most
+    ``leak_k`` of its own scale. Term k is determined when ``leak_k <`` :data:`LEAK_TOL`; an
+    x-up/x-down pair determines ``bax`` and ``sax`` so, with a leak of a few percent from the
+    cross-axis biases' share of ``|f|`` (the classic up/down formula sets them to zero).
+    """
+
+    names: tuple
+    rank: int
+    condition: float  # largest over smallest singular value of the scaled Jacobian (inf: rank < p)
+    terms: tuple  # the determined names
+    n_obs: int
+    leak: tuple  # |P_null e_k| per name (0 when all are determined)
+    null: np.ndarray = dataclasses.field(default=None, compare=False, repr=False)  # scaled rows
+
+    def shift(self, name) -> float:
+        """The most the undetermined terms, at one prior scale in all, move ``name``'s estimate
+        (SI units; 0 when every term is determined)."""
+        return float(self.leak[self.names.index(name)] * _scales([name])[0])
+
+    @property
+    def complete(self) -> bool:
+        return len(self.terms) == len(self.names)
+
+    @property
+    def dof(self) -> int:
+        return self.n_obs - self.rank
+
+    def message(self, what: str, advice: str) -> str:
+        if self.complete:
+            return (f"{what}, rank {self.rank}, {self.dof} residual dof"
+                    + ("" if self.dof > 0 else ": no residual to give standard errors"))
+        rest = [n for n in self.names if n not in self.terms]
+        return (f"{what} give rank {self.rank} of {len(self.names)}: they determine "
+                + (", ".join(self.terms) if self.terms else "none of the terms")
+                + f"; not determined: {', '.join(rest)}; {advice}")
+
+
+def term_determination(jac, names, *, n_obs=None, upstream=None) -> Determination:
+    """:class:`Determination` of the terms ``names`` (IMU rig names) from the Jacobian ``jac``
+    (rows: observations, SI columns); ``n_obs`` independent observations (default: its rows).
+
+    ``upstream = (jac_up, det_up)``: the observations also depend on the terms of an earlier
+    calibration, held at its estimate (the gyro's turns on the accelerometer's up vectors):
+    ``jac_up`` their Jacobian with respect to its terms, ``det_up`` its :class:`Determination`.
+    Its undetermined terms move this fit's estimates by ``J^+ J_up N_up``; a term's leak is the
+    root sum square of its own null-space share and that (an x-bias no pose determines tilts the
+    up vectors, and a gyro scale factor through a half turn reads it as a rotation)."""
+    scale = _scales(names)
+    js = np.asarray(jac, float) * scale[None, :]
+    p = js.shape[1]
+    u, s, vt = np.linalg.svd(js, full_matrices=True)
+    rank = int(np.sum(s > RANK_TOL * s[0])) if s.size and s[0] > 0 else 0
+    leak = np.linalg.norm(vt[rank:], axis=0)
+    if upstream is not None and upstream[1].null.shape[0]:
+        jac_up, det_up = upstream
+        moved = (np.asarray(jac_up, float) * _scales(det_up.names)[None, :]) @ det_up.null.T
+        sens = (vt[:rank].T / s[:rank]) @ (u[:, :rank].T @ moved)  # J^+ J_up N_up, scaled
+        leak = np.sqrt(leak**2 + np.sum(sens**2, axis=1))
+    cond = float(s[0] / s[p - 1]) if rank == p else float("inf")
+    return Determination(tuple(names), rank, cond,
+                         tuple(n for n, lk in zip(names, leak) if lk < LEAK_TOL),
+                         js.shape[0] if n_obs is None else n_obs,
+                         tuple(float(x) for x in leak), vt[rank:])
+
+
+def _stderr(jac, r, det: Determination):
+    """Standard errors of the determined terms (NaN for the others, and for all without residual
+    degrees of freedom): ``s^2 (J^T J)^+`` on the determined rank, the variance of an estimable
+    term under any solution; computed in the prior-scaled coordinates."""
+    se = np.full(len(det.names), np.nan)
+    if det.dof <= 0 or not det.terms:
+        return se
+    s2 = float(np.sum(np.asarray(r) ** 2) / det.dof)
+    scale = _scales(det.names)
+    _, s, vt = np.linalg.svd(np.asarray(jac, float) * scale[None, :], full_matrices=False)
+    v = vt[: det.rank] / s[: det.rank, None]
+    d = scale * np.sqrt(s2 * np.sum(v**2, axis=0))
+    keep = np.isin(det.names, det.terms)
+    se[keep] = d[keep]
+    return se
+
+
+def _scales(names) -> np.ndarray:
+    space = IMURig().param_space
+    return np.array([space[n].scale for n in names], float)
+
+
 # -- accelerometer: |f| = g ------------------------------------------------------------------
 ACCEL_NAMES = ("bax", "bay", "baz", "sax", "say", "saz", "maxy", "maxz", "mayz")
 ACCEL_MAX_STEPS = 200  # Levenberg-Marquardt budget of the |f| = g fit
@@ -128,13 +235,33 @@ def _accel_resid(theta, args):
 
 
 @jax.jit
-def _accel_fit(th0, means, w, gravity):
+def _accel_fit(th0, means, w, gravity, free):
     """LM fit, Jacobian and residual at the solution: compiled once per number of poses (the
     leave-one-position-out loop and repeated units reuse it)."""
-    args = (means, w, gravity)
-    sol = optx.least_squares(_accel_resid, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12), th0,
-                             args, max_steps=ACCEL_MAX_STEPS, throw=False)
-    return _at_solution(_accel_resid, sol, args)
+    return _lm_fit(_accel_resid, th0, (means, w, gravity), free, 1e-12, ACCEL_MAX_STEPS)
+
+
+def _lm_fit(resid, th0, args, free, rtol, max_steps):
+    """Levenberg-Marquardt (optimistix) over the terms ``free`` marks (1.0), the others held at
+    zero: ``(value, Jacobian in every term, residual, converged)`` at the solution; converged by
+    the free terms' step left."""
+    def held(x, a):
+        return resid(x * free, a)
+
+    sol = optx.least_squares(held, optx.LevenbergMarquardt(rtol=rtol, atol=1e-12), th0 * free,
+                             args, max_steps=max_steps, throw=False)
+    value, _, r, converged = _at_solution(held, sol, args)
+    return value * free, jax.jacfwd(lambda x: resid(x, args))(value * free), r, converged
+
+
+def _free_terms(jac0, names) -> np.ndarray:
+    """1.0 for the terms the observations determine by themselves (the Jacobian ``jac0`` at the
+    start, :func:`term_determination`), 0.0 for those in its null space: a fit holds these at
+    zero instead of wandering along the null space (a gyro misalignment of radians)."""
+    return np.array([lk < LEAK_TOL for lk in term_determination(jac0, names).leak], float)
+
+
+_accel_jac = jax.jit(jax.jacfwd(_accel_resid))
 
 
 def _at_solution(resid, sol, args):
@@ -160,6 +287,7 @@ class AccelCalibration:
     message: str
     gravity: float
     converged: bool = True  # the Levenberg-Marquardt fit ended at its solution
+    determination: Determination | None = None  # which terms the poses determine
 
     def correct(self, f_meas):
         th = jnp.asarray([self.params[n] for n in ACCEL_NAMES])
@@ -169,34 +297,26 @@ class AccelCalibration:
 def calibrate_accelerometer(means, gravity: float, *, weights=None) -> AccelCalibration:
     """Fit ``b_a``, ``s_a`` and the upper-triangular misalignments ``ma_xy ma_xz ma_yz`` so that
     every static mean has ``|f| = g`` (Levenberg-Marquardt, optimistix). The rotational gauge (3
-    terms) is unobservable without a reference attitude and fixed to zero. With fewer than 9 poses,
-    or poses that leave the Jacobian rank-deficient (e.g. all poses about one axis), the result
-    says so (``determined=False``) rather than report arbitrary numbers as calibrated."""
+    terms) is unobservable without a reference attitude and fixed to zero. Poses that do not
+    determine all nine terms (fewer than 9, or all about one axis) still determine some: an
+    x-up/x-down pair gives ``bax`` and ``sax``, the six axis-up poses the biases and scale
+    factors. The result names the determined terms (``determination``, :func:`term_determination`)
+    and gives standard errors for those only; ``determined`` is True when all nine are."""
     means = np.asarray(means, float)
     n = len(means)
     w = np.ones(n) if weights is None else np.asarray(weights, float)
     th0 = np.zeros(9)
     th0[:3] = means.mean(0) * (n >= 6)
-    th, jac, r, converged = (np.asarray(x) for x in _accel_fit(th0, means, w, float(gravity)))
-    sv = np.linalg.svd(jac, compute_uv=False)
-    rank = int(np.sum(sv > 1e-9 * sv[0]))
-    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
-    dof = n - 9
-    determined = rank == 9 and dof > 0 and cond < 1e8
-    if determined:
-        s2 = float(r @ r / dof)
-        cov = s2 * np.linalg.pinv(jac.T @ jac)
-        se = np.sqrt(np.diag(cov))
-        msg = f"{n} poses, rank 9, {dof} residual dof"
-    else:
-        se = np.full(9, np.nan)
-        msg = (f"{n} poses give rank {rank} of 9 (condition {cond:.3g}): the 9-term accelerometer "
-               "model is not determined by these poses; record more orientations (>= 12, spread "
-               "over the sphere)")
+    free = _free_terms(_accel_jac(th0, (means, w, float(gravity))), ACCEL_NAMES)
+    th, jac, r, converged = (np.asarray(x) for x in _accel_fit(th0, means, w, float(gravity),
+                                                                free))
+    det = term_determination(jac, ACCEL_NAMES)
+    se = _stderr(jac, r, det)
+    msg = det.message(f"{n} poses", "record more orientations (>= 12, spread over the sphere)")
     msg += _not_converged(converged, ACCEL_MAX_STEPS)
     return AccelCalibration(dict(zip(ACCEL_NAMES, np.asarray(th).tolist())),
-                            dict(zip(ACCEL_NAMES, se.tolist())), r / np.sqrt(w), rank, cond,
-                            determined, msg, gravity, bool(converged))
+                            dict(zip(ACCEL_NAMES, se.tolist())), r / np.sqrt(w), det.rank,
+                            det.condition, det.complete, msg, gravity, bool(converged), det)
 
 
 def _not_converged(converged, max_steps) -> str:
@@ -229,6 +349,12 @@ def _propagate(u0, w_true, dt):
     return u
 
 
+def _up_vectors(theta_a, fmeans):
+    """Unit up vectors (body frame) of static means under the accelerometer terms ``theta_a``."""
+    fc = _true_force(theta_a, fmeans)
+    return fc / jnp.linalg.norm(fc, axis=1, keepdims=True)
+
+
 def _gyro_resid(theta, args):
     u0, u1, wt, live, dt = args
     wtrue = jnp.einsum("ij,tlj->tli", jnp.linalg.inv(_gyro_matrix(theta)), wt) * live
@@ -236,11 +362,21 @@ def _gyro_resid(theta, args):
 
 
 @jax.jit
-def _gyro_fit(u0, u1, wt, live, dt):
-    args = (u0, u1, wt, live, dt)
-    sol = optx.least_squares(_gyro_resid, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12),
-                             jnp.zeros(9), args, max_steps=GYRO_MAX_STEPS, throw=False)
-    return _at_solution(_gyro_resid, sol, args)
+def _gyro_fit(u0, u1, wt, live, dt, free):
+    return _lm_fit(_gyro_resid, jnp.zeros(9), (u0, u1, wt, live, dt), free, 1e-10,
+                   GYRO_MAX_STEPS)
+
+
+_gyro_jac = jax.jit(jax.jacfwd(_gyro_resid))
+
+
+@jax.jit
+@jax.jacfwd
+def _gyro_upstream_jac(theta_a, theta, fmeans, before, after, wt, live, dt):
+    """The turns' residuals' Jacobian with respect to the accelerometer terms (through the up
+    vectors of the poses before and after each turn)."""
+    u = _up_vectors(theta_a, fmeans)
+    return _gyro_resid(theta, (u[before], u[after], wt, live, dt))
 
 
 @dataclasses.dataclass
@@ -253,6 +389,7 @@ class GyroCalibration:
     determined: bool
     message: str
     converged: bool = True  # the Levenberg-Marquardt fit ended at its solution
+    determination: Determination | None = None  # which terms the turns determine
 
 
 def calibrate_gyro(record: BenchRecord, segments, accel: AccelCalibration, *, bias=None,
@@ -262,22 +399,31 @@ def calibrate_gyro(record: BenchRecord, segments, accel: AccelCalibration, *, bi
     The gyro bias is the first static interval's mean (or ``bias``); the rate inside each turn
     is ``A_g^-1 (w_meas - b_g)``; the up vector of the pose before the turn (accelerometer,
     calibrated) is propagated through the turn and compared with the pose after it. Turns longer
-    than ``max_turn_s`` (the stand was put aside) are skipped.
+    than ``max_turn_s`` (the stand was put aside), and intervals with a time gap or masked samples
+    (the rotation is not in the record), are skipped, and the message says so. The determined
+    terms and their standard errors as in :func:`calibrate_accelerometer`.
     """
     t = np.asarray(record.t, float)
     w = np.stack([np.asarray(record.channel(c)) for c in ("wx", "wy", "wz")], 1)
     f = np.stack([np.asarray(record.channel(c)) for c in ("ax", "ay", "az")], 1)
     dt = float(np.median(np.diff(t)))
     b = np.asarray(bias if bias is not None else w[segments[0].i0:segments[0].i1].mean(0))
-    ups = []
-    for s in segments:
-        fc = accel.correct(f[s.i0:s.i1].mean(0, keepdims=True))[0]
-        ups.append(fc / np.linalg.norm(fc))
-    turns = [(k, segments[k].i1, segments[k + 1].i0) for k in range(len(segments) - 1)
-             if (segments[k + 1].i0 - segments[k].i1) * dt <= max_turn_s]
+    fmeans = jnp.asarray(np.stack([f[s.i0:s.i1].mean(0) for s in segments]))
+    th_a = jnp.asarray([accel.params[n] for n in ACCEL_NAMES])
+    ups = np.asarray(_up_vectors(th_a, fmeans))
+    gap = np.zeros(len(t), bool)
+    gap[1:] = np.diff(t) > 1.5 * dt
+    unrecorded = gap | masked(record)  # a step across a time gap, or a masked sample
+    near = [(k, segments[k].i1, segments[k + 1].i0) for k in range(len(segments) - 1)
+            if (segments[k + 1].i0 - segments[k].i1) * dt <= max_turn_s]
+    turns = [(k, i0, i1) for k, i0, i1 in near if not unrecorded[i0:i1 + 1].any()]
+    skipped = len(near) - len(turns)
+    why = (f"{skipped} interval(s) between poses skipped: a time gap or masked samples there, so "
+           "the record does not hold the rotation" if skipped else "")
     if not turns:
-        raise ValueError("no turns between static poses shorter than max_turn_s; gyro "
-                         "calibration by gravity propagation needs the motions between poses")
+        raise ValueError("no turns between static poses shorter than max_turn_s with every "
+                         "sample recorded; gyro calibration by gravity propagation needs the "
+                         "motions between poses" + (f" ({why})" if why else ""))
     # pad all turns to one length (zero rate after the end) so one scan serves every turn
     lmax = max(i1 - i0 for _, i0, i1 in turns)
     wt = np.zeros((len(turns), lmax, 3))
@@ -288,26 +434,25 @@ def calibrate_gyro(record: BenchRecord, segments, accel: AccelCalibration, *, bi
         live[j, : i1 - i0] = 1.0
     u0 = np.stack([ups[k] for k, _, _ in turns])
     u1 = np.stack([ups[k + 1] for k, _, _ in turns])
-    th, jac, r, converged = (np.asarray(x) for x in _gyro_fit(u0, u1, wt, live, dt))
+    free = _free_terms(_gyro_jac(jnp.zeros(9), (u0, u1, wt, live, dt)), GYRO_NAMES)
+    th, jac, r, converged = (np.asarray(x) for x in _gyro_fit(u0, u1, wt, live, dt, free))
     r = r.reshape(-1, 3)
     pred = u1 + r
     ang = np.degrees(np.arccos(np.clip(np.sum(np.asarray(pred) * np.asarray(u1), 1)
                                        / np.linalg.norm(pred, axis=1), -1, 1)))
-    sv = np.linalg.svd(jac, compute_uv=False)
-    rank = int(np.sum(sv > 1e-9 * sv[0]))
-    dof = 2 * len(turns) - 9  # each turn constrains two directions
-    determined = rank == 9 and dof > 0
-    if determined:
-        s2 = float(np.sum(r ** 2) / dof)
-        se = np.sqrt(np.diag(s2 * np.linalg.pinv(jac.T @ jac)))
-        msg = f"{len(turns)} turns, rank 9, {dof} residual dof"
-    else:
-        se = np.full(9, np.nan)
-        msg = (f"{len(turns)} turns give rank {rank} of 9: turn about all three axes (>= 5 turns)")
-    msg += _not_converged(converged, GYRO_MAX_STEPS)
+    upstream = None
+    if accel.determination is not None and not accel.determination.complete:
+        before = np.array([k for k, _, _ in turns])
+        jac_up = _gyro_upstream_jac(th_a, th, fmeans, before, before + 1, wt, live, dt)
+        upstream = (np.asarray(jac_up), accel.determination)
+    det = term_determination(jac, GYRO_NAMES, n_obs=2 * len(turns),  # two directions per turn
+                             upstream=upstream)
+    se = _stderr(jac, r, det)
+    msg = det.message(f"{len(turns)} turns", "turn about all three axes (>= 5 turns)")
+    msg += (f"; {why}" if why else "") + _not_converged(converged, GYRO_MAX_STEPS)
     return GyroCalibration(dict(zip(GYRO_NAMES, np.asarray(th).tolist())),
-                           dict(zip(GYRO_NAMES, se.tolist())), b, ang, len(turns), determined,
-                           msg, bool(converged))
+                           dict(zip(GYRO_NAMES, se.tolist())), b, ang, len(turns), det.complete,
+                           msg, bool(converged), det)
 
 
 # -- held-out checks --------------------------------------------------------------------------
