@@ -1044,6 +1044,42 @@ def test_ambiguous_verdict_reports_each_members_heldout_gap_and_whether_it_separ
     assert "heldout_gap_after_by_effect" not in v and "heldout_separates" not in v
 
 
+def test_slow_effect_against_a_random_walk_says_which_way_the_heldout_part_leans():
+    """A drift named beside a random walk: a drift's refit on the train part predicts the
+    held-out part when the drift is real; fitted to one realisation of a random walk it fits the
+    train part only. ``_with_noise`` gives the drift's held-out gap and ``heldout_leans``
+    (stochastic / deterministic) and keeps the verdict's kind: ambiguous when the walk is a
+    rival (significant on the nominal residual only); unexplained, with the walk named in the
+    reason, when the walk is significant in the noise model (a long MEMS static)."""
+    from gyrojax.diagnose._diagnose import _with_noise
+
+    def refit(after, closure):
+        return [{"effects": ["time_drift"], "heldout_gap_before": 7.0, "heldout_gap_after": after,
+                 "closure": closure}]
+
+    rival = [{"name": "rate_random_walk", "significant": False, "p_nominal": 1e-4,
+              "statistic": 3.0}]
+    attributed = {"kind": "attributed", "effects": ["time_drift"], "heldout_gap_before": 7.0}
+    v = _with_noise(dict(attributed), rival, 0.05, refit(4.1, False))  # removes 41 % only
+    assert v["kind"] == "ambiguous" and v["effects"] == ["time_drift", "rate_random_walk"]
+    assert v["heldout_gap_after_by_effect"] == {"time_drift": 4.1}
+    assert v["heldout_leans"] == "stochastic"
+    v = _with_noise(dict(attributed), rival, 0.05, refit(0.05, True))
+    assert v["kind"] == "ambiguous" and v["heldout_leans"] == "deterministic"
+    v = _with_noise(dict(attributed), rival, 0.05, refit(None, None))  # no held-out part
+    assert v["kind"] == "ambiguous" and "heldout_leans" not in v
+    assert "heldout_gap_after_by_effect" not in v
+    walk = [dict(rival[0], significant=True)]
+    unexplained = {"kind": "unexplained", "effects": ["time_drift"], "reason": "cells left"}
+    v = _with_noise(dict(unexplained), walk, 0.05, refit(4.1, False))
+    assert v["kind"] == "unexplained" and v["effects"] == ["time_drift"]
+    assert v["noise_effects"] == ["rate_random_walk"] and v["heldout_leans"] == "stochastic"
+    assert v["reason"] == "cells left; the noise model lacks rate_random_walk (significant)"
+    # a significant walk beside an attributed drift is two findings, not a rivalry
+    v = _with_noise(dict(attributed), walk, 0.05, refit(0.05, True))
+    assert v["kind"] == "attributed" and "heldout_leans" not in v
+
+
 # -- bad input -------------------------------------------------------------------------------
 def test_bad_input_errors():
     rec = _record(seed=2)

@@ -494,7 +494,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
 
     verdict = _verdict(detected, rows, amb, refits, second, top, level, cells, g_nom, band,
                        _shift_hidden(rows, cells, jn_all, s_full))
-    verdict = _with_noise(verdict, noise_rows, alpha)
+    verdict = _with_noise(verdict, noise_rows, alpha, refits)
     if refit_all:
         t0 = time.perf_counter()
         done = {tuple(rf["effects"]) for rf in refits}
@@ -645,12 +645,21 @@ def _calibrated_level(designs, mdesign, weights, alpha, n_draws, draw, *, seed, 
     return float(minq[k - 1]), minq
 
 
-def _with_noise(verdict, noise_rows, alpha):
+def _with_noise(verdict, noise_rows, alpha, refits=()):
     """Noise-model effects join the verdict: listed under ``noise_effects`` (strongest first);
     when the mean model has no gap they are the attribution. A slow mean effect (drift,
     warm-up) named while a random walk or bias instability is significant on the *nominal*
     residual (and absorbed by the drift columns on the full one) cannot be told from it on this
-    record: the verdict becomes ambiguous between them."""
+    record: the verdict becomes ambiguous between them.
+
+    There the held-out part still says which way it leans: a drift's refit on the train part
+    predicts the held-out part when the drift is real, and fits the train part only when the
+    slow residual is one realisation of a random walk (:func:`_does_not_transfer`). The verdict
+    carries the slow members' held-out gaps (``heldout_gap_after_by_effect``) and
+    ``heldout_leans`` ("deterministic" / "stochastic") and stays ambiguous: the held-out gap
+    checks an attribution, it does not make one. The same is said of an ``unexplained`` verdict
+    on a slow effect while a random walk is significant in the noise model (a long MEMS static:
+    the drift's refit leaves the gap, the walk is the cause); its kind and effects stay."""
     if not noise_rows:
         return verdict
     sig = sorted([x for x in noise_rows if x.get("significant")], key=lambda x: -x["statistic"])
@@ -668,7 +677,29 @@ def _with_noise(verdict, noise_rows, alpha):
             reason=f"{', '.join(slow)} and {', '.join(rival)} both explain the slow residual of "
                    "the nominal model; one record cannot tell a deterministic drift from a "
                    "random walk (repeat the run: a drift repeats, a random walk does not)")
+        verdict.update(_heldout_leans(slow, refits))
+    walks = [x["name"] for x in sig if x["name"] in STOCHASTIC_SLOW]
+    if slow and walks and verdict["kind"] == "unexplained":
+        # the noise model's random walk is significant beside a slow mean effect that does not
+        # explain the gap: say which way the held-out part leans (kind and effects unchanged)
+        verdict.update(_heldout_leans(slow, refits))
+        verdict["reason"] += f"; the noise model lacks {', '.join(walks)} (significant)"
     return verdict
+
+
+def _heldout_leans(slow, refits) -> dict:
+    """The held-out evidence between the slow mean effects ``slow`` and a random walk: their
+    refits' held-out gaps and which way they lean (see :func:`_with_noise`); {} without a
+    held-out part or a refit of each."""
+    single = {rf["effects"][0]: rf for rf in refits if len(rf["effects"]) == 1}
+    if not all(e in single and single[e].get("closure") is not None for e in slow):
+        return {}
+    fail = [e for e in slow if _does_not_transfer(single[e])]
+    lean = "stochastic" if len(fail) == len(slow) else "deterministic" if not fail else None
+    out = {"heldout_gap_after_by_effect": {e: single[e]["heldout_gap_after"] for e in slow}}
+    if lean is not None:
+        out["heldout_leans"] = lean
+    return out
 
 
 def _train_slice(sig, m):

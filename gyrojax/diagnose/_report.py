@@ -145,10 +145,24 @@ class GapReport:
         band = self.gap.get("heldout_null_band") or [None, None]
         if g0 is not None and math.isfinite(g0):
             each = v.get("heldout_gap_after_by_effect")
+            no_refit = [e for e in (v.get("effects") or []) if each and e not in each]
             after = (f"after {g1:.3g}" if g1 is not None else "after -") if not each else (
-                "after refitting each: " + ", ".join(f"{k} {x:.3g}" for k, x in each.items()))
+                ("after refitting each: " if len(each) > 1 else "after refitting ")
+                + ", ".join(f"{k} {x:.3g}" for k, x in each.items())
+                + (f"; {', '.join(no_refit)}: noise-model terms, no refit" if no_refit else ""))
             lines.append(f"Held-out gap G = mean(e^2) - 1: before {g0:.3g}, {after} "
                          f"(null band <= {band[1]:.3g})")
+            lean = v.get("heldout_leans")
+            if lean:
+                slow = ", ".join(each)
+                lines.append(
+                    f"The held-out part leans to the random walk: the refit of {slow} fits the "
+                    "train part only, as a drift fitted to one realisation of a random walk "
+                    "does (repeat the run to decide: a drift repeats, a random walk does not)"
+                    if lean == "stochastic" else
+                    f"The held-out part leans to the drift: the refit of {slow} removes most of "
+                    "the held-out gap, which a random walk's realisation would not repeat "
+                    "(repeat the run to decide)")
             sep = v.get("heldout_separates")
             if sep:
                 lines.append(f"The held-out part tells them apart: refitted alone, "
