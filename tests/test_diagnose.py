@@ -1039,6 +1039,11 @@ def test_ambiguous_verdict_reports_each_members_heldout_gap_and_whether_it_separ
     # both predict it (one closes the gap, one removes more than half): nothing separates them
     v = verdict([refit("misalignment", 0.50, 0.05, True), refit("scale_factor", 0.52, 0.40, False)])
     assert "heldout_separates" not in v and v["heldout_gap_after_by_effect"]["scale_factor"] == 0.40
+    # a held-out gap inside the null band: nothing for a refit to predict, nothing separates
+    v = _verdict(True, rows, ambiguity_set(rows), [refit("misalignment", 0.50, 0.5, False),
+                 refit("scale_factor", 0.52, 0.01, True)], None, rows[0], 0.05, [], 0.05,
+                 (0.0, 0.08))
+    assert "heldout_separates" not in v and v["heldout_gap_after_by_effect"]["misalignment"] == 0.5
     # no held-out part: nothing to report per member
     v = verdict([refit("misalignment", 0.50, None, None), refit("scale_factor", 0.52, None, None)])
     assert "heldout_gap_after_by_effect" not in v and "heldout_separates" not in v
@@ -1059,7 +1064,8 @@ def test_slow_effect_against_a_random_walk_says_which_way_the_heldout_part_leans
 
     rival = [{"name": "rate_random_walk", "significant": False, "p_nominal": 1e-4,
               "statistic": 3.0}]
-    attributed = {"kind": "attributed", "effects": ["time_drift"], "heldout_gap_before": 7.0}
+    band = {"heldout_gap_before": 7.0, "heldout_null_band": [0.0, 0.07]}
+    attributed = {"kind": "attributed", "effects": ["time_drift"], **band}
     v = _with_noise(dict(attributed), rival, 0.05, refit(4.1, False))  # removes 41 % only
     assert v["kind"] == "ambiguous" and v["effects"] == ["time_drift", "rate_random_walk"]
     assert v["heldout_gap_after_by_effect"] == {"time_drift": 4.1}
@@ -1070,11 +1076,15 @@ def test_slow_effect_against_a_random_walk_says_which_way_the_heldout_part_leans
     assert v["kind"] == "ambiguous" and "heldout_leans" not in v
     assert "heldout_gap_after_by_effect" not in v
     walk = [dict(rival[0], significant=True)]
-    unexplained = {"kind": "unexplained", "effects": ["time_drift"], "reason": "cells left"}
+    unexplained = {"kind": "unexplained", "effects": ["time_drift"], "reason": "cells left", **band}
     v = _with_noise(dict(unexplained), walk, 0.05, refit(4.1, False))
     assert v["kind"] == "unexplained" and v["effects"] == ["time_drift"]
     assert v["noise_effects"] == ["rate_random_walk"] and v["heldout_leans"] == "stochastic"
     assert v["reason"] == "cells left; the noise model lacks rate_random_walk (significant)"
+    # no held-out gap to predict (dataset:adis_5: 0.029 within the band <= 0.069): no lean
+    quiet = dict(unexplained, heldout_gap_before=0.03)
+    v = _with_noise(quiet, walk, 0.05, refit(0.06, True))
+    assert "heldout_leans" not in v and v["heldout_gap_after_by_effect"] == {"time_drift": 0.06}
     # a significant walk beside an attributed drift is two findings, not a rivalry
     v = _with_noise(dict(attributed), walk, 0.05, refit(0.05, True))
     assert v["kind"] == "attributed" and "heldout_leans" not in v

@@ -677,29 +677,36 @@ def _with_noise(verdict, noise_rows, alpha, refits=()):
             reason=f"{', '.join(slow)} and {', '.join(rival)} both explain the slow residual of "
                    "the nominal model; one record cannot tell a deterministic drift from a "
                    "random walk (repeat the run: a drift repeats, a random walk does not)")
-        verdict.update(_heldout_leans(slow, refits))
+        verdict.update(_heldout_leans(slow, refits, verdict))
     walks = [x["name"] for x in sig if x["name"] in STOCHASTIC_SLOW]
     if slow and walks and verdict["kind"] == "unexplained":
         # the noise model's random walk is significant beside a slow mean effect that does not
         # explain the gap: say which way the held-out part leans (kind and effects unchanged)
-        verdict.update(_heldout_leans(slow, refits))
+        verdict.update(_heldout_leans(slow, refits, verdict))
         verdict["reason"] += f"; the noise model lacks {', '.join(walks)} (significant)"
     return verdict
 
 
-def _heldout_leans(slow, refits) -> dict:
+def _heldout_leans(slow, refits, verdict) -> dict:
     """The held-out evidence between the slow mean effects ``slow`` and a random walk: their
     refits' held-out gaps and which way they lean (see :func:`_with_noise`); {} without a
-    held-out part or a refit of each."""
+    held-out part or a refit of each. A lean needs a held-out gap outside the nominal model's
+    null band (:func:`_heldout_has_gap`): with none there is nothing for a refit to predict."""
     single = {rf["effects"][0]: rf for rf in refits if len(rf["effects"]) == 1}
     if not all(e in single and single[e].get("closure") is not None for e in slow):
         return {}
+    out = {"heldout_gap_after_by_effect": {e: single[e]["heldout_gap_after"] for e in slow}}
     fail = [e for e in slow if _does_not_transfer(single[e])]
     lean = "stochastic" if len(fail) == len(slow) else "deterministic" if not fail else None
-    out = {"heldout_gap_after_by_effect": {e: single[e]["heldout_gap_after"] for e in slow}}
-    if lean is not None:
+    if lean is not None and _heldout_has_gap(verdict):
         out["heldout_leans"] = lean
     return out
+
+
+def _heldout_has_gap(verdict) -> bool:
+    """The held-out gap before any refit lies above the nominal model's null band."""
+    g0, band = verdict.get("heldout_gap_before"), verdict.get("heldout_null_band")
+    return bool(g0 is not None and band is not None and np.isfinite(g0) and g0 > band[1])
 
 
 def _train_slice(sig, m):
@@ -734,14 +741,15 @@ def _does_not_transfer(refit) -> bool:
     return bool(g1 > 0.5 * g0)
 
 
-def _heldout_by_member(names, single) -> dict:
+def _heldout_by_member(names, single, base) -> dict:
     """For an ambiguous verdict: each member's held-out gap after its own refit
     (``heldout_gap_after_by_effect``) and, where the held-out part tells the members apart (the
     refits of some predict it, those of others fit the train part only: :func:`_does_not_transfer`),
     which do and which do not (``heldout_separates``). The train design cannot separate them,
     which is why the verdict is ambiguous; a held-out part on another design can (spec §4.2,
     Stage 4: confounded alternatives separate on the design-shift split). The verdict stays
-    ambiguous: the held-out gap is the check of an attribution, not its input."""
+    ambiguous: the held-out gap is the check of an attribution, not its input. ``base``: the
+    verdict's held-out gap and null band; separation needs a gap above the band."""
     refit = {rf["effects"][0]: rf for rf in single if rf["effects"][0] in names}
     if not any(rf.get("closure") is not None for rf in refit.values()):  # no held-out part
         return {}
@@ -749,7 +757,7 @@ def _heldout_by_member(names, single) -> dict:
                                            for n in names if n in refit}}
     fail = [n for n in names if n in refit and _does_not_transfer(refit[n])]
     keep = [n for n in names if n in refit and n not in fail]
-    if fail and keep:
+    if fail and keep and _heldout_has_gap(base):
         out["heldout_separates"] = {"transfer": keep, "do_not_transfer": fail}
     return out
 
@@ -989,7 +997,7 @@ def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band
                 "heldout_gap_after": best["heldout_gap_after"] if best else None, **base,
                 "posterior": {r.sig.name: r.posterior for r in amb},
                 "reason": "no single effect holds 90 % of the posterior; see design_advice",
-                **_heldout_by_member(names, single)}
+                **_heldout_by_member(names, single, base)}
     chosen = next((rf for rf in refits if rf["effects"] == [top.sig.name]), None)
     if second is not None:
         pair = next((rf for rf in refits if len(rf["effects"]) == 2), None)
