@@ -15,6 +15,9 @@ factors and misalignments are fitted so that every pose's specific force has the
 magnitude (``calibrate_accelerometer``), checked by leaving each pose out in turn; the gyros'
 scale factors and misalignments by propagating the calibrated up vector through the turns
 between poses (``calibrate_gyro``), where the record has the gyro channels and such turns.
+Fewer poses determine fewer terms (an x-up/x-down pair: bax and sax); the table gives those with
+how far the undetermined ones could move them, and names the rest. A still record (every static
+interval in one orientation) is refused with the pointer to ``gyrojax diagnose``.
 """
 
 from __future__ import annotations
