@@ -176,6 +176,7 @@ def test_few_poses_report_the_terms_they_determine(tmp_path, capsys):
     leak = dict(zip(gyr.determination.names, gyr.determination.leak))
     assert leak["sgy"] == pytest.approx(2 * (0.01 * units.G0) / units.G0 / np.pi / 1e-3, rel=0.03)
     assert leak["sgy"] > LEAK_TOL and "sgy" not in gyr.determination.terms
+    assert "sgy, mgzy through the accelerometer terms the poses leave open: bax" in gyr.message
     t = np.asarray(rec.t)
     keep = (t <= segs[0].t1 + 0.1) | (t >= segs[1].t0 - 0.1)  # the turn cut out: a time gap
     cut = BenchRecord(rec.t[keep], rec.y[keep], rec.channels, rec.attrs)

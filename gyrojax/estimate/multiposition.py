@@ -140,6 +140,8 @@ class Determination:
     n_obs: int
     leak: tuple  # |P_null e_k| per name (0 when all are determined)
     null: np.ndarray = dataclasses.field(default=None, compare=False, repr=False)  # scaled rows
+    upstream_open: tuple = ()  # (names only the upstream fit's open terms leave undetermined,
+    #                             those open terms): the gyro's, through the accelerometer's
 
     def shift(self, name) -> float:
         """The most the undetermined terms, at one prior scale in all, move ``name``'s estimate
@@ -159,9 +161,14 @@ class Determination:
             return (f"{what}, rank {self.rank}, {self.dof} residual dof"
                     + ("" if self.dof > 0 else ": no residual to give standard errors"))
         rest = [n for n in self.names if n not in self.terms]
-        return (f"{what} give rank {self.rank} of {len(self.names)}: they determine "
-                + (", ".join(self.terms) if self.terms else "none of the terms")
-                + f"; not determined: {', '.join(rest)}; {advice}")
+        via = ""
+        if self.upstream_open and self.upstream_open[0]:
+            mine, theirs = self.upstream_open
+            via = (f" ({', '.join(mine)} through the accelerometer terms the poses leave "
+                   f"open: {', '.join(theirs)})")
+        return (f"{what}, rank {self.rank} of {len(self.names)}; determined: "
+                + (", ".join(self.terms) if self.terms else "none")
+                + f"; not determined: {', '.join(rest)}{via}; {advice}")
 
 
 def term_determination(jac, names, *, n_obs=None, upstream=None) -> Determination:
@@ -179,17 +186,20 @@ def term_determination(jac, names, *, n_obs=None, upstream=None) -> Determinatio
     p = js.shape[1]
     u, s, vt = np.linalg.svd(js, full_matrices=True)
     rank = int(np.sum(s > RANK_TOL * s[0])) if s.size and s[0] > 0 else 0
-    leak = np.linalg.norm(vt[rank:], axis=0)
+    leak = own = np.linalg.norm(vt[rank:], axis=0)
+    via = ()
     if upstream is not None and upstream[1].null.shape[0]:
         jac_up, det_up = upstream
         moved = (np.asarray(jac_up, float) * _scales(det_up.names)[None, :]) @ det_up.null.T
         sens = (vt[:rank].T / s[:rank]) @ (u[:, :rank].T @ moved)  # J^+ J_up N_up, scaled
-        leak = np.sqrt(leak**2 + np.sum(sens**2, axis=1))
+        leak = np.sqrt(own**2 + np.sum(sens**2, axis=1))
+        via = (tuple(n for n, a, b in zip(names, own, leak) if a < LEAK_TOL <= b),
+               tuple(n for n in det_up.names if n not in det_up.terms))
     cond = float(s[0] / s[p - 1]) if rank == p else float("inf")
     return Determination(tuple(names), rank, cond,
                          tuple(n for n, lk in zip(names, leak) if lk < LEAK_TOL),
                          js.shape[0] if n_obs is None else n_obs,
-                         tuple(float(x) for x in leak), vt[rank:])
+                         tuple(float(x) for x in leak), vt[rank:], via)
 
 
 def _stderr(jac, r, det: Determination):
@@ -448,7 +458,8 @@ def calibrate_gyro(record: BenchRecord, segments, accel: AccelCalibration, *, bi
     det = term_determination(jac, GYRO_NAMES, n_obs=2 * len(turns),  # two directions per turn
                              upstream=upstream)
     se = _stderr(jac, r, det)
-    msg = det.message(f"{len(turns)} turns", "turn about all three axes (>= 5 turns)")
+    msg = det.message(f"{len(turns)} turn{'s' if len(turns) != 1 else ''}",
+                      "turn about all three axes (>= 5 turns)")
     msg += (f"; {why}" if why else "") + _not_converged(converged, GYRO_MAX_STEPS)
     return GyroCalibration(dict(zip(GYRO_NAMES, np.asarray(th).tolist())),
                            dict(zip(GYRO_NAMES, se.tolist())), b, ang, len(turns), det.complete,
