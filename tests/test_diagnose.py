@@ -1069,9 +1069,9 @@ def test_slow_effect_against_a_random_walk_says_which_way_the_heldout_part_leans
     v = _with_noise(dict(attributed), rival, 0.05, refit(4.1, False))  # removes 41 % only
     assert v["kind"] == "ambiguous" and v["effects"] == ["time_drift", "rate_random_walk"]
     assert v["heldout_gap_after_by_effect"] == {"time_drift": 4.1}
-    assert v["heldout_leans"] == "stochastic"
+    assert v["heldout_leans"] == {"lean": "stochastic", "effects": ["time_drift"]}
     v = _with_noise(dict(attributed), rival, 0.05, refit(0.05, True))
-    assert v["kind"] == "ambiguous" and v["heldout_leans"] == "deterministic"
+    assert v["kind"] == "ambiguous" and v["heldout_leans"]["lean"] == "deterministic"
     v = _with_noise(dict(attributed), rival, 0.05, refit(None, None))  # no held-out part
     assert v["kind"] == "ambiguous" and "heldout_leans" not in v
     assert "heldout_gap_after_by_effect" not in v
@@ -1079,12 +1079,18 @@ def test_slow_effect_against_a_random_walk_says_which_way_the_heldout_part_leans
     unexplained = {"kind": "unexplained", "effects": ["time_drift"], "reason": "cells left", **band}
     v = _with_noise(dict(unexplained), walk, 0.05, refit(4.1, False))
     assert v["kind"] == "unexplained" and v["effects"] == ["time_drift"]
-    assert v["noise_effects"] == ["rate_random_walk"] and v["heldout_leans"] == "stochastic"
+    assert v["noise_effects"] == ["rate_random_walk"] and v["heldout_leans"]["lean"] == "stochastic"
     assert v["reason"] == "cells left; the noise model lacks rate_random_walk (significant)"
     # no held-out gap to predict (dataset:adis_5: 0.029 within the band <= 0.069): no lean
     quiet = dict(unexplained, heldout_gap_before=0.03)
     v = _with_noise(quiet, walk, 0.05, refit(0.06, True))
     assert "heldout_leans" not in v and v["heldout_gap_after_by_effect"] == {"time_drift": 0.06}
+    # a mean-model ambiguity keeps its members' held-out gaps beside the drift's
+    amb = dict(attributed, kind="ambiguous", effects=["scale_factor", "time_drift"],
+               heldout_gap_after_by_effect={"scale_factor": 6.9, "time_drift": 4.1})
+    v = _with_noise(amb, rival, 0.05, refit(4.1, False))
+    assert v["heldout_gap_after_by_effect"] == {"scale_factor": 6.9, "time_drift": 4.1}
+    assert v["heldout_leans"]["effects"] == ["time_drift"]
     # a significant walk beside an attributed drift is two findings, not a rivalry
     v = _with_noise(dict(attributed), walk, 0.05, refit(0.05, True))
     assert v["kind"] == "attributed" and "heldout_leans" not in v

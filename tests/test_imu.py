@@ -217,7 +217,7 @@ def test_random_walk_static_leans_to_the_walk_on_the_heldout_part():
     rep = diagnose(rec, rig="imu", design_advice=False)
     v = rep.verdict
     assert v["noise_effects"][:1] == ["rate_random_walk"]
-    assert v["heldout_leans"] == "stochastic"
+    assert v["heldout_leans"]["lean"] == "stochastic"
     (slow, after), = v["heldout_gap_after_by_effect"].items()
     assert slow in ("time_drift", "warmup_transient") and after > 0.5 * v["heldout_gap_before"]
     assert "The held-out part leans to the random walk" in rep.markdown()

@@ -656,7 +656,8 @@ def _with_noise(verdict, noise_rows, alpha, refits=()):
     predicts the held-out part when the drift is real, and fits the train part only when the
     slow residual is one realisation of a random walk (:func:`_does_not_transfer`). The verdict
     carries the slow members' held-out gaps (``heldout_gap_after_by_effect``) and
-    ``heldout_leans`` ("deterministic" / "stochastic") and stays ambiguous: the held-out gap
+    ``heldout_leans`` (``lean``: "deterministic" / "stochastic"; ``effects``: the slow members
+    refitted) and stays ambiguous: the held-out gap
     checks an attribution, it does not make one. The same is said of an ``unexplained`` verdict
     on a slow effect while a random walk is significant in the noise model (a long MEMS static:
     the drift's refit leaves the gap, the walk is the cause); its kind and effects stay."""
@@ -695,11 +696,12 @@ def _heldout_leans(slow, refits, verdict) -> dict:
     single = {rf["effects"][0]: rf for rf in refits if len(rf["effects"]) == 1}
     if not all(e in single and single[e].get("closure") is not None for e in slow):
         return {}
-    out = {"heldout_gap_after_by_effect": {e: single[e]["heldout_gap_after"] for e in slow}}
+    out = {"heldout_gap_after_by_effect": (verdict.get("heldout_gap_after_by_effect") or {})
+           | {e: single[e]["heldout_gap_after"] for e in slow}}
     fail = [e for e in slow if _does_not_transfer(single[e])]
     lean = "stochastic" if len(fail) == len(slow) else "deterministic" if not fail else None
     if lean is not None and _heldout_has_gap(verdict):
-        out["heldout_leans"] = lean
+        out["heldout_leans"] = {"lean": lean, "effects": list(slow)}
     return out
 
 

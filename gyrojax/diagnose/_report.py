@@ -152,9 +152,9 @@ class GapReport:
                 + (f"; {', '.join(no_refit)}: noise-model terms, no refit" if no_refit else ""))
             lines.append(f"Held-out gap G = mean(e^2) - 1: before {g0:.3g}, {after} "
                          f"(null band <= {band[1]:.3g})")
-            lean = v.get("heldout_leans")
+            lean = (v.get("heldout_leans") or {}).get("lean")
             if lean:
-                slow = ", ".join(each)
+                slow = ", ".join(v["heldout_leans"]["effects"])
                 lines.append(
                     f"The held-out part leans to the random walk: the refit of {slow} fits the "
                     "train part only, as a drift fitted to one realisation of a random walk "
