@@ -149,7 +149,9 @@ class GapReport:
             after = (f"after {g1:.3g}" if g1 is not None else "after -") if not each else (
                 ("after refitting each: " if len(each) > 1 else "after refitting ")
                 + ", ".join(f"{k} {x:.3g}" for k, x in each.items())
-                + (f"; {', '.join(no_refit)}: noise-model terms, no refit" if no_refit else ""))
+                + (f"; {', '.join(no_refit)}: "
+                   + ("a noise-model term" if len(no_refit) == 1 else "noise-model terms")
+                   + ", no refit" if no_refit else ""))
             lines.append(f"Held-out gap G = mean(e^2) - 1: before {g0:.3g}, {after} "
                          f"(null band <= {band[1]:.3g})")
             lean = (v.get("heldout_leans") or {}).get("lean")
