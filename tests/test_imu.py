@@ -204,6 +204,7 @@ def _saved(rec, path):
     return str(path)
 
 
+@pytest.mark.slow
 def test_random_walk_static_leans_to_the_walk_on_the_heldout_part():
     """A 50-min still record at 20 Hz whose gyros carry a rate random walk (K = 60 deg/h/sqrt(h),
     a MEMS figure; no drift): the mean catalogue's best slow effect does not explain the gap,
