@@ -253,15 +253,20 @@ def _accel_fit(th0, means, w, gravity, free):
 
 def _lm_fit(resid, th0, args, free, rtol, max_steps):
     """Levenberg-Marquardt (optimistix) over the terms ``free`` marks (1.0), the others held at
-    zero: ``(value, Jacobian in every term, residual, converged)`` at the solution; converged by
-    the free terms' step left."""
+    zero: ``(value, Jacobian in every term, residual, converged)`` at the solution. Converged by
+    the rule of every Gauss-Newton fit in gyrojax (the solver's test passed, or the free terms'
+    step left is under ``STATIONARY_SE`` standard errors: ``stationary_converged``)."""
     def held(x, a):
         return resid(x * free, a)
 
     sol = optx.least_squares(held, optx.LevenbergMarquardt(rtol=rtol, atol=1e-12), th0 * free,
                              args, max_steps=max_steps, throw=False)
-    value, _, r, converged = _at_solution(held, sol, args)
-    return value * free, jax.jacfwd(lambda x: resid(x, args))(value * free), r, converged
+    value = sol.value * free
+    r, jac = value_and_jacfwd(lambda x: resid(x, args))(value)  # one pass: every term's columns
+    jac_free = jac * free  # the held fit's Jacobian
+    minus_step = scaled_lstsq(jac_free, r)[0]
+    sigma2 = jnp.sum(r**2) / max(r.shape[0] - jac.shape[1], 1)
+    return value, jac, r, stationary_converged(sol.result, jac_free, minus_step, sigma2)[0]
 
 
 def _free_terms(jac0, names) -> np.ndarray:
@@ -272,16 +277,6 @@ def _free_terms(jac0, names) -> np.ndarray:
 
 
 _accel_jac = jax.jit(jax.jacfwd(_accel_resid))
-
-
-def _at_solution(resid, sol, args):
-    """``(value, Jacobian, residual, converged)`` at an optimistix least-squares solution;
-    converged by the rule of every Gauss-Newton fit in gyrojax (the solver's test passed, or the
-    step left is under ``STATIONARY_SE`` standard errors: ``stationary_converged``)."""
-    r, jac = value_and_jacfwd(lambda x: resid(x, args))(sol.value)
-    minus_step = scaled_lstsq(jac, r)[0]
-    sigma2 = jnp.sum(r**2) / max(r.shape[0] - jac.shape[1], 1)
-    return sol.value, jac, r, stationary_converged(sol.result, jac, minus_step, sigma2)[0]
 
 
 @dataclasses.dataclass
