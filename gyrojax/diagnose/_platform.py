@@ -49,12 +49,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import units
-from ..estimate.platform import _position_design, kappa_from_accelerometers
+from ..estimate.platform import _position_design, cumulative_trapezoid, kappa_from_accelerometers
 from ..models.platform import (
     COEFF_NAMES,
     TERMS,
     PlatformRig,
-    drift_regressor,
+    drift_rates,
     kinematic_matrix,
     platform_matrix,
     schedule,
@@ -138,6 +138,28 @@ def _check_terms(nominal_terms) -> tuple:
     return tuple(t for t in TERMS if t in terms)
 
 
+_BASE = len(COEFF_NAMES)  # the base misalignment's first column in :func:`_dwell`'s columns
+
+
+def _misalignment_rate(a, cond, theta):
+    """(3, 3): the averaged model's angle rate at attitude ``a`` per rad of base rotation
+    ``delta``, at the drift coefficients ``theta``: the Earth rate and the gravity direction both
+    move (the rig's base, ``R(-delta) C_r^b``)."""
+
+    def rate(delta):
+        m = PlatformRig.mounting(dict(zip(("dchi_x", "dchi_y", "dchi_z"), delta)), cond)
+        n = specific_force_direction(a, m)
+        drift = drift_rates(n, jnp.ones_like(cond.kappa), cond.kappa, theta)
+        w_ie = cond.earth_rate_base(m)
+        return kinematic_matrix(a[1], a[2]) @ (-drift - platform_matrix(a).T @ w_ie)
+    return jax.jacfwd(rate)(jnp.zeros(3))
+
+
+def _centred_integral(g, ts):
+    cols = cumulative_trapezoid(g, ts)
+    return cols - cols.mean(0)
+
+
 @eqx.filter_jit
 def _dwell(ts, t0, angles, cond, vibrated, theta, taus):
     """One dwell: centred ``angles - h`` (n, 3), centred drift-coefficient columns (n, 3, 30) and
@@ -146,29 +168,24 @@ def _dwell(ts, t0, angles, cond, vibrated, theta, taus):
     y, big_f = _position_design(ts, angles, cond)
     t_abs = t0 + ts
 
-    def rate(delta, a):
-        """Angle rate of the averaged model with the base rotated by ``delta``: the Earth rate
-        and the gravity direction both move (the rig's base, ``R(-delta) C_r^b``)."""
-        m = PlatformRig.mounting(dict(zip(("dchi_x", "dchi_y", "dchi_z"), delta)), cond)
-        n = specific_force_direction(a, m)
-        drift = drift_regressor(n, jnp.ones_like(cond.kappa), cond.kappa) @ theta
-        w_ie = cond.earth_rate_base(m)
-        return kinematic_matrix(a[1], a[2]) @ (-drift - platform_matrix(a).T @ w_ie)
-
     def per_sample(a, t):
         mk = kinematic_matrix(a[1], a[2])
-        mis = jax.jacfwd(rate)(jnp.zeros(3), a)
+        mis = _misalignment_rate(a, cond, theta)
         drift = -mk  # unit drift on each platform axis
         tr = jnp.concatenate([drift * jnp.exp(-t / tau) for tau in taus], axis=1) \
             if len(taus) else jnp.zeros((3, 0))
         return jnp.concatenate([mis, tr, drift * t, drift * vibrated],
                                axis=1)
 
-    g = jax.vmap(per_sample)(angles, t_abs)
-    dt = jnp.diff(ts)
-    inc = 0.5 * (g[1:] + g[:-1]) * dt[:, None, None]
-    cols = jnp.concatenate([jnp.zeros_like(g[:1]), jnp.cumsum(inc, axis=0)])
-    return y, big_f, cols - cols.mean(0)
+    return y, big_f, _centred_integral(jax.vmap(per_sample)(angles, t_abs), ts)
+
+
+@eqx.filter_jit
+def _dwell_misalignment(ts, angles, cond, theta):
+    """The base misalignment's columns of :func:`_dwell` alone (n, 3, 3): the only ones that
+    depend on the drift coefficients ``theta``."""
+    g = jax.vmap(_misalignment_rate, in_axes=(0, None, None))(angles, cond, theta)
+    return _centred_integral(g, ts)
 
 
 def _blocks(n, k):
@@ -263,29 +280,41 @@ class PlatformProblem:
             self.heldout_extra = 1.0 / k_tr  # the offsets' variance on the held-out rows, in G
 
     # -- the linear design --------------------------------------------------------------------
-    def _design(self, angles, conds, amps, theta):
+    def _design(self, angles, conds, amps, theta, *, misalignment_only=False):
         """Block means over every dwell (amplitude-major, as recorded), each centred by the mean
         of its train blocks (= its angle offsets fitted on the train rows; a held-out run's
         dwells by their own mean): the train blocks of every dwell in time order, then the
-        held-out ones. Returns angles (N, 3), block times (N,) and the columns (N, 3, 30 + k)."""
+        held-out ones. Returns angles (N, 3), block times (N,) and the columns (N, 3, 30 + k);
+        ``misalignment_only``: the base misalignment's columns alone (N, 3, 3), the part that
+        depends on ``theta`` (columns ``_BASE:_BASE + 3`` of the full ones)."""
         ts = jnp.asarray(self.ts)
         groups = _blocks(len(self.ts), self.n_blocks)
+        starts = np.array([g[0] for g in groups])
+        sizes = np.array([len(g) for g in groups], float)
+
+        def block_means(x):  # the groups are contiguous: one reduceat per dwell
+            return np.add.reduceat(x, starts, axis=0) / sizes.reshape((-1,) + (1,) * (x.ndim - 1))
+        t_blocks = block_means(self.ts)
         parts = {"train": ([], [], []), "heldout": ([], [], [])}
         k = 0
         for a, (ang, cond) in enumerate(zip(angles, conds)):
             k_tr = 0 if a in self.held_runs else self.n_blocks - self.k_ho
+            cond = jax.tree.map(np.asarray, cond)  # numpy slices: no dispatch per dwell
             for p in range(ang.shape[0]):
                 c = jax.tree.map(lambda x, p=p: x[p], cond)
                 t0 = k * self.dwell_s
-                y, f, e = _dwell(ts, jnp.asarray(t0), ang[p], c,
-                                 jnp.asarray(float(amps[a] > 0)), theta, self.taus)
-                full = np.concatenate([np.asarray(f), np.asarray(e)], axis=2)
-                y = np.asarray(y)
-                yb = np.stack([y[g].mean(0) for g in groups])
-                cb = np.stack([full[g].mean(0) for g in groups])
+                if misalignment_only:
+                    y = np.zeros((len(self.ts), 3))  # not wanted: the angles do not change
+                    full = np.asarray(_dwell_misalignment(ts, ang[p], c, theta))
+                else:
+                    y, f, e = _dwell(ts, jnp.asarray(t0), ang[p], c,
+                                     jnp.asarray(float(amps[a] > 0)), theta, self.taus)
+                    full = np.concatenate([np.asarray(f), np.asarray(e)], axis=2)
+                    y = np.asarray(y)
+                yb, cb = block_means(y), block_means(full)
                 ref = slice(0, k_tr or None)
                 yb, cb = yb - yb[ref].mean(0), cb - cb[ref].mean(0)
-                tb = np.array([t0 + self.ts[g].mean() for g in groups])
+                tb = t0 + t_blocks
                 for part, sl in (("train", slice(0, k_tr)), ("heldout", slice(k_tr, None))):
                     for lst, v in zip(parts[part], (yb, tb, cb)):
                         lst.append(v[sl])
@@ -296,7 +325,7 @@ class PlatformProblem:
 
     def _effect_cols(self, cols, name, g=0):
         """(N, 3, k) SI columns of one effect (grid index ``g``)."""
-        base = 30
+        base = _BASE
         if name in COEFF_NAMES:
             i = COEFF_NAMES.index(name)
             return cols[:, :, i:i + 1]
@@ -338,14 +367,18 @@ class PlatformProblem:
         return jnp.asarray([params.get(n, 0.0) for n in COEFF_NAMES])
 
     def fit_nominal(self) -> dict:
-        """Least squares of the nominal coefficients on the train rows; the catalogue's columns
-        are then rebuilt at the fit (the base misalignment's gravity part depends on it)."""
+        """Least squares of the nominal coefficients on the train rows; the base misalignment's
+        columns are then rebuilt at the fit (their gravity part depends on it; no other column
+        does)."""
         m = self.n_train
         k = len(self.nominal_names)
         a = self._nominal_cols(self._cols)[:m].reshape(-1, k) * self.nominal_scales
         x, *_ = np.linalg.lstsq(a, self.y[:m].reshape(-1), rcond=None)
         params = dict(zip(self.nominal_names, x * self.nominal_scales))
-        _, _, self._cols = self._design(self.angles, self.conds, self.amps, self._theta(params))
+        _, _, mis = self._design(self.angles, self.conds, self.amps, self._theta(params),
+                                 misalignment_only=True)
+        self._cols = self._cols.copy()
+        self._cols[:, :, _BASE:_BASE + 3] = mis
         return params
 
     # -- the gap map's position axis -----------------------------------------------------------

@@ -107,12 +107,29 @@ def accelerometer_amplitude_error(n, dk, misalignment, bias, a0):
     return da0, dkappa, delta
 
 
+def cumulative_trapezoid(f, ts):
+    """The trapezoid rule's running integral of ``f`` (samples on the leading axis) over the
+    times ``ts``, from 0 at ``ts[0]`` (scipy's ``cumulative_trapezoid(..., initial=0)``).
+
+    A ``lax.scan`` adds the increments in time order, as ``numpy.cumsum`` does; ``jnp.cumsum``
+    lowers to a ``reduce_window`` as long as the axis, which XLA's CPU backend runs ~4x slower
+    on a dwell's 4,000 x 90 columns (docs/notes.md, stop 61)."""
+    dt = jnp.diff(ts).reshape((-1,) + (1,) * (f.ndim - 1))
+    inc = 0.5 * (f[1:] + f[:-1]) * dt
+
+    def step(acc, x):
+        acc = acc + x
+        return acc, acc
+
+    _, tail = jax.lax.scan(step, jnp.zeros_like(f[0]), inc)
+    return jnp.concatenate([jnp.zeros_like(f[:1]), tail])
+
+
 @eqx.filter_jit
 def _position_design(ts, angles, conditions, acc=None):
     """Rows of (S22) for one position: centred ``y - h`` and centred ``F`` (n, 3) and (n, 3, 30).
     With ``acc`` (n, 3; g) the drift uses the measured vibration sample by sample (the original,
     non-averaged model (S10) with ``1 + A_1 = f . n``) instead of ``kappa``."""
-    dt = jnp.diff(ts)
 
     def integrands(y, f):
         mk = kinematic_matrix(y[1], y[2])
@@ -126,12 +143,7 @@ def _position_design(ts, angles, conditions, acc=None):
         return -mk @ g, -mk @ we
 
     fg, fh = jax.vmap(integrands)(angles, acc)
-
-    def cumtrapz(f):
-        inc = 0.5 * (f[1:] + f[:-1]) * dt.reshape((-1,) + (1,) * (f.ndim - 1))
-        return jnp.concatenate([jnp.zeros_like(f[:1]), jnp.cumsum(inc, axis=0)])
-
-    big_f, h = cumtrapz(fg), cumtrapz(fh)
+    big_f, h = cumulative_trapezoid(fg, ts), cumulative_trapezoid(fh, ts)
     y = angles - h
     return y - y.mean(0), big_f - big_f.mean(0)
 
