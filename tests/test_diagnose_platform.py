@@ -278,7 +278,9 @@ def test_catalogue_columns_match_the_ode_model():
         return PlatformProblem(rec, noise_std=units.ARCSEC)
 
     base = problem(p0)
-    base.fit_nominal()  # rebuilds the columns at the fitted drift coefficients
+    fitted = base.fit_nominal()  # rebuilds the base misalignment's columns at the fit
+    _, _, full = base._design(base.angles, base.conds, base.amps, base._theta(fitted))
+    np.testing.assert_allclose(base._cols, full, rtol=0, atol=1e-12 * np.max(np.abs(full)))
     g = N_GRID // 2
     for fam, pre in (("anisoelastic_oo", "D_oo"), ("base_misalignment", "dchi"),
                      ("warmup_transient", "dm"), ("drift_ramp", "ramp"),

@@ -14,6 +14,7 @@ from gyrojax.estimate.platform import (
     accelerometer_amplitude_error,
     amplitude_first_harmonic,
     check_sampling,
+    cumulative_trapezoid,
     forgetting_blend,
     kappa_from_accelerometers,
     platform_gauss_newton,
@@ -27,6 +28,8 @@ from gyrojax.models.platform import (
     TRUE_TABLE2,
     PlatformConditions,
     PlatformRig,
+    drift_rates,
+    drift_regressor,
     kinematic_matrix,
     platform_matrix,
     schedule,
@@ -56,6 +59,25 @@ def test_table_a_and_kinematics():
     w = c.T @ cdot
     np.testing.assert_allclose(kinematic_matrix(ang[1], ang[2]) @ jnp.array(
         [w[2, 1], w[0, 2], w[1, 0]]), rate, atol=1e-15)
+
+
+def test_running_integral_and_drift_rates_equal_their_reference_forms():
+    """The regression's running trapezoid integral (``lax.scan``) against scipy's on uneven
+    times, and the drift law's rates against the 3 x 30 regressor times the coefficients."""
+    from scipy.integrate import cumulative_trapezoid as scipy_cumtrapz
+
+    rng = np.random.default_rng(3)
+    ts = np.cumsum(rng.uniform(0.01, 0.04, 301))
+    f = rng.standard_normal((301, 3, 4))
+    got = np.asarray(jax.jit(cumulative_trapezoid)(jnp.asarray(f), jnp.asarray(ts)))
+    want = scipy_cumtrapz(f, ts, axis=0, initial=0)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-13 * np.max(np.abs(want)))
+    n = rng.standard_normal((50, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    theta = rng.standard_normal(30)
+    got = jax.vmap(lambda v: drift_rates(v, 1.0 + 0.3 * v[0], 1.7, theta))(jnp.asarray(n))
+    want = jax.vmap(lambda v: drift_regressor(v, 1.0 + 0.3 * v[0], 1.7) @ theta)(jnp.asarray(n))
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-14, atol=1e-14)
 
 
 def _design(a0s, mounting=None):
