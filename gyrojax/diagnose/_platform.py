@@ -286,7 +286,8 @@ class PlatformProblem:
         dwells by their own mean): the train blocks of every dwell in time order, then the
         held-out ones. Returns angles (N, 3), block times (N,) and the columns (N, 3, 30 + k);
         ``misalignment_only``: the base misalignment's columns alone (N, 3, 3), the part that
-        depends on ``theta`` (columns ``_BASE:_BASE + 3`` of the full ones)."""
+        depends on ``theta`` (columns ``_BASE:_BASE + 3`` of the full ones), with zeros for the
+        angles (they do not depend on ``theta``)."""
         ts = jnp.asarray(self.ts)
         groups = _blocks(len(self.ts), self.n_blocks)
         starts = np.array([g[0] for g in groups])
