@@ -34,6 +34,48 @@ CAL = dict(sax=2e-3, say=-1e-3, saz=3e-3, maxy=1e-3, maxz=-2e-3, mayz=0.5e-3, sg
            mgzy=1e-3)
 
 
+def test_imu_measure_is_the_documented_error_model():
+    """``imu_measure`` against the module docstring's equation written out per channel in numpy,
+    each coefficient read by its documented meaning (``mg{o}{i}``: ``o`` output per ``i`` input;
+    ``gs{a}{b}``: gyro ``a`` per specific force along ``b``), every term nonzero and distinct.
+    The simulator and the fits share ``imu_measure``, so a sign or index slip there is
+    self-consistent in every fit test; this is its independent check."""
+    from gyrojax.models.imu import IMUConditions, imu_measure
+
+    rng = np.random.default_rng(7)
+    names = [n for n in SPACE.names if not n.startswith(("q_", "b_", "k_", "eps"))]
+    p = {n: float(rng.normal(0.0, SPACE[n].scale)) for n in names}
+    p |= {"k_earth": 0.8, "tau_w": 450.0}
+    cond = IMUConditions(latitude_deg=48.0, gravity=9.809, rate_hz=10.0)
+    up = rng.normal(size=(7, 3))
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    t = np.linspace(0.0, 3000.0, 7)
+    rate = rng.normal(0.0, 0.01, size=(7, 3))
+    d_t, rate_t = rng.normal(0.0, 3.0, 7), rng.normal(0.0, 0.01, 7)
+    got = np.asarray(imu_measure(p, up, t, cond, rate, (d_t, rate_t)))
+
+    omega_v = units.EARTH_RATE * np.sin(np.radians(48.0))
+    want = np.zeros((7, 6))
+    for k in range(7):
+        f = 9.809 * up[k]
+        w = 0.8 * omega_v * up[k] + rate[k]
+        decay = np.exp(-t[k] / 450.0)
+        for i, a in enumerate("xyz"):
+            gyro = p[f"bg{a}"] + (1 + p[f"sg{a}"]) * w[i]
+            acc = p[f"ba{a}"] + (1 + p[f"sa{a}"]) * f[i]
+            for j, b in enumerate("xyz"):
+                gyro += p[f"gs{a}{b}"] * f[j]
+                if b != a:
+                    gyro += p[f"mg{a}{b}"] * w[j]
+                    acc += p[f"ma{a}{b}"] * f[j]
+            gyro += p[f"dg{a}"] * t[k] + p[f"wg{a}"] * decay + p[f"tg{a}"] * d_t[k] \
+                + p[f"rg{a}"] * rate_t[k]
+            acc += p[f"da{a}"] * t[k] + p[f"wa{a}"] * decay + p[f"ta{a}"] * d_t[k] \
+                + p[f"ra{a}"] * rate_t[k]
+            want[k, i], want[k, 3 + i] = gyro, acc
+    np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-18)
+
+
 def test_multiposition_calibration_recovers_the_generating_parameters(tmp_path, capsys):
     """``gyrojax simulate --rig imu``: 20 poses of 5 s at 100 Hz joined by 2-s turns, the
     generating errors given with --set in display units; the record's still-pose scatter is the
