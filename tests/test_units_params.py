@@ -16,6 +16,53 @@ def test_unit_constants():
         units.to_unit(1.0, "furlong")
 
 
+def test_every_display_unit_is_its_si_value_derived_by_hand():
+    """Each display unit's SI value written out from its definition (pi / 180 rad per degree,
+    3600 s per hour, g = 9.80665 m/s^2, a temperature rate per minute), not from the module's
+    constants; a unit added to the table must be added here."""
+    import math
+
+    deg, h, g = math.pi / 180, 3600.0, 9.80665
+    si = {"1": 1.0, "rad": 1.0, "deg": deg, "arcmin": deg / 60, "arcsec": deg / 3600,
+          "rad/s": 1.0, "deg/h": deg / h, "1/s": 1.0, "1/h": 1 / h, "s": 1.0, "h": h,
+          "m/s^2": 1.0, "g": g, "ppm": 1e-6, "deg/s": deg, "mrad": 1e-3, "mg": 1e-3 * g,
+          "mg/h": 1e-3 * g / h,  # (m/s^2) / s
+          "deg/h/h": deg / h / h, "deg/h/g": deg / h / g,  # (rad/s) / (m/s^2) = s/m
+          "deg/h/degC": deg / h,  # rad/s per K
+          "mg/degC": 1e-3 * g,
+          "deg/h/(degC/min)": (deg / h) / (1 / 60),  # (rad/s) / (K/s) = rad/K
+          "mg/(degC/min)": 1e-3 * g / (1 / 60),
+          "deg/sqrt(h)": deg / math.sqrt(h),  # angle random walk: rad/sqrt(s)
+          "deg/h/sqrt(h)": deg / h / math.sqrt(h),  # rate random walk: rad/s/sqrt(s)
+          "m/s/sqrt(h)": 1 / math.sqrt(h), "m/s^2/sqrt(s)": 1.0,
+          "mg/sqrt(h)": 1e-3 * g / math.sqrt(h), "m/s": 1.0, "min": 60.0,
+          "arcsec/s": deg / 3600, "nN m": 1e-9, "nN m/h": 1e-9 / h}
+    assert set(units.known_units()) == set(si)
+    for name, value in si.items():
+        assert units.from_unit(1.0, name) == pytest.approx(value, rel=1e-14), name
+        assert units.to_unit(value, name) == pytest.approx(1.0, rel=1e-14), name
+
+
+def test_normal_gravity_matches_wgs84_defining_constants_and_free_air_gradient():
+    """Somigliana's normal gravity rebuilt from WGS-84's defining and derived constants (NIMA
+    TR8350.2: a, 1/f, equatorial and polar normal gravity), not from the code's two derived
+    coefficients; and the standard free-air gradient 0.3086 mGal/m. Schuler's and the IMU's g
+    come from it."""
+    from gyrojax.earth import normal_gravity
+
+    a, f = 6378137.0, 1 / 298.257223563
+    b, e2 = a * (1 - f), f * (2 - f)
+    g_eq, g_pole = 9.7803253359, 9.8321849378
+    k = b * g_pole / (a * g_eq) - 1
+    lat = np.radians([-90.0, -30.0, 0.0, 45.0, 51.0784, 90.0])
+    s2 = np.sin(lat) ** 2
+    want = g_eq * (1 + k * s2) / np.sqrt(1 - e2 * s2)
+    np.testing.assert_allclose(np.asarray(normal_gravity(lat)), want, rtol=0, atol=1e-10)
+    assert float(normal_gravity(np.radians(90.0))) == pytest.approx(g_pole, abs=1e-9)
+    drop = float(normal_gravity(lat[3]) - normal_gravity(lat[3], 1000.0))
+    assert drop == pytest.approx(0.3086e-5 * 1000.0, rel=1e-9)  # 308.6 mGal lower at 1 km
+
+
 def test_rotations_orthonormal_and_rodrigues_matches_expm():
     v = jnp.array([0.3, -0.2, 0.5])
     r = rotations.rotvec_to_matrix(v)
