@@ -110,3 +110,23 @@ def test_format_and_bad_input():
     rig, cond, p = design("polar")
     with pytest.raises(ValueError, match="method='fisher'"):
         observability(rig, p, cond, TS_24H[:10], free=("m11",), method="fisher")
+
+
+@pytest.mark.parametrize("eps,rank,unobservable", [(1e-9, 3, ["0.5 a - b - 0.5 c"]),
+                                                   (2e-5, 4, []), (1e-2, 4, [])])
+def test_rank_thresholds_on_a_constructed_near_null_direction(eps, rank, unobservable):
+    """Columns a, b, c = a - 2 b + eps w, d (orthonormal a, b, w, d; d scaled by 4, which the
+    column normalisation removes). After normalisation the Gram matrix has eigenvalues 2, 1, 1
+    and ~eps^2 / 10, so the relative singular values are 1, 1/sqrt(2), 1/sqrt(2) and
+    eps / sqrt(20) (to O(eps^2)), the last along a - 2 b - c (0.5 a - b - 0.5 c in the report's
+    form). It is counted by the rank from exact_tol = 1e-6 up (eps = 2e-5: 4.5e-6) and by the
+    strong rank from weak_tol = 1e-3."""
+    t = np.linspace(0.0, 1.0, 200)
+    v = np.linalg.qr(np.stack([np.sin(3 * t), np.cos(5 * t), t**2, np.ones_like(t)], 1))[0]
+    j = np.stack([v[:, 0], v[:, 1], v[:, 0] - 2 * v[:, 1] + eps * v[:, 2], 4.0 * v[:, 3]], 1)
+    r = analyse_jacobian(j, ["a", "b", "c", "d"])
+    np.testing.assert_allclose(r.singular_values,
+                               [1.0, 2**-0.5, 2**-0.5, eps / np.sqrt(20)], rtol=1e-5)
+    assert r.rank == rank and r.unobservable == unobservable
+    assert r.strong_rank == (4 if eps / np.sqrt(20) >= 1e-3 else 3)
+    assert r.weak == ([] if r.strong_rank == 4 else ["0.5 a - b - 0.5 c"])

@@ -430,6 +430,26 @@ def test_refit_standard_errors_are_the_joint_fit_covariance():
         "d": math.inf}
 
 
+def test_tail_functions_equal_scipy_distributions():
+    """The screening's chi-square and F tails (special functions without scipy.stats' per-call
+    overhead) against ``scipy.stats`` itself: both argument orders matter for F (d1 the tested
+    dof, d2 the noise level's), and an infinite d2 is the chi2(d1) / d1 limit."""
+    from scipy import stats
+
+    from gyrojax.diagnose._stats import _f_sf, chi2_sf
+
+    x = np.array([-1.0, 0.0, 0.3, 2.0, 7.5, 40.0])
+    for dof in (1, 2, 5, 17):
+        np.testing.assert_allclose(chi2_sf(x, dof), stats.chi2.sf(np.maximum(x, 0), dof),
+                                   rtol=1e-12)
+        for d2 in (3.0, 40.0, 2874.0):
+            np.testing.assert_allclose(_f_sf(x, dof, d2), stats.f.sf(np.maximum(x, 0), dof, d2),
+                                       rtol=1e-12)
+        np.testing.assert_allclose(_f_sf(x, dof, math.inf), stats.chi2.sf(np.maximum(x, 0) * dof,
+                                                                          dof), rtol=1e-12)
+    assert chi2_sf(-3.0, 2) == 1.0 and isinstance(_f_sf(1.5, 2, 30.0), float)
+
+
 def test_bh_and_fisher_g():
     q = bh_qvalues(np.array([0.01, 0.04, 0.03, 0.5]))
     np.testing.assert_allclose(q, [0.04, 0.16 / 3, 0.16 / 3, 0.5], rtol=1e-12)
