@@ -450,6 +450,26 @@ def test_tail_functions_equal_scipy_distributions():
     assert chi2_sf(-3.0, 2) == 1.0 and isinstance(_f_sf(1.5, 2, 30.0), float)
 
 
+def test_posteriors_and_the_90_percent_set_by_bayes_rule():
+    """Bayes' rule worked by hand: prior 1/2 on "no effect", the rest shared by the k = 3
+    effects; Bayes factors 1, 2, 4 give weights 1/2 : 1/6 : 2/6 : 4/6, i.e. 0.3 on none and
+    posteriors 0.1, 0.2, 0.4. The ambiguity set is the smallest holding 90 % of the mass given
+    an effect (spec §4.2): with posteriors 0.5, 0.3, 0.15, 0.05 (renormalised) it needs three
+    (0.8 < 0.9 <= 0.95)."""
+    from types import SimpleNamespace
+
+    from gyrojax.diagnose._stats import _posteriors, ambiguity_set
+
+    rows = [SimpleNamespace(log_bf=math.log(b), posterior=0.0) for b in (1.0, 2.0, 4.0)]
+    p_none = _posteriors(rows, 0.5)
+    assert p_none == pytest.approx(0.3, rel=1e-12)
+    np.testing.assert_allclose([r.posterior for r in rows], [0.1, 0.2, 0.4], rtol=1e-12)
+    rows = [SimpleNamespace(name=n, posterior=0.5 * w) for n, w in
+            zip("abcd", (0.15, 0.5, 0.05, 0.3))]
+    assert [r.name for r in ambiguity_set(rows)] == ["b", "d", "a"]
+    assert [r.name for r in ambiguity_set(rows, mass=0.8)] == ["b", "d"]
+
+
 def test_bh_and_fisher_g():
     q = bh_qvalues(np.array([0.01, 0.04, 0.03, 0.5]))
     np.testing.assert_allclose(q, [0.04, 0.16 / 3, 0.16 / 3, 0.5], rtol=1e-12)
