@@ -49,6 +49,28 @@ def test_written_files_get_the_umask_mode_and_keep_an_existing_mode(tmp_path, re
         os.umask(old)
 
 
+def test_a_failed_write_leaves_the_old_file_and_no_temp_file(tmp_path, record):
+    """Nothing is lost and no half file is left: a writer that fails part-way (here after
+    writing some bytes) leaves the existing record as it was and removes its temp file."""
+    from gyrojax.io import atomic_write
+
+    path = save_record(record, tmp_path / "rec.csv")
+    before = path.read_bytes()
+
+    def half(tmp):
+        with open(tmp, "w") as f:
+            f.write("t,alpha1\n0,")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        atomic_write(path, half)
+    assert path.read_bytes() == before
+    assert [x.name for x in tmp_path.iterdir()] == ["rec.csv"]
+    with pytest.raises(OSError, match="disk full"):
+        atomic_write(tmp_path / "new.csv", half)
+    assert [x.name for x in tmp_path.iterdir()] == ["rec.csv"]
+
+
 def test_json_is_strict_nan_and_infinity_become_null(tmp_path):
     import jax.numpy as jnp
 
@@ -75,6 +97,8 @@ def _write(tmp_path, text, name="bad.csv"):
 @pytest.mark.parametrize("text,match", [
     ("t,alpha1,alpha2\n0,0,0\n60,nan,0\n120,0,0\n", "non-finite value nan at sample 1"),
     ("t,alpha1,alpha2\n0,0,0\n60,0,0\n30,0,0\n", "strictly increasing but t\\[1\\]=60.0"),
+    ("t,alpha1,alpha2\n0,0,0\n60,0,0\n60,1,0\n120,0,0\n",
+     "strictly increasing but t\\[1\\]=60.0 and t\\[2\\]=60.0"),  # a duplicated time stamp
     ("t,alpha1,alpha2\n0,0,0\n60,0,0\n", "2 samples is too few"),
     ("t,alpha1,alpha2\n0,0,0\n60,0\n120,0,0\n", "line 3: 2 columns but the header has 3"),
     ("t,alpha1,alpha2\n0,0,0\n60,0,x\n120,0,0\n", "line 3: non-numeric value 'x'"),
