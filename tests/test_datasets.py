@@ -12,7 +12,12 @@ from gyrojax.datasets import (
     DataFileError,
     data_root,
     load_mpu6050,
+    load_mpu9150,
+    load_smac,
     load_ucalgary,
+    load_ucalgary_pair,
+    load_xsens,
+    masked,
     read_float64_records,
     read_text_columns,
 )
@@ -62,6 +67,107 @@ def test_ln100_up_down_static_gives_earth_rate_and_gravity():
     assert (au - ad) / 2 == pytest.approx(float(normal_gravity(np.radians(51.0784))), rel=1e-3)
     adev = allan_deviation(np.asarray(up.channel("wx")), 64.07)
     assert np.all(np.isfinite(adev.adev)) and adev.adev[4] < adev.adev[0]
+
+
+def _means(rec, sel=slice(None)):
+    return np.asarray(rec.y)[sel].mean(axis=0)
+
+
+def _runs(mask, min_len, trim):
+    """True on the runs of ``mask`` at least ``min_len`` long, ``trim`` cut from both ends."""
+    e = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(int), [0]])))
+    out = np.zeros_like(mask)
+    for a, b in zip(e[::2], e[1::2]):
+        if b - a >= min_len:
+            out[a + trim:b - trim] = True
+    return out
+
+
+def test_every_loader_reproduces_its_data_readme():
+    """Each loader's SI record against the quick statistics its data folder's README computed from
+    the raw files with numpy, converted here by the README's stated units and LSBs (an independent
+    reading of the same bytes): sample counts, rates, per-channel means and standard deviations,
+    and the disturbances it lists. A swapped gyro/accelerometer block, a wrong unit, LSB or zero,
+    a wrong time base, the two UCalgary files in the wrong order or a listed knock left unmasked
+    fails it."""
+    _root()
+    deg, dph, g0 = units.DEG, units.DEG_PER_HOUR, units.G0
+    # UCalgary: LN-100 gyro in deg/s in the file (README means in deg/h), ADI gyro taken as rad/s
+    for o, n, w, f in (("up", 19217, [11.479, 9.187, 1.250], [9.80629, -0.00577, 0.05760]),
+                       ("down", 19216, [-11.986, 9.125, -0.726], [-9.80714, -0.05037, -0.06002])):
+        rec = load_ucalgary("ln100", o)
+        assert rec.n_samples == n and rec.channels == ("wx", "wy", "wz", "ax", "ay", "az")
+        np.testing.assert_allclose(_means(rec)[:3] / dph, w, atol=6e-4)
+        np.testing.assert_allclose(_means(rec)[3:], f, atol=6e-6)
+    for o, n, w, f in (("up", 3579, [-2.225e-3, -4.985e-3, -4.544e-2], [9.8631, 0.1874, -0.1861]),
+                       ("down", 3611, [-7.45e-5, 3.127e-3, -4.940e-2],
+                        [-9.8553, -0.0302, -0.3990])):
+        rec = load_ucalgary("adi", o)
+        assert rec.n_samples == n
+        np.testing.assert_allclose(_means(rec)[:3], w, rtol=2e-3)
+        np.testing.assert_allclose(_means(rec)[3:], f, atol=6e-5)
+        as_deg = load_ucalgary("adi", o, adi_gyro_unit="deg/s")
+        np.testing.assert_allclose(_means(as_deg)[:3], np.asarray(w) * deg, rtol=2e-3)
+    pair = load_ucalgary_pair("ln100")  # x down first (recorded first), then x up
+    assert pair.conditions["positions"] == ("x down", "x up") and pair.n_samples == 19216 + 19217
+    assert np.all(np.diff(np.asarray(pair.t)) > 0)
+    np.testing.assert_allclose(_means(pair, slice(0, 19216))[3], -9.80714, atol=6e-6)
+
+    # Xsens (raw counts): the first 50 s still; the y gyro on its ADC rails at 509.8-511.6 s
+    rec = load_xsens()
+    t, y = np.asarray(rec.t), np.asarray(rec.y)
+    assert rec.n_samples == 51175 and np.median(np.diff(t)) == pytest.approx(0.01, abs=1e-6)
+    still = t < 50.0
+    np.testing.assert_allclose(y[still, 3:].mean(0) / 2.41e-3 + 32768,
+                               [33102.2, 33330.6, 36433.7], atol=0.06)
+    np.testing.assert_allclose(y[still, :3].mean(0) * 6258 + 32768,
+                               [32777.2, 32459.8, 32511.9], atol=0.06)
+    gy = y[:, 1] * 6258 + 32768
+    rail = (gy >= 65000) | (gy <= 1000)
+    assert (np.sum(gy >= 65000), np.sum(gy <= 1000)) == (32, 34)
+    assert np.all(masked(rec)[rail]) and np.ptp(t[rail]) < 2.0
+    assert np.sum(masked(rec)) < 300  # the rails' 2 s, nothing else
+
+    # MPU-9150 (SI, 100 Hz): per unit the samples, and over the README's still samples (|w - w of
+    # the first second| < 0.05 rad/s for >= 1 s, 0.1 s trimmed) the gyro means and mean |f|
+    readme = {0: (15969, [0.0195, -0.0068, 0.0213]), 1: (15931, [-0.0107, 0.0192, 0.0056]),
+              2: (15934, [0.0103, -0.0065, 0.0226]), 3: (15967, [-0.0219, 0.0175, 0.0830]),
+              4: (15968, [-0.0188, 0.0074, 0.0249])}
+    for u, (n, w_still) in readme.items():
+        rec = load_mpu9150(u)
+        t, y = np.asarray(rec.t), np.asarray(rec.y)
+        assert rec.n_samples == n and t[-1] == pytest.approx((n - 1) / 100.0)
+        w, f = y[:, :3], y[:, 3:]
+        still = _runs(np.linalg.norm(w - w[:100].mean(0), axis=1) < 0.05, 100, 10)
+        assert 109 < still.sum() / 100 < 113  # README: 110-111 s
+        np.testing.assert_allclose(w[still].mean(0), w_still, atol=2.5e-4)
+        assert 9.83 < np.linalg.norm(f[still], axis=1).mean() < 9.88  # README: 9.844-9.866
+
+    # ADIS16405 (counts x 0.05 deg/s, x 3.33 mg): run 1's statistics; run 4's three disturbances
+    rec = load_smac("adis", 1)
+    y = np.asarray(rec.y)
+    assert rec.n_samples == 1_000_000 and rec.conditions["rate_hz"] == 100.0
+    np.testing.assert_allclose(y[:, :3].mean(0) / deg, [0.4017, -0.4158, -0.2935], atol=6e-5)
+    np.testing.assert_allclose(y[:, :3].std(0) / deg, [0.350, 0.370, 0.432], atol=6e-4)
+    np.testing.assert_allclose(y[:, 3:].mean(0) / g0, [-0.00441, -0.00235, -1.01613], atol=6e-6)
+    np.testing.assert_allclose(y[:, 3:].std(0) / g0, [0.0043, 0.0034, 0.0042], atol=6e-5)
+    rec = load_smac("adis", 4)
+    m = masked(rec)
+    for first, last in ((11_711, 11_899), (404_537, 404_617), (514_652, 514_655)):
+        assert m[first] and m[last], (first, last)
+    assert m.sum() < 1000  # < 0.1 % of the record
+    mtig = load_smac("mtig")
+    x = np.asarray(mtig.y)[:, 0]
+    assert mtig.channels == ("wx",) and mtig.n_samples == 500_000
+    assert 0.5e-5 < x.mean() < 2e-5 and 5e-7 < np.median(x) < 7e-7  # README: ~1e-5, ~6e-7
+
+    # MPU-6050 (counts / 16384 per g, / 131 per deg/s), the 100 s static test
+    rec = load_mpu6050("static_test_100s")
+    y = np.asarray(rec.y)
+    assert rec.n_samples == 9986 and rec.conditions["rate_hz"] == 100.0
+    counts = np.concatenate([y[:, 3:] / g0 * 16384, y[:, :3] / deg * 131], axis=1)  # ax..gz
+    np.testing.assert_allclose(counts.mean(0), [891, 140, 14912, -428, 146, -66], atol=0.5)
+    np.testing.assert_allclose(counts.std(0), [55, 50, 76, 9.8, 14.7, 12.3], atol=0.5)
 
 
 @pytest.mark.slow
