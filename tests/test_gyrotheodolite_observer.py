@@ -246,6 +246,12 @@ def test_frequency_study_matches_spec_closed_forms_and_fig1():
         np.testing.assert_allclose(np.asarray(st.observer[i]), w2 * plant_alpha, rtol=1e-7)
         assert st.table()[i]["max_pole_offset_rel"] < 2e-3
     assert st.bandwidth()[1] == pytest.approx(309.0, rel=0.1)
+    # the bandwidth by its definition: the error stays below the level at every grid frequency
+    # up to it, and reaches the level at the next one
+    err, bw = np.asarray(st.error), st.bandwidth(0.1)
+    for i in range(2):
+        j = int(np.flatnonzero(w == bw[i])[0])
+        assert np.all(err[i, : j + 1] < 0.1) and err[i, j + 1] >= 0.1
 
 
 def test_cli_observer_json(tmp_path):
@@ -260,3 +266,41 @@ def test_cli_observer_json(tmp_path):
                                RIG.observer_gains(P, COND, 1000.0), rtol=1e-12)
     assert rows[1]["bandwidth"] == pytest.approx(309.0, rel=0.1)
     assert pdf.read_bytes()[:5] == b"%PDF-" and pdf.stat().st_size > 10_000
+
+
+def test_vibration_direction_enters_through_eps_v_plus_psi0():
+    """Spec §4: ``n_X = n_m cos(eps_v + psi0) sin wt``, ``n_Z = n_m sin(eps_v + psi0) sin wt``:
+    the harmonic balance's constant error and both corrections depend on the two angles through
+    their sum only (three splits of 0.8 rad agree to 1e-12), and not on either alone (a split of
+    another sum differs); the model's own time law ``overloads`` reads the same direction."""
+    k = RIG.observer_gains(P, COND, 300.0)
+
+    def err(eps_v, psi0):
+        c = GyrotheodoliteConditions.create(50.45, n_m=N_M, omega=W_VIB, eps_v=eps_v, psi0=psi0)
+        e = constant_vibration_error(RIG, P, c, k)
+        return np.array([float(e.mean_alpha), float(e.correction_true), float(e.correction_est)])
+
+    ref = err(0.8, 0.0)
+    assert abs(ref[0]) > 0.1 * units.ARCSEC
+    for split in ((0.0, 0.8), (0.3, 0.5), (-0.4, 1.2)):
+        np.testing.assert_allclose(err(*split), ref, rtol=1e-12, atol=1e-18)
+    assert np.max(np.abs(err(0.3, -0.5) - ref)) > 0.1 * np.max(np.abs(ref))
+    c = GyrotheodoliteConditions.create(50.45, n_m=N_M, omega=W_VIB, eps_v=0.3, psi0=0.5)
+    nx, nz = (float(v) for v in c.overloads(np.pi / (2 * W_VIB)))  # sin(wt) = 1
+    assert (nx, nz) == pytest.approx((N_M * np.cos(0.8), N_M * np.sin(0.8)), rel=1e-12)
+
+
+def test_compensation_averages_are_time_averages_on_an_uneven_grid():
+    """``compensate`` averages over time, not over samples: on the uneven grid 0, 1, 10 s the
+    piecewise-linear alpha 0, 0, 9 urad has the exact time average 4.05 urad (its integral, 40.5,
+    over 10 s; the sample mean would read 3), and a constant rate times a piecewise-linear gamma
+    gives the correction arcsin(rate <gamma> / (Omega cos phi))."""
+    ts = np.array([0.0, 1.0, 10.0])
+    alpha = np.array([0.0, 0.0, 9.0]) * 1e-6
+    rate = np.full(3, 2e-6)  # rad/s
+    gamma = np.array([0.0, 0.0, 9.0]) * 1e-3  # rad
+    mean_alpha, corr, left = compensate(ts, alpha, rate, gamma, 50.45)
+    assert float(mean_alpha) == pytest.approx(4.05e-6, rel=1e-12)
+    want = np.arcsin(2e-6 * 4.05e-3 / (units.EARTH_RATE * np.cos(np.radians(50.45))))
+    assert float(corr) == pytest.approx(want, rel=1e-12)
+    assert float(left) == pytest.approx(4.05e-6 - want, rel=1e-12)
