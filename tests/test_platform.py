@@ -484,3 +484,58 @@ def test_bench_effects_against_closed_forms():
     want = np.asarray(integrate(RIG, base, turned, ts))
     assert np.max(np.abs(got - want)) < 1e-12
     assert np.max(np.abs(got - np.asarray(integrate(RIG, base, static, ts)))) > 1e-5
+
+
+def test_a_schedule_record_is_laid_out_as_documented():
+    """``platform_schedule``'s record against its documented layout, by arithmetic: the dwells
+    amplitude-major, dwell (amplitude k, position p) starting at test time ``(k P + p)`` times
+    (dwell + one sample interval), which is also the ``t0`` its conditions integrate with (the
+    time-dependent effects run on test time); the labels (position p, amplitude k) on each of its
+    samples; the platform amplitude the table's divided by the attenuation."""
+    from gyrojax.models.platform_schedule import (
+        load_schedule,
+        schedule_conditions,
+        simulate_schedule,
+        split_record,
+    )
+
+    s = load_schedule({"positions_deg": [[0, 0, 0], [90, 0, 0], [0, 0, 90]],
+                       "table_amplitudes_g": [9.0, 6.0], "attenuation": 1.5, "dwell_s": 1.0,
+                       "sample_s": 0.025})
+    rec = simulate_schedule(PlatformRig().param_space.make(), s, jax.random.key(0),
+                            noise_arcsec=0.0, accel_noise_g=0.0)
+    n = 41  # 1 s at 0.025 s, both ends
+    t = np.asarray(rec.t).reshape(2, 3, n)
+    lab = split_record(rec, s)[..., 6:]
+    for k, (amp, c) in enumerate(zip((9.0, 6.0), schedule_conditions(s), strict=True)):
+        np.testing.assert_allclose(np.asarray(c.a0), amp / 1.5, rtol=1e-15)
+        for p in range(3):
+            start = (3 * k + p) * 1.025
+            assert t[k, p, 0] == pytest.approx(start, abs=1e-12)
+            assert float(c.t0[p]) == pytest.approx(start, abs=1e-12)
+            np.testing.assert_allclose(t[k, p] - start, np.arange(n) * 0.025, atol=1e-12)
+            assert np.all(lab[k, p] == [p, k])
+
+
+def test_design_information_is_the_slope_variance_of_a_dwell():
+    """``design_information`` by the textbook: a dwell measures each angle every ``dt`` for
+    ``dwell_s`` with white noise ``sigma``, and a rate enters as the slope of that angle, whose
+    least-squares variance is ``sigma^2 / sum (t - mean t)^2`` = ``12 sigma^2 / (n (n^2 - 1)
+    dt^2)`` for n uniform samples. One dwell whose only nonzero sensitivity is of angle 0 to
+    coefficient 3 (2 rad/s per scale unit) has information ``4 / var`` there and nothing
+    elsewhere; the worst standard error of two such dwells on every coefficient is
+    ``sqrt(var / 8)``."""
+    from gyrojax.analysis.platform_design import design_information, score_design
+
+    sigma, dt, dwell = 1.0 * units.ARCSEC, 0.025, 100.0
+    n = 4001
+    var = 12 * sigma ** 2 / (n * (n ** 2 - 1) * dt ** 2)
+    jac = np.zeros((1, 3, 30))
+    jac[0, 0, 3] = 2.0
+    info = design_information(jac, dwell_s=dwell, dt=dt, noise_arcsec=1.0)
+    assert info[3, 3] == pytest.approx(4 / var, rel=1e-9)
+    assert np.count_nonzero(info) == 1
+    two = np.zeros((60, 3, 30))  # two dwells per coefficient, each seeing only it, on angle 0
+    two[np.arange(60), 0, np.arange(60) % 30] = 2.0
+    score = score_design(design_information(two, dwell_s=dwell, dt=dt, noise_arcsec=1.0))
+    assert score.rank == 30 and score.worst_se == pytest.approx(np.sqrt(var / 8), rel=1e-9)
