@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 
 from gyrojax import units
-from gyrojax.estimate.schuler import check_schuler_record, fit_schuler, schuler_filter
+from gyrojax.estimate.schuler import (
+    attitude_residual,
+    check_schuler_record,
+    fit_schuler,
+    schuler_filter,
+)
 from gyrojax.models.schuler import (
     PARAM_NAMES,
     SchulerConditions,
@@ -164,3 +169,18 @@ def test_shared_gains_equal_per_run_filters():
                                atol=1e-8)
     np.testing.assert_allclose(s_last @ s_last.T, per_run.p_filt[0, 0], rtol=1e-6, atol=1e-24)
     assert per_run.x_filt.shape == (3, 1, 17) and per_run.innovations.shape == (3, n, 5)
+
+
+def test_attitude_residual_is_the_specs_sign_and_size():
+    """Spec (S12): ``z = -vee((E - E^T) / 2)`` with ``E = dR_meas dR_model^T``. For a measured
+    rotation ``phi`` about a unit axis ``k`` and no modelled one, ``E = exp([phi k]x)`` and
+    ``(E - E^T) / 2 = sin(phi) [k]x``, so ``z = -sin(phi) k`` exactly; equal rotations leave zero. (A sign slip
+    cancels in the fit and the filter, which put measurement and model through the same function:
+    it shows only here.)"""
+    k = np.array([2.0, -1.0, 0.5])
+    k /= np.linalg.norm(k)
+    for phi in (1e-4, 0.3):
+        z = np.asarray(attitude_residual(jnp.asarray(phi * k), jnp.zeros(3)))
+        np.testing.assert_allclose(z, -np.sin(phi) * k, atol=1e-15)
+    a = jnp.array([0.01, -0.02, 0.03])
+    np.testing.assert_allclose(np.asarray(attitude_residual(a, a)), 0.0, atol=1e-17)

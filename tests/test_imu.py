@@ -723,3 +723,58 @@ def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, ca
                  "--effects", "g_sensitivity:gsxy"]) == 2
     with pytest.raises(ValueError, match="per_coefficient with rig 'platform'"):
         _problem(rec, "platform", 0.25, None, None, "exact", None, per_coefficient=True)
+
+
+def test_noise_scale_segment_times_and_weighted_accelerometer_fit():
+    """Three pieces of the multi-position calibration against hand truths:
+    - the static detector's robust noise scale (1.4826 x the MAD of first differences over
+      sqrt(2)) of white noise of std sigma is sigma (200 000 samples, to 1 %), and a slow random
+      walk on top moves it by under 1 %;
+    - a static segment's times are those of its first and last samples (``i1`` end-exclusive);
+    - with unequal weights per pose, the |f| = g fit equals scipy's ``least_squares`` on the
+      residuals ``sqrt(w) (|A^-1 (f - b)| - g)`` (a second solver; to 1e-9), and the reported
+      residuals are the unweighted ``|f| - g`` at the solution."""
+    import scipy.optimize
+
+    from gyrojax.estimate.multiposition import _robust_sd
+
+    rng = np.random.default_rng(5)
+    sigma = 0.02
+    white = sigma * rng.standard_normal((200_000, 2))
+    assert _robust_sd(white) == pytest.approx([sigma, sigma], rel=0.01)
+    walk = np.cumsum(1e-4 * sigma * rng.standard_normal((200_000, 2)), axis=0)
+    assert _robust_sd(white + walk) == pytest.approx(_robust_sd(white), rel=0.01)
+
+    rate, n_still, n_turn = 100.0, 400, 150
+    y = []
+    for k in range(3):  # still, turn, still, turn, still
+        f = np.array([0.0, 0.0, units.G0]) + 0.01 * rng.standard_normal((n_still, 3))
+        y.append(np.concatenate([0.001 * rng.standard_normal((n_still, 3)), f], axis=1))
+        if k < 2:
+            y.append(np.concatenate([np.full((n_turn, 3), 0.5), np.tile([0, 0, units.G0],
+                                                                       (n_turn, 1))], axis=1))
+    y = np.concatenate(y)
+    t = np.arange(len(y)) / rate
+    rec = BenchRecord(t, y, ("wx", "wy", "wz", "ax", "ay", "az"), {})
+    segs = detect_static(rec)
+    assert len(segs) == 3
+    for s in segs:
+        assert (s.t0, s.t1) == (t[s.i0], t[s.i1 - 1])
+
+    ups = rng.standard_normal((14, 3))
+    ups /= np.linalg.norm(ups, axis=1, keepdims=True)
+    a = np.array([[1.002, 3e-3, -2e-3], [0.0, 0.997, 1e-3], [0.0, 0.0, 1.001]])
+    b = np.array([0.05, -0.03, 0.02])
+    means = b + units.G0 * ups @ a.T + 2e-3 * rng.standard_normal((14, 3))
+    w = rng.uniform(0.3, 3.0, 14)
+    cal = calibrate_accelerometer(means, units.G0, weights=w)
+
+    def resid(th):
+        am = np.array([[1 + th[3], th[6], th[7]], [0, 1 + th[4], th[8]], [0, 0, 1 + th[5]]])
+        f = np.linalg.solve(am, (means - th[:3]).T).T
+        return np.sqrt(w) * (np.linalg.norm(f, axis=1) - units.G0)
+
+    ref = scipy.optimize.least_squares(resid, np.zeros(9), xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+    ours = np.array([cal.params[k] for k in ACCEL_NAMES])
+    np.testing.assert_allclose(ours, ref, atol=1e-9)
+    np.testing.assert_allclose(cal.residual, resid(ref) / np.sqrt(w), atol=1e-9)

@@ -173,9 +173,10 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     assert fit["parameters"]["theta1"]["unit"] == "arcsec"
     assert fit["residual_rms_arcsec"] == pytest.approx(1.0, rel=0.1)
     kout = tmp_path / "kf.json"
-    assert main(["fit", str(rec), "--method", "kalman", "--effects", "rotor_tilt", "--json",
-                 str(kout)]) == 0
+    assert main(["fit", str(rec), "--method", "kalman", "--effects", "rotor_tilt",
+                 "--noise-arcsec", "1", "--json", str(kout)]) == 0
     kf = json.loads(kout.read_text())
+    assert kf["noise_std_arcsec"] == pytest.approx(1.0, rel=1e-12)  # the given level, in arcsec
     assert kf["parameters"]["m11"]["value"] == pytest.approx(0.3, abs=5 * kf["parameters"]["m11"]["stderr"])
     assert kf["residual_rms_arcsec"] < 1.3
     assert main(["observability", "--scheme", "equatorial", "--latitude", "55.75",
