@@ -44,6 +44,22 @@ def test_bad_files(tmp_path):
         read_text_columns(t, 7)
 
 
+def test_masked_spans_are_inclusive_sample_times():
+    """A disturbed run of samples becomes the span from its first to its last sample's time (the
+    padding widens it by whole samples, clipped at the ends), and ``masked`` marks every sample
+    inside a span, both ends included: 0.5-s samples, disturbed at 1.0-1.5 s and at 3.0 s."""
+    from gyrojax.datasets import _spans
+    from gyrojax.record import BenchRecord
+
+    t = np.arange(8) * 0.5
+    bad = np.array([0, 0, 1, 1, 0, 0, 1, 0], bool)
+    assert _spans(t, bad) == (1.0, 1.5, 3.0, 3.0)
+    assert _spans(t, bad, pad=1) == (0.5, 3.5)
+    assert _spans(t, np.array([1, 0, 0, 0, 0, 0, 0, 1], bool), pad=2) == (0.0, 1.0, 2.5, 3.5)
+    rec = BenchRecord(t, np.zeros((8, 1)), ("wx",), {"masked_s": (1.0, 1.5, 3.0, 3.0)})
+    np.testing.assert_array_equal(masked(rec), bad)
+
+
 def _root():
     try:
         return data_root()
