@@ -174,9 +174,9 @@ def test_shared_gains_equal_per_run_filters():
 def test_attitude_residual_is_the_specs_sign_and_size():
     """Spec (S12): ``z = -vee((E - E^T) / 2)`` with ``E = dR_meas dR_model^T``. For a measured
     rotation ``phi`` about a unit axis ``k`` and no modelled one, ``E = exp([phi k]x)`` and
-    ``(E - E^T) / 2 = sin(phi) [k]x``, so ``z = -sin(phi) k`` exactly; equal rotations leave zero. (A sign slip
-    cancels in the fit and the filter, which put measurement and model through the same function:
-    it shows only here.)"""
+    ``(E - E^T) / 2 = sin(phi) [k]x``, so ``z = -sin(phi) k`` exactly; equal rotations leave
+    zero. (A sign slip cancels in the fit and the filter, which put measurement and model
+    through the same function: it shows only here.)"""
     k = np.array([2.0, -1.0, 0.5])
     k /= np.linalg.norm(k)
     for phi in (1e-4, 0.3):
