@@ -1324,3 +1324,118 @@ def test_esg_generator_onset_crb_matches_a_trajectory_difference():
     names = bench._TRUTH_RIG.param_space.nominal_names() + bench._EFFECT_PARAMS["drift_transient"]
     j = bench._model_jac(p, cond, ts[:n_train], names) / sigma
     assert truth["decay_crb_log"] == pytest.approx(bench.onset_crb(j, jt), rel=0.03)
+
+
+def test_blind_scores_worked_by_hand(tmp_path):
+    """``bench.score`` on a sealed manifest and results written by hand (2 nulls, 4 in-library
+    cases at lambda 32, 3 out-of-library, 1 two-effect case), every rate worked out here from
+    the definitions of spec §5.6: false alarms and the calibrated level's median, power, top-1
+    and top-3 by posterior, the 90 % set's coverage and size, confident misattribution, the
+    oracle's top-1 read at lambda 32 between its recorded 16 and 64 (linear in log lambda) and
+    the paired ratio with its delta-method error, ECE and Brier of the renormalised
+    posteriors, the held-out reduction (cases clear of their null band) and closure, G9's
+    confident misattribution (a noise term without a posterior counts as confident), both
+    members of a two-effect case named, G5's confounding recall and precision, and the binomial
+    standard error sqrt(p (1 - p) / n); the other rigs' scorer's named rate and G7's 0.9 rule."""
+    from gyrojax.diagnose import bench
+
+    common = {"time_diagnose_s": 1.0, "time_screen_s": 0.1, "ranking": [{"name": "x"}],
+              "noise_effects": []}
+    cases = [  # (truth, result)
+        ({"family": "null"}, {"verdict": "no-gap", "min_q": 0.2, "level": 0.08,
+                              "b1_detect": False, "b2_choice": "none"}),
+        ({"family": "null"}, {"verdict": "attributed", "min_q": 0.01, "level": 0.1,
+                              "b1_detect": True, "b2_choice": "rotor_tilt"}),
+        ({"family": "rotor_tilt", "lambda": 32.0, "visibility": "visible"},
+         {"verdict": "attributed", "posterior": {"rotor_tilt": 0.95, "drift_ramp": 0.03},
+          "ambiguity": ["rotor_tilt"], "heldout_gap_before": 10.0, "heldout_gap_after": 1.0,
+          "null_band": [0.0, 2.0], "null_band_after": [0.0, 2.0], "b1_detect": True,
+          "b2_choice": "rotor_tilt", "b2_lr_choice": "rotor_tilt",
+          "flags": {"rotor_tilt": "visible"}, "single_refits": {"rotor_tilt": 0.5},
+          "log_bf_by_lambda": {"rotor_tilt": {"16": 0.0, "64": 4.0},
+                               "drift_ramp": {"16": 1.2, "64": 2.0}}}),
+        ({"family": "drift_ramp", "lambda": 32.0, "visibility": "no signature"},
+         {"verdict": "ambiguous", "posterior": {"drift_transient": 0.6, "diurnal_line": 0.35},
+          "ambiguity": ["drift_transient", "drift_ramp"], "heldout_gap_before": 8.0,
+          "heldout_gap_after": 4.0, "null_band": [0.0, 2.0], "null_band_after": [0.0, 3.0],
+          "b1_detect": False, "b2_choice": "drift_transient", "b2_lr_choice": "drift_ramp",
+          "flags": {"drift_ramp": "no signature"}, "single_refits": {"drift_ramp": 1.0}}),
+        ({"family": "drift_step", "lambda": 32.0,
+          "visibility": "practically confounded"},
+         {"verdict": "attributed",
+          "posterior": {"rotor_tilt": 0.92, "drift_ramp": 0.04, "drift_step": 0.03},
+          "ambiguity": ["rotor_tilt"], "heldout_gap_before": 6.0, "heldout_gap_after": 5.0,
+          "null_band": [0.0, 7.0], "null_band_after": [0.0, 2.0], "b1_detect": False,
+          "b2_choice": "drift_step", "flags": {"drift_step": "visible"}}),
+        ({"family": "base_misalignment", "lambda": 32.0, "visibility": "no signature"},
+         {"verdict": "no-gap", "posterior": {"base_misalignment": 0.2, "rotor_tilt": 0.1},
+          "ambiguity": [], "heldout_gap_before": 1.0, "heldout_gap_after": None,
+          "null_band": [0.0, 2.0], "null_band_after": None, "b1_detect": False,
+          "b2_choice": "none", "flags": {"base_misalignment": "no signature"}}),
+        ({"family": "hvac_line", "lambda": 64.0, "remainder_lambda": 40.0},
+         {"verdict": "attributed", "effects": ["drift_ramp"], "posterior": {"drift_ramp": 0.95}}),
+        ({"family": "heater_cycle", "lambda": 64.0, "remainder_lambda": 50.0},
+         {"verdict": "unexplained", "effects": [], "posterior": {"drift_ramp": 0.3}}),
+        ({"family": "hvac_line", "lambda": 64.0, "remainder_lambda": 45.0},
+         {"verdict": "attributed", "effects": ["outliers"], "posterior": {"drift_ramp": 0.2}}),
+        ({"family": "two_effects", "effects": [{"family": "rotor_tilt"}, {"family": "drift_ramp"}]},
+         {"verdict": "attributed", "effects": ["rotor_tilt"],
+          "ambiguity": ["drift_ramp", "drift_step"], "posterior": {"rotor_tilt": 0.7}}),
+    ]
+    manifest, results = {}, []
+    for k, (t, r) in enumerate(cases):
+        manifest[f"c{k}"] = t
+        results.append(common | {"effects": [], "ambiguity": []} | r | {"sha": f"c{k}"})
+    (tmp_path / "sealed").mkdir()
+    (tmp_path / "sealed" / "manifest.json").write_text(json.dumps({"cases": manifest}))
+    s = bench.score(tmp_path, results)
+
+    def se(p, n):
+        return math.sqrt(p * (1 - p) / n)
+
+    assert s["far"] == {"rate": 0.5, "se": se(0.5, 2), "n": 2}
+    assert s["far_plain_bh"]["rate"] == 0.5 and s["level_median"] == 0.1  # upper median of 2
+    assert s["b1_far"]["rate"] == 0.5 and s["b2_false_selection"]["rate"] == 0.5
+    b = s["lambda=32"]
+    rates = {k: b[k]["rate"] for k in ("power", "top1", "top3", "set_coverage",
+                                       "confident_misattribution", "b1_power", "b2_top1",
+                                       "oracle_top1")}
+    assert rates == {"power": 0.75, "top1": 0.5, "top3": 0.75, "set_coverage": 2 / 3,
+                     "confident_misattribution": 0.25, "b1_power": 0.25, "b2_top1": 0.5,
+                     "oracle_top1": 0.25}
+    assert b["set_coverage"]["n"] == 3 and b["mean_set_size"] == pytest.approx(4 / 3)
+    # the paired ratio top-1 / oracle: x = (1, 0, 0, 1), y = (1, 0, 0, 0): 0.5 / 0.25, and
+    # se = sd(x - 2 y) / (sqrt(4) mean(y)) = sqrt(0.5) / 0.5
+    assert b["oracle_efficiency"]["rate"] == 2.0
+    assert b["oracle_efficiency"]["se"] == pytest.approx(math.sqrt(0.5) / 0.5)
+    # calibration: top posteriors renormalised, 0.95/0.98 and 0.92/0.99 in bin 9 (one right),
+    # 0.6/0.95 and 0.2/0.3 in bin 6 (one right); Brier with 1 for a family given no posterior
+    c = (0.95 / 0.98, 0.6 / 0.95, 0.92 / 0.99, 0.2 / 0.3)
+    ece = 0.5 * abs(0.5 - (c[0] + c[2]) / 2) + 0.5 * abs(0.5 - (c[1] + c[3]) / 2)
+    brier = np.mean([(c[0] - 1) ** 2 + (0.03 / 0.98) ** 2,
+                     c[1] ** 2 + (0.35 / 0.95) ** 2 + 1.0,
+                     c[2] ** 2 + (0.04 / 0.99) ** 2 + (0.03 / 0.99 - 1) ** 2,
+                     (c[3] - 1) ** 2 + (0.1 / 0.3) ** 2])
+    assert b["calibration"]["ece"] == pytest.approx(ece, rel=1e-12)
+    assert b["calibration"]["brier"] == pytest.approx(brier, rel=1e-12)
+    # held-out: reductions 0.9 and 0.5 (the third case's gap is inside its band); closure 1 of 3
+    assert s["heldout_reduction_median"] == pytest.approx(0.7)
+    assert s["heldout_closure"]["rate"] == pytest.approx(1 / 3)
+    assert s["out_of_library_honest"]["rate"] == pytest.approx(2 / 3)
+    assert s["ool_confident_misattribution"]["rate"] == pytest.approx(2 / 3)
+    assert s["two_effects_both_named"]["rate"] == 1.0
+    assert s["screen_refit_agreement"] == {"rate": 0.5, "se": se(0.5, 2), "n": 2}
+    assert s["confident_misattribution_all"]["rate"] == 0.25
+    # G5: truly confounded 2, 3, 4 (1-based among the four), flagged 2 and 4
+    assert s["confounding_recall"]["rate"] == pytest.approx(2 / 3)
+    assert s["confounding_precision"]["rate"] == 1.0
+    assert s["confounding_agreement"]["rate"] == 0.75
+    # the other rigs' scorer on the same cases: named = in the verdict, the set or the noise
+    # list; G7's rule R >= 0.9 R_oracle: 0.9 >= 0.9 x 0.95 holds, 0.5 >= 0.9 x 0.875 does not
+    from gyrojax.diagnose._harness import score_cases
+
+    h = score_cases(tmp_path, results, bench.LIBRARY_FAMILIES,
+                    out_of_library=bench.OUT_OF_LIBRARY)
+    assert h["by_lambda"]["32"]["named"]["rate"] == 0.5
+    assert h["by_lambda"]["32"]["top1"]["rate"] == 0.5
+    assert h["heldout_vs_oracle"] == {"rate": 0.5, "se": se(0.5, 2), "n": 2}
