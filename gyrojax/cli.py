@@ -232,6 +232,9 @@ def cmd_fit(args):
     conv = (convergence_text(report.converged, ex["num_steps"], ex["remaining_step_se"])
             if "remaining_step_se" in ex else f"converged: {report.converged}")
     print(f"residual RMS {report.to_json()['residual_rms_arcsec']:.4g} arcsec; {conv}")
+    if "residual_noise_arcsec" in ex and "noise_std_arcsec" in ex:
+        print(f"standard errors at the given noise {ex['noise_std_arcsec']:.4g} arcsec (the "
+              f"residual's estimate: {ex['residual_noise_arcsec']:.4g} arcsec)")
     _emit_json(report.to_json() | {"rig": "esg", "scheme": scheme, "latitude_deg": lat,
                                    "effects": list(effects)}, args.json)
 
@@ -688,7 +691,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "the record's static poses and of the turns between them for the gyros; "
                         "RECORD may be dataset:NAME)")
     p.add_argument("--noise-arcsec", type=float,
-                   help="angle noise for --method kalman (default: estimated)")
+                   help="the known angle noise (esg): the filter's measurement noise with "
+                        "--method kalman; with gauss-newton / levenberg-marquardt the standard "
+                        "errors are taken at it instead of at the residual's estimate (both are "
+                        "in the JSON); not used by --method regression (default: estimated)")
     _schuler_options(p, length=False)
     p.set_defaults(func=cmd_fit)
 

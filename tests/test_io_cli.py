@@ -172,6 +172,22 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     assert fit["parameters"]["m11"]["value"] == pytest.approx(0.3, abs=5 * fit["parameters"]["m11"]["stderr"])
     assert fit["parameters"]["theta1"]["unit"] == "arcsec"
     assert fit["residual_rms_arcsec"] == pytest.approx(1.0, rel=0.1)
+    # a known noise sets Gauss-Newton's standard errors: sigma (J^T J)^-1/2 at 2 arcsec is the
+    # residual estimate's times 2 / sigma_hat, and the estimates are the same fit's
+    gout = tmp_path / "fit2.json"
+    assert main(["fit", str(rec), "--effects", "rotor_tilt", "--noise-arcsec", "2",
+                 "--json", str(gout)]) == 0
+    fit2 = json.loads(gout.read_text())
+    assert fit2["noise_std_arcsec"] == 2.0
+    assert fit2["residual_noise_arcsec"] == pytest.approx(fit["residual_noise_arcsec"], rel=1e-9)
+    assert fit["residual_noise_arcsec"] == pytest.approx(1.0, rel=0.1)
+    ratio = 2.0 / fit["residual_noise_arcsec"]
+    for k in ("m11", "mc2", "theta1"):
+        assert fit2["parameters"][k]["value"] == pytest.approx(fit["parameters"][k]["value"], rel=1e-9)
+        assert fit2["parameters"][k]["stderr"] == pytest.approx(ratio * fit["parameters"][k]["stderr"],
+                                                                rel=1e-9)
+    assert main(["fit", str(rec), "--method", "regression", "--noise-arcsec", "2"]) == 2
+    assert "not used by method='regression'" in capsys.readouterr().err
     kout = tmp_path / "kf.json"
     assert main(["fit", str(rec), "--method", "kalman", "--effects", "rotor_tilt",
                  "--noise-arcsec", "1", "--json", str(kout)]) == 0

@@ -85,7 +85,12 @@ def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "
       ``"levenberg-marquardt"`` (exact model, started from the regression), ``"kalman"``
       (augmented-state square-root filter; with ``drift_transient`` it carries transient states
       with decay rate ``transient_k`` per unit tau).
-    - `noise_std`: angle noise for the Kalman filter (rad); default: estimated from the regression.
+    - `noise_std`: the angle noise (rad), when it is known (e.g. from the pick-off's own test).
+      ``"kalman"``: the filter's measurement noise (default: estimated from the regression).
+      ``"gauss-newton"`` / ``"levenberg-marquardt"``: the standard errors are taken at this noise,
+      ``noise_std * sqrt(diag((J^T J)^-1))``, instead of at the residual's estimate
+      ``sqrt(SSR / dof)`` (both are reported in ``extra``). ``"regression"`` estimates its own noise
+      from the block residuals and refuses a given one.
     """
     space = rig.param_space
     if method not in METHODS:
@@ -102,6 +107,14 @@ def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "
     if other and method in ("regression", "kalman"):
         raise ValueError(f"effect(s) {other} are fitted by --method gauss-newton or "
                          f"levenberg-marquardt only, not by --method {method}")
+    if noise_std is not None:
+        if method == "regression":
+            raise ValueError("noise_std is not used by method='regression' (it estimates the noise "
+                             "from its block residuals); drop it, or use method='gauss-newton' for "
+                             "standard errors at a known noise, or 'kalman'")
+        if not np.isfinite(noise_std) or noise_std <= 0:
+            raise ValueError(f"noise_std={noise_std}: give the angle noise as a positive number "
+                             "(rad; --noise-arcsec in arcsec), or leave it out to estimate it")
     reg = integral_regression(rig, record, conditions, window=window, quadrature=quadrature,
                               names=lin)
     y0 = record.y[0]
@@ -117,6 +130,10 @@ def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "
             p = p | {"k_tr": jnp.asarray(transient_k, float)}
         res = fit_trajectory(rig, record, conditions, p, free=free, method=method, throw=False)
         p, stderr = res.params, res.stderr_dict()
+        extra["residual_noise_arcsec"] = float(np.degrees(res.noise_std) * 3600)
+        if noise_std is not None:  # standard errors at the known noise, not at the residual's
+            stderr = {k: v * (noise_std / res.noise_std) for k, v in stderr.items()}
+            extra["noise_std_arcsec"] = float(np.degrees(noise_std) * 3600)
         converged = bool(res.converged)
         extra["num_steps"] = int(res.num_steps)
         extra["remaining_step_se"] = float(res.remaining_step_se)
