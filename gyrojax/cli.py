@@ -538,13 +538,11 @@ def cmd_diagnose(args):
                              "model (AR prewhitening) from the record")
         record = _load_imu(args)
     elif args.rig == "platform":
-        from .models.platform_schedule import CHANNELS, load_schedule
+        from .models.platform_schedule import CHANNELS, load_schedule, schedule_json
 
         record = _load(args, CHANNELS)
         if args.schedule:
-            s = load_schedule(args.schedule)
-            record = record.with_conditions(schedule_json=json.dumps(
-                {k: v for k, v in s.items() if k != "mounting_matrix"}))
+            record = record.with_conditions(schedule_json=schedule_json(load_schedule(args.schedule)))
     else:
         record = _load(args, ESGRig().channels)
         _, _, scheme, lat = _rig_and_conditions(args, record)
@@ -595,8 +593,9 @@ def _common(p, *, record=False, scheme=True):
                         "gyrotheodolite (north-seeking run; simulate and diagnose)")
     p.add_argument("--schedule", metavar="JSON",
                    help="platform: test schedule file (positions_deg, table_amplitudes_g, "
-                        "attenuation, frequency_hz, dwell_s, sample_s, latitude_deg, mounting); "
-                        "default Table 1 at 9 and 7 g")
+                        "attenuation, frequency_hz, dwell_s, sample_s, latitude_deg, mounting, "
+                        "phases_rad: the vibration phase of each dwell, amplitude-major); default "
+                        "Table 1 at 9 and 7 g; a simulated record carries its schedule")
     if scheme:
         p.add_argument("--scheme", help="mounting scheme: polar, equatorial, horizontal, vertical "
                                         "(default: from the record's attributes)")

@@ -14,8 +14,8 @@ import numpy as np
 
 from .platform import DEFAULT_MOUNTING, ENU_MOUNTING, TABLE1_DEG, PlatformRig, schedule
 
-__all__ = ["CHANNELS", "SCHEDULE_FIELDS", "load_schedule", "schedule_conditions", "dwell_times",
-           "dwell_span", "split_record", "simulate_schedule"]
+__all__ = ["CHANNELS", "SCHEDULE_FIELDS", "load_schedule", "default_phases", "schedule_json",
+           "schedule_conditions", "dwell_times", "dwell_span", "split_record", "simulate_schedule"]
 
 CHANNELS = ("alpha", "beta", "gamma", "ax", "ay", "az", "position", "amplitude")
 SCHEDULE_FIELDS = {
@@ -27,6 +27,8 @@ SCHEDULE_FIELDS = {
     "sample_s": "sampling interval in s (default 0.025)",
     "latitude_deg": "latitude (default 45.75)",
     "mounting": "'default' (y_b Up), 'enu' (z_b Up) or a 3x3 C_r^b",
+    "phases_rad": "vibration phase of each dwell, one row of positions per amplitude, in rad "
+                  "(default: drawn uniform with seed 0; a simulated record carries its phases)",
 }
 
 
@@ -65,6 +67,21 @@ def load_schedule(source) -> dict:
     if s["attenuation"] <= 0 or s["dwell_s"] <= 0:
         raise ValueError("schedule: attenuation and dwell_s must be > 0")
     check_sampling(float(s["sample_s"]), float(s["frequency_hz"]))
+    shape = (len(amps), len(s["positions_deg"]))
+    if s.get("phases_rad") is None:
+        s["phases_rad"] = default_phases(*shape).tolist()
+    else:
+        fix = (f"give {shape[0]} row(s) (one per table amplitude) of {shape[1]} finite phases in "
+               "rad (one per position), or leave it out")
+        try:
+            ph = np.asarray(s["phases_rad"], float)
+        except (TypeError, ValueError):
+            raise ValueError(f"schedule: phases_rad {s['phases_rad']!r} is not an array of "
+                             f"numbers; {fix}") from None
+        if ph.shape != shape or not np.all(np.isfinite(ph)):
+            raise ValueError(f"schedule: phases_rad has shape {ph.shape}"
+                             f"{'' if np.all(np.isfinite(ph)) else ' and a non-finite value'}; {fix}")
+        s["phases_rad"] = ph.tolist()
     m = s["mounting"]
     s["mounting_matrix"] = (DEFAULT_MOUNTING if m == "default" else ENU_MOUNTING if m == "enu"
                             else np.asarray(m, float)).tolist()
@@ -85,15 +102,28 @@ def _check_size(s):
                          f"{MAX_SAMPLES:,}: shorten the dwells or lengthen sample_s")
 
 
+def default_phases(n_amplitudes: int, n_positions: int) -> np.ndarray:
+    """The vibration phases of a schedule that names none (rad, ``n_amplitudes x n_positions``):
+    uniform on [0, 2 pi) from seed 0, amplitude-major (the phases every schedule had before they
+    were recorded in it)."""
+    return np.random.default_rng(0).uniform(0, 2 * np.pi, (n_amplitudes, n_positions))
+
+
+def schedule_json(s) -> str:
+    """The record attribute ``schedule_json`` of a loaded schedule (its fields as given, the
+    mounting by name or matrix, the phases included)."""
+    return json.dumps({k: v for k, v in s.items() if k != "mounting_matrix"})
+
+
 def schedule_conditions(s):
     """One stacked PlatformConditions per table amplitude (platform amplitude = table /
-    attenuation; vibration phases drawn with a fixed seed, as recorded; each dwell's start
+    attenuation; the schedule's vibration phases, see ``phases_rad``; each dwell's start
     ``t0`` in the test, the dwells one after another amplitude-major)."""
-    rng = np.random.default_rng(0)
     pos = np.asarray(s["positions_deg"], float)
     step = dwell_span(s)
+    phases = np.asarray(s["phases_rad"], float)
     return [schedule(pos, a0=a / s["attenuation"], latitude_deg=s["latitude_deg"],
-                     frequency_hz=s["frequency_hz"], phases=rng.uniform(0, 2 * np.pi, len(pos)),
+                     frequency_hz=s["frequency_hz"], phases=phases[k],
                      mounting=s["mounting_matrix"], t0s=(k * len(pos) + np.arange(len(pos))) * step)
             for k, a in enumerate(s["table_amplitudes_g"])]
 
@@ -151,6 +181,5 @@ def simulate_schedule(params, s, key, *, noise_arcsec: float = 1.0, accel_noise_
             t_all.append(t0 + np.asarray(ts))
             t0 += dwell_span(s)
     return BenchRecord(jnp.asarray(np.concatenate(t_all)), jnp.asarray(np.concatenate(blocks)),
-                       CHANNELS, freeze({"schedule_json": json.dumps(
-                           {k: v for k, v in s.items() if k != "mounting_matrix"}),
-                           "latitude_deg": s["latitude_deg"]}))
+                       CHANNELS, freeze({"schedule_json": schedule_json(s),
+                                         "latitude_deg": s["latitude_deg"]}))
