@@ -5,6 +5,7 @@ bad input refused with the fix named."""
 
 import json
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -169,3 +170,88 @@ def test_nominal_fit_converges_when_the_model_jitters_at_its_solver_tolerance(tm
     got = prob.fit_nominal()
     for k, s in zip(NOMINAL, prob.nominal_scales, strict=True):
         assert abs(float(got[k]) - float(ref[k])) < 1e-6 * s, k
+
+
+def test_design_jacobians_stack_runs_each_with_its_own_release_state(tmp_path):
+    """The advisor's designs by hand: the longer run keeps the sample count at half the rate
+    (and says so); a two-run design's whitened Jacobian is the runs' blocks stacked, each run's
+    model at its own rotor momentum and compensation gain (from the model's own Jacobian at
+    ``H/2`` or ``kappa + 10``), the index offset, stiffness and damping shared, and the release
+    state (``alpha0``, ``alpha_dot0``) its own per run (block diagonal); the advisor's one grid
+    value per effect is that value's slice of the whole grid; and a record's own instrument
+    constants (``H``, ``kappa``...) are the model's."""
+    from gyrojax.diagnose._gyrotheodolite import NOMINAL, RUN_STATE, GyrotheodoliteProblem
+    from gyrojax.io import load_record
+
+    rec = tmp_path / "design.nc"
+    assert main(["simulate", "--rig", "gyrotheodolite", "--seed", "2", "--set",
+                 f"index_offset={OFFSET}", "--set", "alpha0=5", "--out", str(rec)]) == 0
+    prob = GyrotheodoliteProblem(load_record(rec), holdout=0.25)
+    t = prob.t
+    (l_long, runs_long, t_long), (_, runs_k, t_k), (_, runs_h, t_h) = prob.designs()
+    dt = t[1] - t[0]
+    np.testing.assert_allclose(t_long, t[0] + 2 * dt * np.arange(len(t)), rtol=1e-12)
+    assert l_long == f"{2 * (t[-1] - t[0]) / 60:.0f} min run ({2 * dt:g} s samples)"
+    assert runs_long == (("run", 1.0, 0.0),) and t_k is t and t_h is t
+    # the record's instrument constants are the model's
+    other = GyrotheodoliteProblem(load_record(rec).with_conditions(H=0.9 * DEFAULTS["H"], kappa=3.0))
+    assert float(other.base["H"]) == 0.9 * DEFAULTS["H"] and float(other.base["kappa"]) == 3.0
+    params = {k: prob.base[k] for k in NOMINAL} | {"index_offset": jnp.asarray(OFFSET * units.ARCSEC)}
+    sigma = np.array([2.0 * units.ARCSEC])
+    shared = ("index_offset", "kappa", "F_KC")
+    col = [prob.all_names.index(k) for k in shared + RUN_STATE]
+    base = prob.base | params
+    for runs, second in ((runs_k, {"kappa": base["kappa"] + 10.0}),
+                         (runs_h, {"H": base["H"] * 0.5})):
+        jn, every = prob.jacobians(params, sigma, conditions=runs)  # runs_h's kept below
+        j1 = prob._eval(base)[1][:, col] / sigma[0]
+        j2 = prob._eval(base | second)[1][:, col] / sigma[0]
+        m = len(t)
+        want = np.zeros((2 * m, 7))
+        want[:m, :3], want[m:, :3] = j1[:, :3], j2[:, :3]
+        want[:m, 3:5], want[m:, 5:7] = j1[:, 3:], j2[:, 3:]
+        assert np.max(np.abs(j2 - j1)) > 1e-3 * np.max(np.abs(j1))  # the second run differs
+        np.testing.assert_allclose(jn, want, rtol=1e-9, atol=1e-9 * np.max(np.abs(want)))
+    # the advisor's one grid value per effect is that value's slice of the full grid
+    _, one = prob.jacobians(params, sigma, conditions=runs_h,
+                            grid={"torque_step": 5, "drift_transient": 2})
+    for a, b in zip(every, one, strict=True):
+        g = {"torque_step": 5, "drift_transient": 2}.get(a.name)
+        if g is None:
+            np.testing.assert_array_equal(b.jac, a.jac)
+        else:
+            assert b.grid == (a.grid[g],)
+            np.testing.assert_allclose(b.jac[0], a.jac[g], rtol=1e-12, atol=1e-12)
+
+
+def test_nominal_fit_stops_at_the_optimum_and_a_refit_keeps_its_grid_value(tmp_path):
+    """The Gauss-Newton fits end where one more step is negligible (under 1e-3 standard errors
+    of the train residual's noise), and a refit with a torque step holds the onset the screening
+    chose: a 1 nN m step at 12 min (the grid's 6th onset, 5 % of the 40-min record apart) is
+    measured to 5 % there."""
+    from gyrojax.diagnose._gyrotheodolite import NOMINAL, GyrotheodoliteProblem
+    from gyrojax.io import load_record
+
+    rec = tmp_path / "step.nc"
+    assert main(["simulate", "--rig", "gyrotheodolite", "--seed", "9", "--set",
+                 f"index_offset={OFFSET}", "--set", "alpha0=5", "--set", "M_step=1.0", "--set",
+                 "t_step=12", "--out", str(rec)]) == 0
+    prob = GyrotheodoliteProblem(load_record(rec), holdout=0.25)
+    assert prob.step_grid_s[5] == pytest.approx(720.0, abs=1e-9)
+    n = prob.n_train
+    p0 = prob.fit_nominal()
+    sigma = np.array([2.0 * units.ARCSEC])
+    _, sigs = prob.jacobians(p0, sigma)
+    step = next(s for s in sigs if s.name == "torque_step")
+    _, coeffs, p = prob.refit(p0, [(step, 5)], sigma)
+    assert float(p["t_step"]) == pytest.approx(720.0, abs=1e-9)
+    assert coeffs["M_step"] == pytest.approx(1.0, rel=0.05)
+    names = NOMINAL + ("M_step",)
+    cols = [prob.all_names.index(k) for k in names]
+    for fitted, free in ((prob.base | p0, NOMINAL), (p, names)):
+        c = cols[:len(free)]
+        pred, jac = prob._eval(fitted)
+        r = prob.y[:n, 0] - pred[:n]
+        left, *_ = np.linalg.lstsq(jac[:n, c], r, rcond=None)
+        noise = np.sqrt(np.sum(r ** 2) / (n - len(free)))
+        assert np.linalg.norm(jac[:n, c] @ left) / noise < 1e-3, free

@@ -362,3 +362,54 @@ def test_advised_amplitudes_read_the_advisor_labels():
     assert advised_amplitudes("an added 0 g (static) run", [9.0, 7.0]) == [9.0, 7.0, 0.0]
     with pytest.raises(ValueError, match="not a platform design"):
         advised_amplitudes("48 h record", [9.0])
+
+
+def test_noise_level_heldout_band_and_designs_by_monte_carlo(records):
+    """The platform diagnosis' statistics against their own truths. The block-mean noise level
+    from second differences within dwells recovers the simulated 1 arcsec / sqrt(block size)
+    (pooled over the channels, within 8 %: ~3 standard errors); its stated dof matches a Monte
+    Carlo of the same estimator on white rows (2 / var(s^2), within 10 %). The held-out gap's
+    null mean (nominal leverage plus the held-out rows' share of the train-fitted offsets,
+    ``heldout_extra``) matches a Monte Carlo of white block means centred per dwell on its train
+    blocks, the nominal fitted on the train rows (within 4 standard errors; the offsets' share
+    1 / 38 is ~13 of them). A one-amplitude record's designs add a 7 g (table) run (platform
+    amplitude 7 / 1.5 g) and a 0 g run to its 9 g (6 g on the platform)."""
+    from gyrojax.diagnose._diagnose import _null_band
+
+    prob = PlatformProblem(load_record(records["null"]))
+    params = prob.fit_nominal()
+    n, k_tr = prob.n_train, prob.n_blocks - prob.k_ho
+    assert (prob.n_blocks, k_tr) == (50, 38)
+    resid = prob.y - prob.predict(params)
+    s, dof, how = prob.noise_level(resid[:n])
+    sizes = np.array([len(g) for g in np.array_split(np.arange(len(prob.ts)), prob.n_blocks)])
+    sigma_b = units.ARCSEC * np.sqrt(np.mean(1.0 / sizes))  # 1 arcsec per sample
+    assert "second differences" in how
+    assert abs(np.sqrt(np.mean(s ** 2)) / sigma_b - 1) < 0.08, s / sigma_b
+    rng = np.random.default_rng(1)
+    lev = prob._second_difference_level(rng.standard_normal((4000, n, 3)))
+    assert dof == pytest.approx(2 / np.var(lev ** 2), rel=0.10)
+
+    jn_all, _ = prob.jacobians(params, np.ones(3))
+    m_tr = n * 3
+    m_ho = jn_all.shape[0] - m_tr
+    mean, _ = _null_band(jn_all, m_tr, m_ho, prob.heldout_extra)
+    n_dw = n // k_tr
+    draws = 1000
+    z = rng.standard_normal((draws, n_dw, prob.n_blocks, 3))
+    z -= z[:, :, :k_tr].mean(axis=2, keepdims=True)  # each dwell centred on its train blocks
+    rows = np.concatenate([z[:, :, :k_tr].reshape(draws, -1), z[:, :, k_tr:].reshape(draws, -1)],
+                          axis=1).T  # (rows x channels, draws): the train rows, then held out
+    beta, *_ = np.linalg.lstsq(jn_all[:m_tr], rows[:m_tr], rcond=None)
+    gap = np.mean((rows[m_tr:] - jn_all[m_tr:] @ beta) ** 2, axis=0) - 1
+    assert prob.heldout_extra == pytest.approx(1 / 38, rel=1e-12)
+    assert abs(gap.mean() - mean) < 4 * gap.std() / np.sqrt(draws), (gap.mean(), mean)
+
+    one = PlatformProblem(load_record(records["one"]))
+    assert one.amps == pytest.approx([6.0], rel=1e-12)
+    (l2, (_, c2, a2), _), (l0, (_, c0, a0), _) = one.designs()
+    assert l2 == "second amplitude 7 g (table)" and a2 == pytest.approx([6.0, 7 / 1.5], rel=1e-12)
+    assert l0 == "an added 0 g (static) run" and a0 == pytest.approx([6.0, 0.0], abs=1e-12)
+    for conds, amps in ((c2, a2), (c0, a0)):
+        for c, a in zip(conds, amps, strict=True):
+            np.testing.assert_allclose(np.asarray(c.a0), a, rtol=1e-12)

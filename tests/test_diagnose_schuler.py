@@ -5,6 +5,7 @@ absorbed by the bias with the analytic alias ``g`` per radian; a null record lef
 import json
 import math
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -170,3 +171,56 @@ def test_schuler_localisation_scores_by_hand(tmp_path):
     expected = [math.erf(tol_min / (math.sqrt(2) * s)) for s in (6.0, 3.0)]
     assert g8["g8_step_onset_crb"] == {"rate": pytest.approx(np.mean(expected), rel=1e-12),
                                        "n": 2}
+
+
+def test_schuler_problem_lines_designs_and_jacobians_by_hand(tmp_path):
+    """The Schuler diagnosis' pieces against independent arithmetic, without a fit: the gap map's
+    lines at ``2 pi sqrt(a_R / g)`` and half of it; the advisor's four designs as labelled (twice
+    the record on the same step, V2' negated, the start azimuth + 90 deg, both V' doubled); the
+    screening's whitened columns (a drift ramp's, and a drift step's at its 4th onset) equal to
+    central differences of ``predict`` (the model in the test's residual coordinates, spec §8)
+    per unit ``Param.scale``, divided by the channel noise (the prior scale in display units);
+    and a record too short refused with the numbers."""
+    from gyrojax.diagnose._schuler import DEFAULT_NOISE, SchulerProblem
+    from gyrojax.models.schuler import EARTH_RADIUS
+
+    rec = load_record(_simulate(tmp_path, "pieces", [], seed=7))
+    prob = SchulerProblem(rec)
+    c = prob.conditions
+    period = 2 * math.pi * math.sqrt(EARTH_RADIUS / float(c.g))
+    assert 5000 < period < 5100
+    assert prob.lines == pytest.approx({"Schuler period": period, "half Schuler period": period / 2},
+                                       rel=1e-12)
+    t = prob.t
+    (l1, c1, t1), (l2, c2, t2), (l3, c3, t3), (l4, c4, t4) = prob.designs()
+    assert t1[0] == t[0] and t1[-1] - t1[0] == pytest.approx(2 * (t[-1] - t[0]), rel=1e-12)
+    np.testing.assert_allclose(np.diff(t1), t[1] - t[0], rtol=1e-12)
+    assert c1 is c and l1 == f"{2 * (t[-1] - t[0]) / 60:.0f} min record"
+    v1, v2, az = float(c.v10), float(c.v20), float(c.a0)
+    for cond, want in ((c2, (v1, -v2, az)), (c3, (v1, v2, az + math.radians(90))),
+                       (c4, (2 * v1, 2 * v2, az))):
+        assert (float(cond.v10), float(cond.v20), float(cond.a0)) == pytest.approx(want, abs=1e-12)
+        assert float(cond.g) == float(c.g) and float(cond.latitude) == float(c.latitude)
+    assert l2 == f"initial velocities ({v1:g}, {-v2:g}) m/s" and "start azimuth 90 deg" == l3
+    assert all(x is t for x in (t2, t3, t4))
+
+    sp = prob.space
+    params = sp.make({"nu1": 0.1, "D22": 5000.0, "df2": 0.005}, display=True)
+    sigma = np.asarray(DEFAULT_NOISE)
+    _, sigs = prob.jacobians(params, sigma)
+    sig = {s.name: s for s in sigs}
+    np.testing.assert_allclose(sig["drift_ramp"].prior_scale, RAMP, rtol=1e-12)  # display units
+    g = 3
+    for name, grid in (("drift_ramp", {}), ("drift_step", {"t_step": prob.step_grid_s[g]})):
+        s = sig[name]
+        at = params | {k: jnp.asarray(v) for k, v in grid.items()}
+        for i, k in enumerate(s.names):
+            h = 1e-2 * float(sp[k].scale)
+            fd = (prob.predict(at | {k: at[k] + h}) - prob.predict(at | {k: at[k] - h})) / (2 * h)
+            col = (fd * float(sp[k].scale) / sigma).reshape(-1)
+            got = s.jac[g if grid else 0][:, i]
+            assert np.max(np.abs(got - col)) < 1e-3 * np.max(np.abs(col)), (name, k)
+
+    with pytest.raises(ValueError, match=r"the train part spans \d+ s, less than half a Schuler "
+                                         r"period \(2531 s\)"):
+        SchulerProblem(load_record(_simulate(tmp_path, "short", ["nu1=0"], seed=1)), holdout=0.8)
