@@ -413,3 +413,43 @@ def test_noise_level_heldout_band_and_designs_by_monte_carlo(records):
     for conds, amps in ((c2, a2), (c0, a0)):
         for c, a in zip(conds, amps, strict=True):
             np.testing.assert_allclose(np.asarray(c.a0), a, rtol=1e-12)
+
+
+def test_a_hidden_drift_ramp_is_measured_in_deg_per_h_per_h(tmp_path):
+    """A drift ramp of 0.3 deg/h/h about the platform's z axis, simulated by the ODE model with
+    the rig's effect group: the screening's one-step estimate (within 4 of its standard errors)
+    and the refit's coefficient (within 5 %) both read 0.3 in the catalogue's display unit; a
+    base rotation's arcsec and a drift's deg/h share a number (1 arcsec/s = 1 deg/h), a ramp's
+    unit does not."""
+    rec = tmp_path / "ramp.nc"
+    assert main(["simulate", "--rig", "platform", "--out", str(rec), "--seed", "4",
+                 "--set", "ramp_z=0.3"] + NO_OO) == 0
+    rep = diagnose(load_record(rec), rig="platform", design_advice=False).to_json()
+    assert rep["verdict"]["effects"] == ["drift_ramp"]
+    row = next(r for r in rep["candidates"] if r["name"] == "drift_ramp")
+    assert dict(zip(row["onestep"], row["units"], strict=True))["ramp_z"] == "deg/h/h"
+    assert abs(row["onestep"]["ramp_z"] - 0.3) < 4 * row["onestep_se"]["ramp_z"]
+    refit = next(r for r in rep["refits"] if r["effects"] == ["drift_ramp"])
+    assert refit["coefficients"]["ramp_z"] == pytest.approx(0.3, rel=0.05)
+
+
+def test_catalogue_units_and_priors_are_the_rigs():
+    """Every platform catalogue effect reads in its rig parameters' display unit and SI factor
+    (one-step estimates, refits and MDEs in the rig's units), with the rig's prior scale (its
+    ``Param.scale``): 60 arcsec of base rotation, 0.3 deg/h of warm-up, 0.3 deg/h/h of ramp,
+    0.1 deg/h of rectification, and each drift coefficient screened on its own 1 deg/h/g (g
+    terms) or 0.03 deg/h/g^2 (g^2 terms); for the default nominal, the first-order one and a
+    bias-only one."""
+    from gyrojax.diagnose._platform import FIRST_ORDER_TERMS, platform_library
+    from gyrojax.models.platform import PlatformRig
+
+    sp = PlatformRig().param_space
+    seen = set()
+    for terms in (None, FIRST_ORDER_TERMS, ("f",)):
+        for e, (_, prior) in platform_library(terms).items():
+            unit, si = PlatformProblem._unit_si(e)
+            for n in PlatformProblem._effect_names(None, e):
+                assert (sp[n].display_unit, sp[n].display_factor) == (unit, pytest.approx(si, rel=1e-12)), n
+                assert prior == pytest.approx(sp[n].scale / sp[n].display_factor, rel=1e-12), n
+                seen.add(n)
+    assert len(seen) == 27 + 12  # every drift coefficient but D_f, and the other four effects

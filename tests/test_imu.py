@@ -778,3 +778,89 @@ def test_noise_scale_segment_times_and_weighted_accelerometer_fit():
     ours = np.array([cal.params[k] for k in ACCEL_NAMES])
     np.testing.assert_allclose(ours, ref, atol=1e-9)
     np.testing.assert_allclose(cal.residual, resid(ref) / np.sqrt(w), atol=1e-9)
+
+
+def test_imu_diagnosis_pieces_by_hand():
+    """The IMU diagnosis' pieces against independent arithmetic: the AR prewhitening is the FIR
+    filter ``1 - sum phi_i z^-i`` restarted in each pose (scipy's ``lfilter``); ``ar_noise_model``
+    on an ``lfilter``-generated AR(2) recovers its coefficients (0.05), innovation sd (3 %) and
+    order (BIC); the fit weights' robust row scale reads the sd of white rows (10 %); a table
+    run's block gain of the turning horizontal Earth rate is the mean of cos(omega t) over the
+    block's span (dense quadrature, 1e-6); the advisor's temperature cycle has period half the
+    record (its amplitude at an eighth, zero at a quarter) and dT/dt its derivative; the record
+    twice as long continues in time (a time drift's columns one record span + 1 s higher)."""
+    from scipy.signal import lfilter
+
+    from gyrojax.diagnose._diagnose import _problem
+    from gyrojax.diagnose._imu import CYCLE_MIN_C, ar_noise_model
+
+    prob = _problem(_record({}), "imu", 0.25, None, None, "exact", None)
+    params = prob.fit_nominal()
+    rng = np.random.default_rng(5)
+    n_rows, n_ch = len(prob.t), len(prob.channels)
+    ar = [np.array([0.5, -0.2]), np.array([0.3])] + [np.zeros(0)] * (n_ch - 2)
+    saved = prob._ar
+    prob._ar = ar
+    x = rng.standard_normal((n_rows, n_ch))
+    w = prob.whiten(x)
+    prob._ar = saved
+    assert len(np.unique(prob.seg)) == 12
+    for k in np.unique(prob.seg):
+        idx = prob.seg == k
+        for c, phi in enumerate(ar):
+            np.testing.assert_allclose(w[idx, c], lfilter(np.r_[1.0, -phi], [1.0], x[idx, c]),
+                                       rtol=1e-12, atol=1e-12)
+    e = lfilter([1.0], [1.0, -0.5, 0.2], 2.0 * rng.standard_normal(20000))
+    phis, sig, _ = ar_noise_model(e[:, None], np.ones((len(e), 1, 1)), np.zeros(len(e)))
+    assert len(phis[0]) == 2 and np.allclose(phis[0], [0.5, -0.2], atol=0.05)
+    assert sig[0] == pytest.approx(2.0, rel=0.03)
+    saved = prob.y
+    prob.y = 3.0 * rng.standard_normal(saved.shape)
+    np.testing.assert_allclose(prob._scale_rows(), 3.0, rtol=0.1)
+    prob.y = saved
+
+    span_t = prob.block / prob.rate_hz  # a block's span (s)
+    omega = np.array([0.5 * np.pi / span_t, 0.0])
+    gain = prob._geo(np.tile([0.0, 0.0, 1.0], (2, 1)), omega)[4]
+    dense = np.linspace(-span_t / 2, span_t / 2, 200001)
+    assert gain[0] == pytest.approx(np.trapezoid(np.cos(omega[0] * dense), dense) / span_t,
+                                    rel=1e-6)
+    assert gain[1] == 1.0
+
+    t0, span = prob.t[0], prob.t[-1] - prob.t[0]
+    amp = max(0.5 * float(np.ptp(prob.thermal[0])), CYCLE_MIN_C)
+    d_t, rate = prob.thermal_cycle(t0 + span * np.array([0.125, 0.25, 0.625]))
+    np.testing.assert_allclose(d_t, [amp, 0.0, amp], atol=1e-9 * amp)
+    tt = np.linspace(t0, t0 + span, 20001)
+    d_t, rate = prob.thermal_cycle(tt)
+    np.testing.assert_allclose(np.gradient(d_t, tt)[1:-1], rate[1:-1], rtol=0,
+                               atol=1e-4 * np.max(np.abs(rate)))
+
+    # a temperature channel: Delta T from its train mean, dT/dt its local slope (the cycle's
+    # derivative within 5 % of its peak: +-2.6 s windows on a 200-s period, 0.01 deg C noise),
+    # and the aux axis' five bins of equal train-row count
+    def temp_c(t):
+        return 25.0 + 2.0 * np.sin(2 * np.pi * np.asarray(t) / 200.0 + 0.3)
+
+    rec = _record({})
+    temp = temp_c(rec.t) + 0.01 * rng.standard_normal(len(rec.t))
+    hot = _problem(BenchRecord(rec.t, np.concatenate([np.asarray(rec.y), temp[:, None]], 1),
+                               rec.channels + ("temp",), rec.attrs), "imu", 0.25, None, None,
+                   "exact", None)
+    n = hot.n_train
+    assert abs(hot.thermal[0][:n].mean()) < 1e-12
+    slope = 2.0 * 2 * np.pi / 200.0 * np.cos(2 * np.pi * hot.t / 200.0 + 0.3)
+    np.testing.assert_allclose(hot.thermal[1], slope, rtol=0, atol=0.05 * 2.0 * 2 * np.pi / 200)
+    hot._ar = [np.zeros(0)] * len(hot.channels)  # no fit here: the identity prewhitening
+    bins = hot.aux_signatures(np.ones(len(hot.channels)))
+    counts = [int(np.sum(np.any(w != 0, axis=1))) for _, _, w in bins]
+    assert len(bins) == 5 and max(counts) - min(counts) <= 1 and sum(counts) == n
+
+    sigma = np.ones(n_ch)
+    _, sigs = prob.jacobians(params, sigma, conditions=("long", None))
+    drift = next(s for s in sigs if s.name == "time_drift")
+    jac = drift.jac[0].reshape(2, n_rows, n_ch, -1)
+    step = jac[1] - jac[0]
+    on = np.abs(jac[0]) > 0
+    per = jac[0][on] / (prob.t[:, None, None] * np.ones_like(jac[0]))[on]  # column per second
+    np.testing.assert_allclose(step[on] / per, span + 1.0, rtol=1e-6)
