@@ -788,7 +788,9 @@ def test_imu_diagnosis_pieces_by_hand():
     run's block gain of the turning horizontal Earth rate is the mean of cos(omega t) over the
     block's span (dense quadrature, 1e-6); the advisor's temperature cycle has period half the
     record (its amplitude at an eighth, zero at a quarter) and dT/dt its derivative; the record
-    twice as long continues in time (a time drift's columns one record span + 1 s higher)."""
+    twice as long continues in time (a time drift's columns one record span + 1 s higher); a
+    refit holds the screened warm-up decay time; the outliers test is scipy's excess kurtosis of
+    every other first difference on its Gaussian law, Bonferroni over the channels."""
     from scipy.signal import lfilter
 
     from gyrojax.diagnose._diagnose import _problem
@@ -814,6 +816,11 @@ def test_imu_diagnosis_pieces_by_hand():
     phis, sig, _ = ar_noise_model(e[:, None], np.ones((len(e), 1, 1)), np.zeros(len(e)))
     assert len(phis[0]) == 2 and np.allclose(phis[0], [0.5, -0.2], atol=0.05)
     assert sig[0] == pytest.approx(2.0, rel=0.03)
+    r = e - e.mean()  # the same AR(2) by plain least squares: sigma^2 = RSS / (m - p - rank)
+    phi_ls, *_ = np.linalg.lstsq(np.stack([r[1:-1], r[:-2]], 1), r[2:], rcond=None)
+    rss = np.sum((r[2:] - np.stack([r[1:-1], r[:-2]], 1) @ phi_ls) ** 2)
+    np.testing.assert_allclose(phis[0], phi_ls, rtol=1e-10)
+    assert sig[0] ** 2 == pytest.approx(rss / (len(e) - 2 - 2 - 1), rel=1e-10)
     saved = prob.y
     prob.y = 3.0 * rng.standard_normal(saved.shape)
     np.testing.assert_allclose(prob._scale_rows(), 3.0, rtol=0.1)
@@ -864,3 +871,29 @@ def test_imu_diagnosis_pieces_by_hand():
     on = np.abs(jac[0]) > 0
     per = jac[0][on] / (prob.t[:, None, None] * np.ones_like(jac[0]))[on]  # column per second
     np.testing.assert_allclose(step[on] / per, span + 1.0, rtol=1e-6)
+
+    # a refit with the warm-up holds the decay time the screening chose
+    _, sigs = prob.jacobians(params, np.ones(n_ch))
+    warm = next(s for s in sigs if s.name == "warmup_transient")
+    assert prob.refit(params, [(warm, 3)], np.ones(n_ch))[2]["tau_w"] == prob.tau_grid_s[3]
+
+    # the outliers test: scipy's excess kurtosis of every other first difference, z on its
+    # large-sample law (null z: mean 0, sd 1 over 10,000 white records), and the report's p the
+    # smallest channel's times the channel count (Bonferroni)
+    from scipy import stats
+
+    from gyrojax.diagnose._stats import outlier_score
+
+    pieces = [rng.standard_normal(n) for n in (300, 41, 700)]
+    p, z, k = outlier_score(pieces)
+    d = np.concatenate([np.diff(x)[::2] for x in pieces])
+    assert k == pytest.approx(stats.kurtosis(d), rel=1e-12, abs=1e-14)
+    assert z == pytest.approx(k / np.sqrt(24 / d.size), rel=1e-12) and p == stats.norm.sf(z)
+    white = rng.standard_normal((10000, 4000))
+    dd = np.diff(white, axis=1)[:, ::2]
+    z_null = stats.kurtosis(dd, axis=1) / np.sqrt(24 / dd.shape[1])
+    assert abs(z_null.mean()) < 0.05 and abs(z_null.std() - 1) < 0.025
+    rows = {r["name"]: r for r in prob.noise_screen(params)}
+    pcs = prob._residuals[1]
+    p_ch = [outlier_score(pcs[c])[0] for c in range(n_ch)]
+    assert rows["outliers"]["p"] == pytest.approx(min(1.0, min(p_ch) * n_ch), rel=1e-12)

@@ -39,7 +39,6 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import stats
 
 from .. import units
 from ..analysis.spectral import fit_noise_likelihood
@@ -61,6 +60,7 @@ from ._stats import (
     coefficient_effect,
     effect_family_name,
     full_rate_tau_cells,
+    outlier_score,
     quantization_score,
 )
 
@@ -767,11 +767,7 @@ class IMUProblem:
                     per[self.channels[c]] = (p_q, z * abs(z), q,
                                              quantization_score(nominal[c], 1.0 / self.rate_hz)[0])
                 elif e == "outliers":
-                    d = np.concatenate([np.diff(p)[::2] for p in pcs])
-                    d = d - d.mean()
-                    k = float(np.mean(d ** 4) / np.mean(d ** 2) ** 2 - 3)
-                    z = k / np.sqrt(24.0 / d.size)
-                    p_z = float(stats.norm.sf(z))
+                    p_z, z, k = outlier_score(pcs)
                     per[self.channels[c]] = (p_z, z * abs(z), k, p_z)
                 else:
                     fit = fits[c]

@@ -1110,6 +1110,24 @@ def quantization_score(pieces, tau0: float) -> tuple[float, float, float]:
     return float(stats.norm.cdf(z)), float(-z), tau0 * math.sqrt(max(-c1, 0.0))
 
 
+def outlier_score(pieces) -> tuple[float, float, float]:
+    """One-sided test for outliers (heavy tails) on white-noise residual ``pieces``: the excess
+    kurtosis ``k`` of the pieces' non-overlapping first differences (the differences remove a
+    slow residual; taking every other one keeps them independent), ``z = k / sqrt(24 / n)`` its
+    large-sample Gaussian law on ``n`` differences; returns ``(p, z, k)``, ``p = 1 - Phi(z)``
+    (a knock or a spike makes the tails heavy, ``k > 0``)."""
+    d = np.concatenate([np.diff(np.asarray(x, float))[::2] for x in pieces if np.size(x) >= 2])
+    if d.size < 4:
+        raise ValueError("outlier_score: fewer than 4 first differences in the pieces")
+    d = d - d.mean()
+    m2 = float(np.mean(d ** 2))
+    if m2 == 0.0:
+        raise ValueError("outlier_score: the pieces are constant")
+    k = float(np.mean(d ** 4)) / m2 ** 2 - 3
+    z = k / math.sqrt(24.0 / d.size)
+    return float(stats.norm.sf(z)), z, k
+
+
 def tau_cell(tau_s: float, channel: str, r: float, mean: float, h: float, p: float,
              clusters: int, *, rate: str | None = None, **extra) -> dict:
     """One tau-band cell of a report's ``where``: the Allan ratio ``r`` at ``tau_s`` over its
