@@ -57,10 +57,11 @@ def attitude_residual(rot_meas, rot_model):
 
 
 def schuler_residuals(rig: SchulerRig, conditions: SchulerConditions, ts, y, params, *,
-                      adjoint=None):
+                      adjoint=None, throw: bool = True):
     """Measured minus modelled channels, ``(N, 5)``: velocity differences (m/s) and the attitude
-    residual (S12) (rad)."""
-    model = integrate(rig, params, conditions, ts, adjoint=adjoint)
+    residual (S12) (rad). ``throw=False``: a failed integration gives non-finite residuals
+    instead of an error."""
+    model = integrate(rig, params, conditions, ts, adjoint=adjoint, throw=throw)
     att = jax.vmap(attitude_residual)(y[:, 2:], model[:, 2:])
     return jnp.concatenate([y[:, :2] - model[:, :2], att], axis=1)
 
@@ -168,29 +169,43 @@ def _gauss_newton_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, n
 
     def resid(u):
         params = fixed | dict(zip(names, u * sig, strict=True))
-        r = schuler_residuals(rig, conditions, ts, y, params, adjoint=diffrax.ForwardMode())
+        # a trial step that leaves the solver's reach is a step that raises the cost
+        r = schuler_residuals(rig, conditions, ts, y, params, adjoint=diffrax.ForwardMode(),
+                              throw=False)
         return (r * weights).ravel()
 
     k = sig.shape[0]
 
-    def step(u):
+    def cost(u, r):
+        return r @ r + jnp.sum((u * mask) ** 2)
+
+    def body(carry):
+        u, it, _, _, _ = carry
         r, jac = value_and_jacfwd(resid)(u)
         jac = jac * mask
         a = jnp.concatenate([jac, jnp.diag(mask)], axis=0)
         b = -jnp.concatenate([r, u * mask])
         delta, cov, _ = scaled_lstsq(a, b)
-        return delta, cov
+        c0 = cost(u, r)
 
-    def body(carry):
-        u, it, _, _ = carry
-        delta, cov = step(u)
-        return u + delta, it + 1, jnp.max(jnp.abs(delta)), cov
+        # a step that raises the cost is halved (up to 8 times); if none lowers it, stay, and stop
+        def halve(c):
+            j, _ = c
+            v = u + 0.5**j * delta
+            return j + 1, cost(v, resid(v))
+
+        j, c1 = jax.lax.while_loop(lambda c: (c[0] < 9) & ~(c[1] <= c0), halve,
+                                   (0, jnp.asarray(jnp.inf)))
+        ok = c1 <= c0
+        t = jnp.where(ok, 0.5 ** (j - 1), 0.0)
+        return u + t * delta, it + 1, jnp.max(jnp.abs(delta)), ~ok, cov
 
     def cond(carry):
-        _, it, change, _ = carry
-        return (it < max_iter) & (change > tol)
+        _, it, change, stuck, _ = carry
+        return (it < max_iter) & (change > tol) & ~stuck
 
-    u, it, change, cov = jax.lax.while_loop(cond, body, (u0, 0, jnp.inf, jnp.eye(k)))
+    u, it, change, _, cov = jax.lax.while_loop(
+        cond, body, (u0, 0, jnp.inf, jnp.asarray(False), jnp.eye(k)))
     params = fixed | dict(zip(names, u * sig, strict=True))
     r = schuler_residuals(rig, conditions, ts, y, params)
     return (u * sig, cov * jnp.outer(sig, sig), it, jnp.sqrt(jnp.mean(r**2, axis=0)),
