@@ -1439,3 +1439,49 @@ def test_blind_scores_worked_by_hand(tmp_path):
     assert h["by_lambda"]["32"]["named"]["rate"] == 0.5
     assert h["by_lambda"]["32"]["top1"]["rate"] == 0.5
     assert h["heldout_vs_oracle"] == {"rate": 0.5, "se": se(0.5, 2), "n": 2}
+
+
+def test_esg_problem_weights_fit_and_noise_pieces_by_hand():
+    """The ESG problem's pieces against second computations: the rows of channel c divided by
+    its sigma_c (a record whose channels have different noise); the nominal fit and a refit at
+    unequal per-channel sigma each at their weighted optimum (one more weighted Gauss-Newton
+    step, from the Jacobians and the standardised residual, under 1e-2 of the noise); the
+    first-difference level's degrees of freedom 2 (n - 1) / 3 against a Monte Carlo of white
+    records; the flicker hint on an ambiguous or unexplained verdict of the white model only."""
+    from gyrojax.diagnose._diagnose import first_difference_level
+    from gyrojax.diagnose._esg import ESGProblem
+
+    prob = ESGProblem(_record(seed=5), holdout=0.25)
+    n, c = prob.n_train, len(prob.channels)
+    p0 = prob.fit_nominal()
+    one = np.full(c, units.ARCSEC)
+    uneven = np.array([1.0, 4.0]) * units.ARCSEC
+    j1, s1 = prob.jacobians(p0, one)
+    j2, s2 = prob.jacobians(p0, uneven)
+    ratio = np.tile(one / uneven, len(prob.t))[:, None]
+    np.testing.assert_allclose(j2, j1 * ratio, rtol=1e-12)
+    np.testing.assert_allclose(s2[0].jac[0], s1[0].jac[0] * ratio, rtol=1e-12)
+
+    def left(p, sigma):  # one more whitened Gauss-Newton step's change, in noise units
+        jn, _ = prob.jacobians(p, sigma)
+        r = prob.standardize((prob.y - prob.predict(p))[:n], sigma).reshape(-1)
+        a = jn[: n * c]
+        return np.linalg.norm(a @ np.linalg.lstsq(a, r, rcond=None)[0])
+
+    assert left(p0, one) < 1e-2
+    _, _, p_uneven = prob.refit(p0, [], uneven)
+    assert left(p_uneven, uneven) < 1e-2
+    assert left(p_uneven, one) > 10 * left(p_uneven, uneven)  # the weights matter here
+    assert prob.notes == []
+
+    _, dof, src = prob.noise_level((prob.y - prob.predict(p0))[:n])
+    assert dof == pytest.approx(2 * (n - 1) / 3) and "first differences" in src
+    lv = first_difference_level(np.random.default_rng(3).standard_normal((4000, n, 1)))[:, 0]
+    v = lv**2
+    assert 2 * v.mean() ** 2 / v.var() == pytest.approx(dof, rel=0.06)
+
+    for kind, hint in (("ambiguous", True), ("unexplained", True), ("attributed", False),
+                       ("no-gap", False)):
+        assert bool(prob.verdict_notes({"kind": kind})) is hint, kind
+    prob.noise_model = "white+flicker"
+    assert prob.verdict_notes({"kind": "ambiguous"}) == []
