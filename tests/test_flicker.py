@@ -194,3 +194,25 @@ def test_cli_diagnose_with_a_given_flicker_level(tmp_path, capsys):
     assert noise["flicker_B_arcsec"] == pytest.approx([0.2, 0.2], rel=1e-12)
     np.testing.assert_allclose(np.asarray(noise["std"]) / units.ARCSEC, 1.0, rtol=0.08)
     assert "white + flicker (GM sum) model, B = 0.2, 0.2 arcsec given" in capsys.readouterr().out
+
+
+def test_given_flicker_level_takes_its_own_share_off_the_first_differences():
+    """With B given and no white level, the white variance is the residual's first-difference
+    level squared less the flicker's own share of it, s^2 sum_i (1 - exp(-dt / tau_i)) (each GM
+    term of variance s^2 adds s^2 (1 - phi_i) to half the mean squared difference). On a record
+    with 1 arcsec white noise and B = 0.2 arcsec the variance ratio is s^2 / (1 arcsec)^2 within
+    the level's sampling error (10 %); the share itself checked against simulated flicker
+    alone (5 %)."""
+    from gyrojax.diagnose._diagnose import first_difference_level
+    from gyrojax.diagnose._esg import ESGProblem
+
+    b = 0.2 * units.ARCSEC
+    s2 = (FLICKER_STD_PER_B * b) ** 2
+    share = np.sum(1 - np.exp(-DT / flicker_taus(DT)))
+    fl = np.asarray(_flicker(jax.random.key(7), 200_000, DT, np.full(1, 0.2), t0=DT))
+    assert fl.shape == (200_000, 1)
+    assert first_difference_level(fl)[0] ** 2 == pytest.approx(s2 / units.ARCSEC**2 * share,
+                                                                rel=0.05)
+    prob = ESGProblem(_esg_record_with_flicker(0.2), holdout=0.25, flicker_b=b)
+    prob.fit_nominal()
+    np.testing.assert_allclose(prob._rho * units.ARCSEC**2 / s2, 1.0, rtol=0.10)
