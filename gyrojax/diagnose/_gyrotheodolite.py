@@ -192,9 +192,10 @@ class GyrotheodoliteProblem:
                 if float(r_t @ r_t) <= cost * (1 + 1e-6) and slope <= decrement:
                     p, pred, jac = trial, pred_t, jac_t
                     break
-                # past the minimum along the step: the slope's secant root, else half the step
-                root = t * 2 * decrement / (2 * decrement + slope) if slope > decrement else 0.5 * t
-                t = float(np.clip(root, 0.1 * t, 0.5 * t if slope <= decrement else 0.67 * t))
+                if slope > decrement:  # well past the minimum: to the slope's secant root
+                    t *= float(np.clip(2 * decrement / (2 * decrement + slope), 0.1, 0.67))
+                else:  # the sum of squares rose: half the step
+                    t *= 0.5
             else:
                 self.notes.append(f"{what}: no step along Gauss-Newton's direction lowered the "
                                   "sum of squares; its figures are those of the last point")

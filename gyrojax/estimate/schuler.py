@@ -151,6 +151,9 @@ def _gauss_newton(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names
     before the jit boundary, so every caller (a staged first pass, refits of different effect
     sets over one superset ``names``, a different ``max_iter``) reuses one compiled solver.
 
+    A step that raises the cost (residuals and prior) is halved, up to 8 times; if none lowers
+    it the fit stops there, not converged.
+
     Returns ``(theta, covariance, iterations, residual RMS per channel, converged)``: converged
     when the last step's largest change was under ``tol`` prior standard deviations."""
     y = jnp.asarray(y, dtype=float)
