@@ -114,12 +114,12 @@ class SchulerProblem:
         s = self.fit_noise
         est = fit_schuler(self.rig, self.t[:n], self.y[:n], self.conditions, sigma_v=float(s[0]),
                           sigma_theta=float(np.mean(s[2:])))
-        self._check_converged("the nominal fit", est.converged, 10)
+        self._check_converged("the nominal fit", est.converged, int(est.iterations))
         return dict(zip(THETA_NAMES, est.values, strict=True))
 
-    def _check_converged(self, what, converged, max_iter):
+    def _check_converged(self, what, converged, steps):
         if not bool(converged):
-            self.notes.append(f"{what}: Gauss-Newton did not converge in {max_iter} steps; its "
+            self.notes.append(f"{what}: Gauss-Newton did not converge in {steps} steps; its "
                               "figures are those of the last step")
 
     def predict(self, params: dict, extra=None) -> np.ndarray:
