@@ -690,9 +690,14 @@ def test_screening_grid_columns_equal_single_grid_value_sensitivities():
     p = prob._screen_params(params) | {
         "k_tr": 1.0 / (TRANSIENT_TIMES_H[gt] * 3600 * units.EARTH_RATE),
         "t_step": prob.step_grid_h[gs] * 3600 * units.EARTH_RATE}
+    nom = prob.nominal_names
     want = np.asarray(trajectory_jacobian(prob.screen_rig, p, prob.conditions, prob.t,
-                                          tr.names + st.names))
-    want = want * np.array([sp[n].display_factor for n in tr.names + st.names])
+                                          nom + tr.names + st.names))
+    # the nominal columns: per Param.scale (the initial angles' and the drifts' differ 34x)
+    jn_want = want[:, : len(nom)] * np.array([sp[n].scale for n in nom])
+    jn, _ = prob._raw_jacobians(prob._screen_params(p), prob.conditions, prob.t)
+    assert np.abs(jn - jn_want).max() < 1e-7 * np.abs(jn_want).max()
+    want = want[:, len(nom):] * np.array([sp[n].display_factor for n in tr.names + st.names])
     for sig, g, cols in ((tr, gt, want[:, : len(tr.names)]), (st, gs, want[:, len(tr.names):])):
         cols = cols * sig.prior_scale
         assert np.abs(sig.jac[g] - cols).max() < 1e-7 * np.abs(cols).max(), sig.name
@@ -803,6 +808,77 @@ def test_refit_drop_equals_the_screened_score():
         assert row["score"] > 20, (name, row["score"])
         drop = chi2(prob.predict(p0)) - chi2(prob.refit(p0, [(sig, 0)], sigma)[0])
         assert drop == pytest.approx(row["score"], rel=0.02), name
+
+
+def test_esg_gauss_newton_cuts_overshooting_steps_and_flags_a_stuck_fit():
+    """The ESG's masked Gauss-Newton started far from the nominal fit's optimum (a 6 h record;
+    the initial gimbal angles turned by +d and -d). At d = 45 deg and 120 deg some whole steps
+    raise the cost on the way and are cut; the fit reaches the optimum that the regression
+    start reaches (within 1e-5 of each parameter's scale), with no note. At d = 150 deg it
+    stalls: no fraction of a step that predicts a large drop lowers the cost. A note says it
+    did not converge (before stop 66 such a stall counted as converged)."""
+    from gyrojax.diagnose._esg import ESGProblem
+
+    prob = ESGProblem(_record(seed=5).slice(0, 361), holdout=0.25)
+    one = np.full(len(prob.channels), units.ARCSEC)
+    p0 = prob.fit_nominal()
+    assert prob.notes == []
+    names, scales = prob.nominal_names, prob.nominal_scales
+    for d in (45.0, 120.0, 150.0):
+        start = p0 | {"alpha10": p0["alpha10"] + np.deg2rad(d),
+                      "alpha20": p0["alpha20"] - np.deg2rad(d)}
+        prob.notes = []
+        p, _, _ = prob._gauss_newton(start, set(names), one, line_on=False, what=f"{d} deg off")
+        off = max(abs(float(p[k] - p0[k])) / s for k, s in zip(names, scales, strict=True))
+        if d < 150:
+            assert prob.notes == [] and off < 1e-5, (d, prob.notes, off)
+        else:
+            assert off > 100
+            assert len(prob.notes) == 1 and "did not converge" in prob.notes[0]
+            assert "every fraction tried of its last step raised the cost" in prob.notes[0]
+
+
+def test_esg_lines_onset_grid_and_designs_by_hand():
+    """The ESG problem's fixed pieces by hand. The diurnal line's output columns and the gap
+    map's lines: the sidereal (stellar) day 2 pi / Omega_E = 86164.099 s, not the solar day;
+    per channel a sine and a cosine on that channel's rows only, in arcsec at the prior scale
+    per sigma. The step's
+    onset grid: every 5 % of the record over the train span only (24 h, a quarter held out:
+    1.2 h, 2.4 h, ..., 16.8 h). The advisor's designs for a 12 h record: the other schemes,
+    the record 2x and 4x as long at the same sample time, and each scheme with each."""
+    from gyrojax.diagnose._esg import SIDEREAL_DAY, ESGProblem
+    from gyrojax.models.esg import SCHEMES
+
+    day = 86164.0989  # IERS: the Earth's rotation period against the stars
+    assert SIDEREAL_DAY == pytest.approx(day, abs=0.01)
+    rec = _record(seed=5)
+    prob = ESGProblem(rec, holdout=0.25)
+    np.testing.assert_allclose(prob.step_grid_h, 1.2 * np.arange(1, 15), atol=1e-12)
+    assert prob.lines == pytest.approx({"sidereal day": day, "half sidereal day": day / 2},
+                                       abs=0.01)
+    t = prob.t[:300] + 1234.5
+    sigma, prior = np.array([0.5, 2.0]) * units.ARCSEC, 5.0
+    sig = prob._line_signature(t, sigma, prior)
+    assert sig.names == ("alpha1_sin", "alpha1_cos", "alpha2_sin", "alpha2_cos")
+    cols = sig.jac[0].reshape(len(t), 2, 4)
+    w = 2 * np.pi / day
+    for ch in range(2):
+        want = np.zeros((len(t), 4))
+        want[:, 2 * ch], want[:, 2 * ch + 1] = np.sin(w * t), np.cos(w * t)
+        # 1e-6: the constant's last digits (the solar day is ~4e-3 rad off here)
+        np.testing.assert_allclose(cols[:, ch] * sigma[ch] / (prior * units.ARCSEC), want,
+                                   atol=1e-6, rtol=0)
+
+    half = ESGProblem(rec.slice(0, 721), holdout=0.25)  # 12 h
+    designs = {name: (cond, t) for name, cond, t in half.designs()}
+    others = [s for s in SCHEMES if s != "vertical"]
+    assert set(designs) == ({f"{s} scheme" for s in others} | {"24 h record", "48 h record"}
+                            | {f"{s} scheme, {k} h record" for s in others for k in (24, 48)})
+    for k in (2, 4):
+        _, t = designs[f"{12 * k} h record"]
+        np.testing.assert_allclose(t, np.arange(720 * k + 1) * 60.0)
+    assert {name for name, _, _ in prob.designs()} >= {"48 h record"}
+    assert not any("96 h" in name for name, _, _ in prob.designs())
 
 
 def test_out_of_library_line_is_not_attributed():

@@ -54,6 +54,10 @@ _GRID_PARAM = {"drift_transient": "k_tr", "drift_step": "t_step"}  # effect -> i
 _GRID_EFFECTS = tuple(_GRID_PARAM)
 
 _MAX_ITER = 20  # Gauss-Newton steps of the nominal fit and of each refit
+# a fit where no fraction of the step lowers the cost has converged if the step's predicted
+# drop is below this share of the cost (the ODE solver's noise in the cost; ordinary fits stop
+# there at ~1e-9), and is stuck (not converged) above it
+_STUCK_RATIO = 1e-6
 # the nominal noise model of the gimbal angles: white, or white + flicker (GM sum) at a given
 # level or one estimated by REML on the full-model residual (:mod:`gyrojax.analysis.flicker`)
 NOISE_MODELS = ("white", "white+flicker")
@@ -100,8 +104,10 @@ def _masked_gauss_newton(rig, p, conditions, ts, y, w, cols, free, mask, line_on
     ``mask`` 0 held: their Jacobian columns zeroed, so the minimum-norm step leaves them) and the
     linear output coefficients ``beta`` of ``cols`` (rad per unit; held at 0 unless ``line_on``).
     A step that raises the cost is halved (up to 8 times; if none lowers it, the fit stops
-    there). Stops when the step's predicted cost drop is below 1e-10 of the cost
-    (``converged``), or after ``max_iter`` steps. Returns (parameters, ``beta``, converged)."""
+    there: converged if the step's predicted drop is below ``_STUCK_RATIO`` of the cost, stuck
+    if not). Stops when the step's predicted cost drop is below 1e-10 of the cost
+    (``converged``), or after ``max_iter`` steps. Returns (parameters, ``beta``, converged,
+    the number of steps tried)."""
     scales = rig.param_space.scales(free)
     n, c = ts.shape[0], rho.shape[0]
     dts = jnp.concatenate([jnp.array([jnp.inf]), jnp.diff(ts)])
@@ -136,10 +142,11 @@ def _masked_gauss_newton(rig, p, conditions, ts, y, w, cols, free, mask, line_on
         jac = trajectory_jacobian(rig, params_at(x), conditions, ts, free) * scales * mask
         a = jnp.concatenate([wh(jac), ct], axis=1)
         step, _, _ = scaled_lstsq(a, r)
-        return step, jnp.sum((a @ step) ** 2) <= 1e-10 * jnp.maximum(cost, 1.0)
+        return step, jnp.sum((a @ step) ** 2) / jnp.maximum(cost, 1.0)
 
     def body(carry):
-        x, beta, step, small, _, it, r, cost = carry
+        x, beta, step, ratio, _, it, r, cost, _ = carry
+        small = ratio <= 1e-10
 
         def halve(c):
             j, _, _ = c
@@ -160,19 +167,23 @@ def _masked_gauss_newton(rig, p, conditions, ts, y, w, cols, free, mask, line_on
         r = jnp.where(ok | first, r_new, r)
         cost = jnp.where(ok | first, cost_new, cost)
         done = ~first & (~ok | small)
-        step, small = jax.lax.cond(~done & (it < max_iter), lambda: linearize(x, r, cost),
-                                   lambda: (jnp.zeros_like(step), jnp.asarray(True)))
-        return x, beta, step, small, done, it + 1, r, cost
+        # stuck: no fraction of the step lowers the cost. At the optimum that is the ODE
+        # solver's noise in the cost (the step's predicted drop is at its level): converged.
+        # Far from it (a drop the noise cannot hide, or no finite cost) it is a failure.
+        conv = done & (ok | (ratio <= _STUCK_RATIO)) & jnp.isfinite(cost)
+        step, ratio = jax.lax.cond(~done & (it < max_iter), lambda: linearize(x, r, cost),
+                                   lambda: (jnp.zeros_like(step), ratio))
+        return x, beta, step, ratio, done, it + 1, r, cost, conv
 
     def cond(carry):
         return (~carry[4]) & (carry[5] <= max_iter)
 
     m = cols.shape[1]
-    x, beta, _, _, done, _, _, _ = jax.lax.while_loop(
-        cond, body, (jnp.zeros(k), jnp.zeros(m), jnp.zeros(k + m), jnp.asarray(False),
+    x, beta, _, _, _, it, _, _, conv = jax.lax.while_loop(
+        cond, body, (jnp.zeros(k), jnp.zeros(m), jnp.zeros(k + m), jnp.asarray(jnp.inf),
                      jnp.asarray(False), jnp.asarray(0), jnp.zeros(n * c),
-                     jnp.asarray(jnp.inf)))
-    return params_at(x), beta, done
+                     jnp.asarray(jnp.inf), jnp.asarray(False)))
+    return params_at(x), beta, conv, it - 1
 
 
 def _stack(jn, sigs):
@@ -509,13 +520,17 @@ class ESGProblem:
                 * np.tile(sig_arr, len(self.t))[:, None])
         mask = np.array([k in chosen for k in free], float)
         p = {k: jnp.asarray(v, dtype=float) for k, v in p.items()}  # traced, never static
-        p, beta, ok = _masked_gauss_newton(
+        p, beta, ok, steps = _masked_gauss_newton(
             self.screen_rig, p, self.conditions, jnp.asarray(self.t[:n]),
             jnp.asarray(self.y[:n].reshape(-1)), jnp.asarray(np.tile(1.0 / sig_arr, n)),
             jnp.asarray(cols[: n * c]), free, jnp.asarray(mask), jnp.asarray(float(line_on)),
             jnp.asarray(_MAX_ITER), jnp.asarray(self._rho), jnp.asarray(flicker_taus(self.sample_s)))
         if not bool(ok):
-            self.notes.append(f"{what}: Gauss-Newton did not converge in {_MAX_ITER} steps; "
+            steps = int(steps)
+            why = ("" if steps >= _MAX_ITER else
+                   ": every fraction tried of its last step raised the cost, which that step "
+                   "predicted to fall well beyond the ODE solver's noise")
+            self.notes.append(f"{what}: Gauss-Newton did not converge in {steps} steps{why}; "
                               "its figures are those of the last step")
         return dict(p), np.asarray(beta), cols
 
