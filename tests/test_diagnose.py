@@ -765,8 +765,8 @@ def test_report_gives_the_posterior_over_a_step_onset():
 
     p = ESGRig(base_param="rotvec").param_space.make(
         {"smc1": 0.0001, "smc2": -0.0001, "t_step": 9.6}, display=True)
-    rep = diagnose(_record(seed=4, extra={k: p[k] for k in ("smc1", "smc2", "t_step")}),
-                   design_advice=False)
+    rec = _record(seed=4, extra={k: p[k] for k in ("smc1", "smc2", "t_step")})
+    rep = diagnose(rec, design_advice=False)
     g = rep.candidate("drift_step")["grid"]
     w = np.asarray(g["posterior"])
     assert w.sum() == pytest.approx(1.0, abs=1e-9) and g["values"][int(np.argmax(w))] == 9.6
@@ -777,6 +777,33 @@ def test_report_gives_the_posterior_over_a_step_onset():
     # weight (a window centred on the mode holds that weight's whole hat)
     assert abs(g["located"] - 9.6) <= 1.2 and g["located_mass"] >= w.max() - 1e-9
     assert f"located at {g['located']:.3g} h" in rep.markdown()
+
+    # a refit holds the onset it is given: at each grid value the refit's chi-square drop is
+    # the score statistic at that onset (by hand: the train residual's projection on the step's
+    # columns there, the nominal projected out), 1.1 at the grid's first and 17 at the truth
+    from gyrojax.diagnose._esg import ESGProblem
+    from gyrojax.diagnose._stats import nominal_basis
+
+    prob = ESGProblem(rec, holdout=0.25)
+    p0 = prob.fit_nominal()
+    sigma = np.asarray(rep.noise["std"])
+    n, c = prob.n_train, len(prob.channels)
+    jn, sigs = prob.jacobians(p0, sigma)
+    step = next(s for s in sigs if s.name == "drift_step")
+    e = prob.standardize((prob.y - prob.predict(p0))[:n], sigma).reshape(-1)
+    u = nominal_basis(jn[: n * c])
+
+    def chi2(pred):
+        return float(np.sum(((prob.y[:n] - pred[:n]) / sigma) ** 2))
+
+    lms = []
+    for g in (0, prob.step_grid_h.index(9.6)):
+        jt = step.jac[g][: n * c]
+        jt = jt - u @ (u.T @ jt)
+        lms.append(float(np.sum((jt @ np.linalg.lstsq(jt, e, rcond=None)[0]) ** 2)))
+        drop = chi2(prob.predict(p0)) - chi2(prob.refit(p0, [(step, g)], sigma)[0])
+        assert drop == pytest.approx(lms[-1], rel=0.03), g
+    assert lms[1] > 10 * lms[0], lms
 
 
 def test_refit_drop_equals_the_screened_score():

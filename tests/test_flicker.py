@@ -174,6 +174,18 @@ def test_noise_model_bad_input_names_the_fix():
         diagnose(rec, noise_model="white", flicker_b=1e-7)
     with pytest.raises(ValueError, match="accounts for the residual's whole"):
         diagnose(rec, flicker_b=5 * units.ARCSEC)
+    # and a B that leaves the white level only 3 % of the first-difference variance (under
+    # the 5 % floor: the white level, and the ratio with it, would be noise)
+    from gyrojax.diagnose._diagnose import first_difference_level
+    from gyrojax.diagnose._esg import ESGProblem
+
+    white = ESGProblem(rec, holdout=0.25)
+    p = white.fit_nominal()
+    fd2 = first_difference_level((white.y - white.predict(p))[: white.n_train]) ** 2
+    share = np.sum(1 - np.exp(-DT / flicker_taus(DT)))
+    b = np.sqrt(0.97 * fd2 / share) / FLICKER_STD_PER_B
+    with pytest.raises(ValueError, match="accounts for the residual's whole"):
+        ESGProblem(rec, holdout=0.25, flicker_b=b).fit_nominal()
     with pytest.raises(ValueError, match="only --rig esg offers a choice of noise"):
         diagnose(rec, rig="platform", noise_model="white+flicker")
 
@@ -216,3 +228,29 @@ def test_given_flicker_level_takes_its_own_share_off_the_first_differences():
     prob = ESGProblem(_esg_record_with_flicker(0.2), holdout=0.25, flicker_b=b)
     prob.fit_nominal()
     np.testing.assert_allclose(prob._rho * units.ARCSEC**2 / s2, 1.0, rtol=0.10)
+
+
+def test_esg_reml_flicker_level_is_stated_against_the_reported_white_level():
+    """The ESG problem's REML flicker level (``noise_model="white+flicker"``, no B given), the
+    path no other test runs. On a 24 h record with 1 arcsec white noise and B = 0.2 arcsec
+    flicker per channel, B is within 50 % of the generating one on each channel (one seeded
+    record: 0.27, 0.26), and its likelihood ratio against no flicker exceeds a white record's
+    (2.7, 2.9 against 0.02, 0.33). The ratio is turned into B against the white level that the
+    diagnosis reports (the flicker-whitened residual's first differences), not against the raw
+    residual's, which holds the flicker's own share too (2 % higher here)."""
+    from test_diagnose import _record
+
+    from gyrojax.diagnose._esg import ESGProblem
+
+    fits = {}
+    for name, rec in (("flicker", _esg_record_with_flicker(0.2)), ("white", _record(seed=4))):
+        prob = ESGProblem(rec, holdout=0.25, noise_model="white+flicker")
+        p = prob.fit_nominal()
+        assert prob.noise_fit["flicker_source"] == "REML" and prob.notes == []
+        white, _, _ = prob.noise_level((prob.y - prob.predict(p))[: prob.n_train])
+        b = np.asarray(prob.noise_fit["flicker_B_arcsec"])
+        np.testing.assert_allclose(b, rho_to_b(prob._rho, white) / units.ARCSEC, rtol=1e-3)
+        fits[name] = b, np.asarray(prob.noise_fit["flicker_lr"])
+    np.testing.assert_allclose(fits["flicker"][0], 0.2, rtol=0.5)
+    assert np.all(fits["flicker"][1] > fits["white"][1])
+    assert np.all(fits["flicker"][0] > fits["white"][0])
