@@ -570,6 +570,18 @@ def test_calibrated_level_gives_alpha_on_fresh_nulls_by_the_per_residual_code():
     w = _bh_weights(md.n_cells, 2, 0.5)
     u = nominal_basis(jn)
     draw = _null_sampler(object(), u, n, c, True)
+    # the sampler's draws: off the nominal span (at a given noise level); at unit
+    # first-difference level per channel (at an estimated one)
+    z = _null_sampler(object(), u, n, c, False)(np.random.default_rng(0), 4)
+    assert np.abs(z.reshape(4, n * c) @ u).max() < 1e-12
+    z = draw(np.random.default_rng(0), 4)
+    np.testing.assert_allclose(np.sqrt(np.mean(np.diff(z, axis=1) ** 2, axis=1) / 2), 1.0,
+                               rtol=1e-12)
+    # the Monte Carlo test's level: the floor(alpha (B + 1))-th smallest draw (B = 19 at
+    # alpha 0.05: the smallest; B = 59: the third)
+    for b, k in ((19, 0), (59, 2)):
+        lv, mq = _calibrated_level(designs, md, w, 0.05, b, draw, seed=3)
+        assert len(mq) == b and lv == np.sort(mq)[k]
     level, _ = _calibrated_level(designs, md, w, 0.05, 9999, draw, seed=3)
     # with tests outside the map and the library: a held-out cell (F) and a noise-model row
     # (Bonferroni minimum over the two channels), computed here from their own statistics
@@ -609,6 +621,114 @@ def test_calibrated_level_gives_alpha_on_fresh_nulls_by_the_per_residual_code():
     assert level_out > 0.05 and np.mean(minq_out < 0.05) < far_out
 
 
+def test_pipeline_pieces_by_hand():
+    """The pipeline's small pieces against hand computations on synthetic inputs.
+    - The weighted-BH weights: the library's share split over its tests, the rest over the
+      map's cells.
+    - The greedy second effect: Bonferroni over the rest of the library. The best of the other
+      three at p is taken at alpha = 4 p, not at alpha = 2 p.
+    - The signature consistency: the cosine between the finest windows' positive excess (a
+      negative one counts 0) and the effect's predicted energy in them (both ends of a window
+      included).
+    - The held-out null band: the mean leverage by an explicit inverse, and its limit; the
+      design-shift held-out cell's F test (scipy); the refit's held-out check and what the
+      verdict draws from it; the minimum detectable effect from the normal quantiles; the
+      rejection rule."""
+    from types import SimpleNamespace
+
+    from scipy import stats
+
+    from gyrojax.diagnose._diagnose import (
+        _bh_weights,
+        _consistency,
+        _does_not_transfer,
+        _greedy_second,
+        _heldout_by_member,
+        _heldout_cell,
+        _heldout_leans,
+        _mde,
+        _null_band,
+        rejected,
+    )
+
+    np.testing.assert_allclose(_bh_weights(4, 2, 0.8), [0.05] * 4 + [0.4] * 2, rtol=1e-12)
+
+    rng = np.random.default_rng(4)
+    m = 300
+    jn = rng.standard_normal((m, 3))
+    cols = rng.standard_normal((4, m, 1))
+    sigs = [Signature(f"s{k}", "x", (f"b{k}",), ("1",), np.ones(1), cols[k][None])
+            for k in range(4)]
+    e = rng.standard_normal(m) + 0.15 * cols[2][:, 0]
+    rows = screen(e, jn, sigs)
+    first = rows[0]
+    span = np.concatenate([jn, cols[0]], axis=1)
+    best = max(screen(e, span, sigs[1:]), key=lambda r: r.lm)
+    assert best.sig.name == "s2" and best.p < 0.05
+    assert _greedy_second(e, span, rows, first, 2 * best.p) is None
+    assert _greedy_second(e, span, rows, first, 4 * best.p).sig.name == "s2"
+
+    n, c = 10, 2
+    proj = rng.standard_normal((n * c, 1))
+    row = SimpleNamespace(dof=1, projected=proj, beta=np.array([2.0]))
+    prob = SimpleNamespace(t=np.arange(n) * 1.0, channels=("a", "b"))
+    cells = [dict(axis="time", level=2, t0=0.0, t1=4.0, channel="a", excess=3.0),
+             dict(axis="time", level=2, t0=5.0, t1=9.0, channel="a", excess=-1.0),
+             dict(axis="time", level=2, t0=0.0, t1=4.0, channel="b", excess=1.0),
+             dict(axis="time", level=1, t0=0.0, t1=9.0, channel="b", excess=50.0)]
+    pred = (2 * proj).reshape(n, c)
+    obs = np.array([3.0, 0.0, 1.0])
+    pr = np.array([np.sum(pred[0:5, 0] ** 2), np.sum(pred[5:10, 0] ** 2),
+                   np.sum(pred[0:5, 1] ** 2)])
+    want = obs @ pr / np.linalg.norm(obs) / np.linalg.norm(pr)
+    assert _consistency(row, prob, n, c, cells) == pytest.approx(want, rel=1e-12)
+
+    # the held-out null band: the held-out rows' mean leverage under the train fit,
+    # tr(J_h (J_t^T J_t)^-1 J_h^T) / m_h, plus the nuisance part, and its 95 % limit with the
+    # held-out scatter 2 / m_h and the noise estimate's 2 / dof
+    jt, jh = rng.standard_normal((80, 3)), rng.standard_normal((20, 3))
+    lev = np.trace(jh @ np.linalg.inv(jt.T @ jt) @ jh.T) / 20 + 0.01
+    band = _null_band(np.vstack([jt, jh]), 80, 20, 0.01, 150.0)
+    assert band == pytest.approx((lev, lev + 1.96 * np.sqrt(2 / 20 + 2 / 150) * (1 + lev)),
+                                 rel=1e-10)
+
+    # the design-shift held-out cell: F of the held-out mean square over its null expectation
+    cell = _heldout_cell(0.5, (0.1, 0.3), 40, 150.0, "design shift")
+    assert cell["p"] == pytest.approx(stats.f.sf(1.5 / 1.1, 40, 150.0), rel=1e-10)
+    assert (cell["statistic"], cell["expected"]) == pytest.approx((60.0, 44.0))
+    # the held-out check of a refit: it fails when the gap stays outside its band and the refit
+    # removes less than half of it
+    rf = {"closure": False, "heldout_gap_before": 1.0}
+    assert _does_not_transfer(rf | {"heldout_gap_after": 0.6})
+    assert not _does_not_transfer(rf | {"heldout_gap_after": 0.4})
+    assert not _does_not_transfer(rf | {"heldout_gap_after": 0.6, "closure": True})
+
+    # which way the held-out part leans between slow mean effects and a random walk, and which
+    # members of an ambiguity set transfer: only with a held-out gap above the null band
+    fails = {"effects": ["a"], "closure": False, "heldout_gap_before": 2.0,
+             "heldout_gap_after": 1.8}
+    holds = {"effects": ["b"], "closure": True, "heldout_gap_before": 2.0,
+             "heldout_gap_after": 0.1}
+    gap = {"heldout_gap_before": 2.0, "heldout_null_band": [0.0, 0.5]}
+    quiet = {"heldout_gap_before": 0.3, "heldout_null_band": [0.0, 0.5]}
+    leans = {tuple(slow): _heldout_leans(slow, [fails, holds], gap).get("heldout_leans")
+             for slow in (["a"], ["b"], ["a", "b"])}
+    assert leans == {("a",): {"lean": "stochastic", "effects": ["a"]},
+                     ("b",): {"lean": "deterministic", "effects": ["b"]}, ("a", "b"): None}
+    assert "heldout_leans" not in _heldout_leans(["a"], [fails, holds], quiet)
+    assert _heldout_by_member(["a", "b"], [fails, holds], gap)["heldout_separates"] == {
+        "transfer": ["b"], "do_not_transfer": ["a"]}
+    assert "heldout_separates" not in _heldout_by_member(["a", "b"], [fails, holds], quiet)
+    # a finding needs its q below the level and its own p too
+    assert [rejected(p, q, 0.05) for p, q in ((0.01, 0.01), (0.2, 0.01), (0.01, 0.06))] == [
+        True, False, False]
+    # the minimum detectable effect: 80 % power at alpha 0.05 (1 dof) along the least visible
+    # direction, (z_0.975 + z_0.8)^2 = 7.85 over its singular value squared
+    q, _ = np.linalg.qr(rng.standard_normal((50, 2)))
+    lam = (stats.norm.isf(0.025) + stats.norm.isf(0.2)) ** 2
+    assert _mde(q * np.array([4.0, 0.5])) == pytest.approx(np.sqrt(lam) / 0.5, rel=1e-3)
+
+
 # -- the ESG pipeline ------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def tilt_report():
@@ -639,6 +759,22 @@ def test_rotor_tilt_attributed_and_heldout_gap_closes(tilt_report):
     assert abs(rf["coefficients"]["theta2"]) < 15.0
     assert rf["reduction"] > 0.99 and rf["closure"]
     assert rep.verdict["heldout_gap_before"] > 100 * rep.verdict["heldout_null_band"][1]
+    # the gaps by hand from the standardised residuals, before and after the refit
+    n = rep.n_train
+    assert rep.gap["train"] == pytest.approx(np.mean(rep.residual_all[:n] ** 2) - 1, rel=1e-9)
+    assert rf["gap_train_after"] == pytest.approx(np.mean(rep.residual_after[:n] ** 2) - 1,
+                                                  rel=1e-9)
+    assert rf["reduction"] == pytest.approx(
+        1 - rf["heldout_gap_after"] / rf["heldout_gap_before"], rel=1e-12)
+    # each candidate's share of the gap: its score over the whole-record windows' positive
+    # excess (the map's level 0), at most 1
+    excess = sum(max(0.0, x["excess"]) for x in rep.where
+                 if x["axis"] == "time" and x["level"] == 0)
+    for row in rep.ranking:
+        assert row["explained_gap_share"] == pytest.approx(min(1.0, row["score"] / excess))
+    assert rep.candidate("rotor_tilt")["explained_gap_share"] > 0.99
+    # no null draw comes near a 300 arcsec tilt: the Monte Carlo p-value's floor 1 / (B + 1)
+    assert rep.multiplicity["global_p"] == pytest.approx(1 / 500)
     js = rep.to_json()
     assert {"nominal", "gap", "where", "candidates", "verdict"} <= set(js)
     cand = {c["name"]: c for c in js["candidates"]}
