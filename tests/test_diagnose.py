@@ -633,7 +633,7 @@ def test_pipeline_pieces_by_hand():
     - The held-out null band: the mean leverage by an explicit inverse, and its limit; the
       design-shift held-out cell's F test (scipy); the refit's held-out check and what the
       verdict draws from it; the minimum detectable effect from the normal quantiles; the
-      rejection rule."""
+      design advice's MDE against the closest rival; the rejection rule."""
     from types import SimpleNamespace
 
     from scipy import stats
@@ -641,6 +641,7 @@ def test_pipeline_pieces_by_hand():
     from gyrojax.diagnose._diagnose import (
         _bh_weights,
         _consistency,
+        _design_advice,
         _does_not_transfer,
         _greedy_second,
         _heldout_by_member,
@@ -719,6 +720,27 @@ def test_pipeline_pieces_by_hand():
     assert _heldout_by_member(["a", "b"], [fails, holds], gap)["heldout_separates"] == {
         "transfer": ["b"], "do_not_transfer": ["a"]}
     assert "heldout_separates" not in _heldout_by_member(["a", "b"], [fails, holds], quiet)
+    # the design advice's MDE with the closest rival in the model: the largest over the rivals
+    # (here b, nearly a's twin; c is unrelated), each rival's span projected out with the
+    # nominal's; the one-column MDE is sqrt(7.85) over the projected column's norm
+    m = 120
+    jn_d = rng.standard_normal((m, 2))
+    a = rng.standard_normal((m, 1))
+    ab = {"a": a, "b": a + 0.3 * rng.standard_normal((m, 1)), "c": rng.standard_normal((m, 1))}
+    dsigs = [Signature(k, "x", (k,), ("1",), np.ones(1), v[None]) for k, v in ab.items()]
+    dprob = SimpleNamespace(designs=lambda: [("only", None, None)],
+                            jacobians=lambda p, sigma, conditions, t: (jn_d, dsigs))
+    flagged = [SimpleNamespace(sig=dsigs[0], vis_index=0, null_directions=[],
+                               confounded_directions=[])]
+    (adv,) = _design_advice(dprob, None, None, flagged)
+
+    def mde_without(*cols):
+        q, _ = np.linalg.qr(np.concatenate([jn_d, *cols], axis=1))
+        return np.sqrt(7.85) / np.linalg.norm(a - q @ (q.T @ a))
+
+    assert adv["mde_over_prior"] == pytest.approx(mde_without(), rel=1e-9)
+    assert adv["mde_vs_closest_rival"] == pytest.approx(mde_without(ab["b"]), rel=1e-9)
+    assert mde_without(ab["b"]) > 2 * mde_without(ab["c"])
     # a finding needs its q below the level and its own p too
     assert [rejected(p, q, 0.05) for p, q in ((0.01, 0.01), (0.2, 0.01), (0.01, 0.06))] == [
         True, False, False]
