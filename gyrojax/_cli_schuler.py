@@ -103,12 +103,14 @@ def fit(args, load, emit_json):
           f"{periods[1]['period_min']:.3f} min (V2); theory {periods[0]['theoretical_min']:.3f} min")
     print(est.table())
     if args.method == "gauss-newton":
-        print(f"converged: {bool(est.converged)} ({int(est.iterations)} iterations)")
+        print(f"converged: {bool(est.converged)} ({int(est.iterations)} iterations; the last "
+              f"step: {float(est.last_step_se):.2g} standard errors)")
     space = rig.param_space
     emit_json({"rig": "schuler", "method": args.method, "latitude_deg": lat,
                "period_min": [p["period_min"] for p in periods],
                "theoretical_period_min": periods[0]["theoretical_min"],
                "iterations": int(est.iterations), "converged": bool(est.converged),
+               "last_step_se": float(est.last_step_se),
                "parameters": {n: {"value": float(space[n].to_display(v)),
                                   "stderr": float(space[n].to_display(s)),
                                   "unit": space[n].display_unit}

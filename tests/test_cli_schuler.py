@@ -22,6 +22,7 @@ def test_simulate_fit_observability(tmp_path):
     assert main(["fit", str(rec), "--rig", "schuler", "--json", str(out)]) == 0
     rep = json.loads(out.read_text())
     assert rep["converged"] is True and rep["iterations"] < 10
+    assert 0.0 <= rep["last_step_se"] < 1e3  # the last step taken (converged by tol)
     for name, value in truth.items():  # within 4 standard errors of the truth
         p = rep["parameters"][name]
         assert abs(p["value"] - value) < 4 * p["stderr"], (name, p)

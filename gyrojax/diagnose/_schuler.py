@@ -45,6 +45,7 @@ SCHULER_LIBRARY = {
 CHANNELS = ("V1", "V2", "rot1", "rot2", "rot3")
 TRANSIENT_TIMES_H = tuple(float(x) for x in np.geomspace(0.25, 3.0, 8))
 DEFAULT_NOISE = (0.05, 0.05, units.ARCMIN, units.ARCMIN, units.ARCMIN)  # spec §10
+_NOMINAL_MAX_ITER = 10  # fit_schuler's default
 _REFIT_MAX_ITER = 50  # damped Gauss-Newton: a 10 deg/h drift step takes ~40 steps from the nominal fit
 
 
@@ -113,14 +114,19 @@ class SchulerProblem:
         n = self.n_train
         s = self.fit_noise
         est = fit_schuler(self.rig, self.t[:n], self.y[:n], self.conditions, sigma_v=float(s[0]),
-                          sigma_theta=float(np.mean(s[2:])))
-        self._check_converged("the nominal fit", est.converged, int(est.iterations))
+                          sigma_theta=float(np.mean(s[2:])), max_iter=_NOMINAL_MAX_ITER)
+        self._check_converged("the nominal fit", est.converged, int(est.iterations),
+                              float(est.last_step_se),
+                              stalled=int(est.iterations) < _NOMINAL_MAX_ITER)
         return dict(zip(THETA_NAMES, est.values, strict=True))
 
-    def _check_converged(self, what, converged, steps):
+    def _check_converged(self, what, converged, steps, step_se, *, stalled):
         if not bool(converged):
-            self.notes.append(f"{what}: Gauss-Newton did not converge in {steps} steps; its "
-                              "figures are those of the last step")
+            why = ("no fraction of its last step lowered the cost" if stalled
+                   else "the step limit")
+            self.notes.append(f"{what}: Gauss-Newton did not converge: it stopped after {steps} "
+                              f"steps ({why}) with its last step {step_se:.2g} standard errors "
+                              "long; its figures are those of the point reached")
 
     def predict(self, params: dict, extra=None) -> np.ndarray:
         """``y - residual`` over the whole record (the residual is the test's, spec §8)."""
@@ -194,12 +200,13 @@ class SchulerProblem:
         scale = jnp.asarray(sp.scales(names))
         u0 = jnp.asarray([float(params0.get(k, 0.0)) for k in names]) / scale
         n = self.n_train
-        theta, _, _, _, converged = _gauss_newton(
+        gn = _gauss_newton(
             self.rig, self.conditions, self.t[:n], self.y[:n], 1.0 / np.asarray(sigma, float),
             scale, u0, _REFIT_MAX_ITER, 1e-4, names, fixed, [float(k in chosen) for k in names])
         self._check_converged("the refit with " + " + ".join(s.name for s, _ in sig_choices),
-                              converged, _REFIT_MAX_ITER)
-        p = fixed | dict(zip(names, theta, strict=True))
+                              gn.converged, int(gn.iterations), float(gn.step_se),
+                              stalled=bool(gn.stalled))
+        p = fixed | dict(zip(names, gn.theta, strict=True))
         coeffs = {k: float(sp[k].to_display(p[k])) for sig, _ in sig_choices for k in sig.names}
         return self.predict(p), coeffs, p
 

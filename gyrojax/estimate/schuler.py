@@ -22,6 +22,8 @@ Both run under ``jax.vmap`` over records (Monte Carlo).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import diffrax
 import equinox as eqx
 import jax
@@ -41,6 +43,7 @@ from ..simulate import integrate, trajectory
 from ._linalg import scaled_lstsq, value_and_jacfwd
 from ._result import AbstractNamedEstimate
 from .kalman import rts_smoother, square_root_filter
+from .least_squares import STATIONARY_SE
 
 __all__ = ["attitude_residual", "schuler_residuals", "SchulerEstimate", "fit_schuler",
            "schuler_filter", "check_schuler_record", "linearised_model", "measurement_variations",
@@ -73,8 +76,11 @@ class SchulerEstimate(AbstractNamedEstimate):
     - ``iterations``: Gauss-Newton iterations (0 for the filter); ``residual_rms`` (5,): RMS of
       the final residuals per channel (m/s, rad).
     - ``method``: ``"gauss-newton"`` or ``"kalman"``.
-    - ``converged``: Gauss-Newton's last step was under its ``tol`` (False when it stopped at
-      ``max_iter`` still moving); True for the filter, a single pass.
+    - ``converged``: Gauss-Newton's last step was under its ``tol`` or under ``STATIONARY_SE``
+      (1e-2) standard errors (False when it stopped at ``max_iter`` still moving, or stalled
+      short of the optimum); True for the filter, a single pass.
+    - ``last_step_se``: Gauss-Newton's last step computed, in standard errors (the root of its
+      predicted drop of the whitened cost); NaN for the filter.
     """
 
     names: tuple[str, ...] = eqx.field(static=True)
@@ -85,6 +91,7 @@ class SchulerEstimate(AbstractNamedEstimate):
     residual_rms: jax.Array
     method: str = eqx.field(static=True)
     converged: jax.Array | bool = True
+    last_step_se: jax.Array | float = float("nan")
 
     def correlation(self):
         s = self.stderr
@@ -140,6 +147,16 @@ def check_schuler_record(ts, y, conditions: SchulerConditions, *, uniform: bool 
 
 
 # -- Gauss-Newton (§9.3) ---------------------------------------------------------------------
+class _GaussNewtonOutcome(NamedTuple):
+    theta: jax.Array  # internal units
+    covariance: jax.Array  # posterior (prior included)
+    iterations: jax.Array  # linearisations, the stalled one included
+    residual_rms: jax.Array  # per channel
+    converged: jax.Array
+    step_se: jax.Array  # the last step computed, in standard errors (inf: no finite cost)
+    stalled: jax.Array  # no fraction of the last step lowered the cost (it was not taken)
+
+
 def _gauss_newton(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names=THETA_NAMES,
                   fixed=None, mask=None):
     """Prior-regularised Gauss-Newton over ``names`` (prior sd ``sig``, start ``u0`` in prior
@@ -152,10 +169,15 @@ def _gauss_newton(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names
     sets over one superset ``names``, a different ``max_iter``) reuses one compiled solver.
 
     A step that raises the cost (residuals and prior) is halved, up to 8 times; if none lowers
-    it the fit stops there, not converged.
+    it the fit stops there.
 
-    Returns ``(theta, covariance, iterations, residual RMS per channel, converged)``: converged
-    when the last step's largest change was under ``tol`` prior standard deviations."""
+    Returns a :class:`_GaussNewtonOutcome`. ``converged``: the last step's largest change was
+    under ``tol`` prior standard deviations, or that step (the last one computed; the one not
+    taken when the fit stalled) was under ``STATIONARY_SE`` standard errors, the rule of
+    gyrojax's optimistix fits. A fit can stall at the optimum: the adaptive ODE solver's noise
+    in the cost (~1e-8 of it) hides a step whose predicted drop of the whitened cost is ~1e-4
+    (a null record's refits stall at 4e-6 to 6e-3 standard errors). A fit that stalls on a
+    longer step, or stops at ``max_iter`` still moving, has not converged."""
     y = jnp.asarray(y, dtype=float)
     weights = jnp.broadcast_to(jnp.asarray(weights, dtype=float), y.shape)
     mask = jnp.ones(len(names)) if mask is None else jnp.asarray(mask, dtype=float)
@@ -183,7 +205,7 @@ def _gauss_newton_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, n
         return r @ r + jnp.sum((u * mask) ** 2)
 
     def body(carry):
-        u, it, _, _, _ = carry
+        u, it, _, _, _, _ = carry
         r, jac = value_and_jacfwd(resid)(u)
         jac = jac * mask
         a = jnp.concatenate([jac, jnp.diag(mask)], axis=0)
@@ -201,18 +223,21 @@ def _gauss_newton_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, n
                                    (0, jnp.asarray(jnp.inf)))
         ok = c1 <= c0
         t = jnp.where(ok, 0.5 ** (j - 1), 0.0)
-        return u + t * delta, it + 1, jnp.max(jnp.abs(delta)), ~ok, cov
+        # the whole step in standard errors: the root of its predicted drop of the whitened cost
+        step_se = jnp.where(jnp.isfinite(c0), jnp.sqrt(jnp.sum((a @ delta) ** 2)), jnp.inf)
+        return u + t * delta, it + 1, jnp.max(jnp.abs(delta)), ~ok, cov, step_se
 
     def cond(carry):
-        _, it, change, stuck, _ = carry
+        _, it, change, stuck, _, _ = carry
         return (it < max_iter) & (change > tol) & ~stuck
 
-    u, it, change, _, cov = jax.lax.while_loop(
-        cond, body, (u0, 0, jnp.inf, jnp.asarray(False), jnp.eye(k)))
+    u, it, change, stalled, cov, step_se = jax.lax.while_loop(
+        cond, body, (u0, 0, jnp.inf, jnp.asarray(False), jnp.eye(k), jnp.asarray(jnp.inf)))
     params = fixed | dict(zip(names, u * sig, strict=True))
     r = schuler_residuals(rig, conditions, ts, y, params)
-    return (u * sig, cov * jnp.outer(sig, sig), it, jnp.sqrt(jnp.mean(r**2, axis=0)),
-            change <= tol)
+    return _GaussNewtonOutcome(u * sig, cov * jnp.outer(sig, sig), it,
+                               jnp.sqrt(jnp.mean(r**2, axis=0)),
+                               (change <= tol) | (step_se <= STATIONARY_SE), step_se, stalled)
 
 
 def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_v: float = 0.05,
@@ -242,13 +267,13 @@ def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_
     if staged and float(ts[-1] - ts[0]) > 1.2 * period:
         n1 = int(np.searchsorted(np.asarray(ts), float(ts[0]) + period)) + 1
         first = (jnp.arange(y.shape[0]) < n1)[:, None]
-        theta, *_ = _gauss_newton(rig, conditions, ts, y, w * first, sig, u, max_iter, tol)
-        u = theta / sig
-    theta, cov, it, rms, converged = _gauss_newton(rig, conditions, ts, y, w, sig, u, max_iter,
-                                                   tol)
-    return SchulerEstimate(names=THETA_NAMES, values=theta, stderr=jnp.sqrt(jnp.diagonal(cov)),
-                           covariance=cov, iterations=it, residual_rms=rms, method="gauss-newton",
-                           converged=converged)
+        u = _gauss_newton(rig, conditions, ts, y, w * first, sig, u, max_iter, tol).theta / sig
+    gn = _gauss_newton(rig, conditions, ts, y, w, sig, u, max_iter, tol)
+    return SchulerEstimate(names=THETA_NAMES, values=gn.theta,
+                           stderr=jnp.sqrt(jnp.diagonal(gn.covariance)),
+                           covariance=gn.covariance, iterations=gn.iterations,
+                           residual_rms=gn.residual_rms, method="gauss-newton",
+                           converged=gn.converged, last_step_se=gn.step_se)
 
 
 # -- linearised Kalman filter (§9.2) -------------------------------------------------------
