@@ -274,6 +274,8 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = No
             out_term, truth = _angle_random_walk(rng, design, lam)
         else:
             p, out_term, truth = _hidden(rng, family, p, cond, design, lam)
+        sp = _TRUTH_RIG.param_space
+        truth["nominal"] = {k: float(sp[k].to_display(p[k])) for k in sp.nominal_names()}
         key, sub = jax.random.split(key)
         if design.flicker_arcsec > 0:
             from ..models.imu import _flicker, flicker_spectral
