@@ -140,6 +140,11 @@ def test_schuler_cases_have_the_stated_noncentrality(tmp_path):
         jn = np.asarray(jax.jacfwd(resid)(jnp.zeros(len(THETA_NAMES))))
         jn = jn * sp.scales(THETA_NAMES)  # columns per prior scale (conditioning only)
         assert _first_order_energy(signal, jn) == pytest.approx(64.0, rel=2e-3), truth["family"]
+        # the manifest's energy of the whole signal (not first order): ~1e-4 from lambda but for
+        # the cross-axis terms (64.4 on this draw)
+        full = _projected_energy(signal(1.0), jn)
+        assert truth["lambda_signal"] == pytest.approx(full, rel=1e-3), truth["family"]
+        assert full == pytest.approx(64.0, rel=0.02 if "cross" in truth["family"] else 1e-3)
         e = np.asarray(schuler_residuals(rig, cond, ts, jnp.asarray(rec.y),
                                          _rebuild(sp, truth, sp.make())[1])) * w
         assert np.all(np.abs(e.mean(0)) < 0.1) and np.allclose(e.std(0), 1.0, atol=0.08)
