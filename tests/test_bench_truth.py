@@ -181,3 +181,57 @@ def test_gyrotheodolite_cases_have_the_stated_noncentrality(tmp_path):
         e = (np.asarray(rec.y) - y_of(p_eff)) / sigma
         assert abs(np.mean(e)) < 0.15 and np.std(e) == pytest.approx(1.0, abs=0.1)
     assert seen == set(bg.MEAN_FAMILIES)
+
+
+@pytest.mark.slow  # ~60 s: five 3-amplitude Table 1 schedules and 54 noise-free runs
+def test_platform_cases_have_the_stated_noncentrality(tmp_path):
+    """The platform's train rows (spec platform-vibration, the diagnosis' reduction): every
+    dwell's angles in 50 block means, centred by the mean of its train blocks, the train blocks
+    weighted by the root of their sizes, whitened by the angle noise. Here written out in numpy;
+    the nominal columns by central differences of the noise-free simulation."""
+    import jax
+
+    from gyrojax.diagnose import bench_platform as bp
+    from gyrojax.models.platform import PlatformRig
+    from gyrojax.models.platform_schedule import simulate_schedule
+
+    sp = PlatformRig().param_space
+    design = bp.PlatformDesign()
+    s = design.schedule()
+    sigma = design.noise_arcsec * units.ARCSEC
+    k_train = design.blocks - int(round(design.holdout * design.blocks))
+    n_a, n_p = len(s["table_amplitudes_g"]), len(s["positions_deg"])
+
+    def angles(p):  # noise-free gimbal angles (A, P, n, 3)
+        rec = simulate_schedule(p, s, jax.random.key(0), noise_arcsec=0.0, accel_noise_g=0.0)
+        return np.asarray(rec.y)[:, :3].reshape(n_a, n_p, -1, 3)
+
+    def rows(dy):
+        out = []
+        for a in range(n_a):
+            for q in range(n_p):
+                groups = np.array_split(np.arange(dy.shape[2]), design.blocks)
+                b = np.stack([dy[a, q, g].mean(0) for g in groups])
+                b = (b - b[:k_train].mean(0))[:k_train]
+                out.append(b * np.sqrt([len(g) for g in groups[:k_train]])[:, None])
+        return np.concatenate(out).ravel() / sigma
+
+    base = sp.make()
+    nominal = design.nominal_names()
+    jn = np.stack([rows(angles(base | {k: jnp.asarray(sp[k].scale)})
+                        - angles(base | {k: jnp.asarray(-sp[k].scale)})) / 2 for k in nominal], 1)
+    bp.generate(tmp_path, len(bp.MEAN_FAMILIES), seed=21, null_fraction=0.0, lambdas=(64.0,),
+                families=bp.MEAN_FAMILIES)
+    seen = set()
+    for truth, rec in _cases(tmp_path):
+        seen.add(truth["family"])
+        base_t = base | ({"tau_w": jnp.asarray(60.0 * truth["tau_w_min"])}
+                         if "tau_w_min" in truth else {})
+        p_nom, p_eff = _rebuild(sp, truth, base_t)
+        y_nom = angles(p_nom)
+        lam = _first_order_energy(
+            lambda a, t=truth, b=base_t, y0=y_nom: rows(angles(_rebuild(sp, t, b, a)[1]) - y0), jn)
+        assert lam == pytest.approx(64.0, rel=2e-3), truth["family"]
+        e = (np.asarray(rec.y)[:, :3].reshape(y_nom.shape) - angles(p_eff)) / sigma
+        assert abs(np.mean(e)) < 0.01 and np.std(e) == pytest.approx(1.0, abs=0.01)
+    assert seen == set(bp.MEAN_FAMILIES)
