@@ -260,6 +260,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = No
     cond = ESGConditions.from_scheme(design.scheme, design.latitude_deg)
     fams = list(families or (LIBRARY_FAMILIES + OUT_OF_LIBRARY + ("two_effects",)))
     key = jax.random.key(seed)
+    sp = _TRUTH_RIG.param_space
     for i in range(n_cases):
         family, lam = sealer.draw(i, fams, lambdas, null_fraction)
         p = _truth_params(rng, design)
@@ -274,7 +275,6 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = No
             out_term, truth = _angle_random_walk(rng, design, lam)
         else:
             p, out_term, truth = _hidden(rng, family, p, cond, design, lam)
-        sp = _TRUTH_RIG.param_space
         truth["nominal"] = {k: float(sp[k].to_display(p[k])) for k in sp.nominal_names()}
         key, sub = jax.random.split(key)
         if design.flicker_arcsec > 0:

@@ -176,7 +176,7 @@ def _gauss_newton(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names
     taken when the fit stalled) was under ``STATIONARY_SE`` standard errors, the rule of
     gyrojax's optimistix fits. A fit can stall at the optimum: the adaptive ODE solver's noise
     in the cost (~1e-8 of it) hides a step whose predicted drop of the whitened cost is ~1e-4
-    (a null record's refits stall at 4e-6 to 6e-3 standard errors). A fit that stalls on a
+    (a null record's refits stall at 4e-6 to 7e-3 standard errors). A fit that stalls on a
     longer step, or stops at ``max_iter`` still moving, has not converged."""
     y = jnp.asarray(y, dtype=float)
     weights = jnp.broadcast_to(jnp.asarray(weights, dtype=float), y.shape)
