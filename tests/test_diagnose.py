@@ -621,6 +621,72 @@ def test_calibrated_level_gives_alpha_on_fresh_nulls_by_the_per_residual_code():
     assert level_out > 0.05 and np.mean(minq_out < 0.05) < far_out
 
 
+def test_canonical_correlations_are_the_cosines_of_the_principal_angles():
+    """The ambiguity report's canonical correlations between two effects' column spans are the
+    cosines of the spans' principal angles (scipy's ``subspace_angles``, a second method),
+    whatever the columns' scales (1e3 and 1e-3 here: a raw ``a^T b`` would not be); an
+    empty span gives 0 (stop 67)."""
+    import scipy.linalg
+
+    from gyrojax.diagnose._stats import canonical_correlation, canonical_correlations
+
+    rng = np.random.default_rng(67)
+    q, _ = np.linalg.qr(rng.standard_normal((200, 5)))
+    th = np.array([0.3, 1.1])
+    a = q[:, :2] @ np.array([[1e3, 2.0], [0.0, 1e-3]])
+    b = np.c_[q[:, 0] * np.cos(th[0]) + q[:, 2] * np.sin(th[0]),
+              q[:, 1] * np.cos(th[1]) + q[:, 3] * np.sin(th[1]), q[:, 4]] @ np.diag([5e2, 1.0,
+                                                                                  3e-3])
+    rho = canonical_correlations(a, b)
+    np.testing.assert_allclose(rho, np.cos(th), rtol=1e-9)
+    np.testing.assert_allclose(rho, np.sort(np.cos(scipy.linalg.subspace_angles(a, b)))[::-1][:2],
+                               rtol=1e-9)
+    assert canonical_correlation(a, b) == pytest.approx(np.cos(0.3), rel=1e-9)
+    assert canonical_correlations(a, np.zeros((200, 2))).tolist() == [0.0]
+
+
+def test_screening_statistics_by_hand():
+    """The screening's small pieces against hand or scipy values (stop 67): the smoothed
+    bootstrap p-value (``(1 + #{sup >= lm} + f) / (1 + B)``, ``f`` the linear position between
+    neighbouring draws; the grid's Bonferroni chi-square tail beyond the largest), the joint null
+    scores' covariance ``W^T W``, the weighted median's index, and the g-prior and mixture Bayes
+    factors."""
+    import scipy.stats
+
+    from gyrojax.diagnose._stats import (
+        _median_index,
+        _smooth_bootstrap_p,
+        mix_log_bf,
+        score_draws,
+        zellner_log_bf,
+    )
+
+    sup = np.array([1.0, 2.0, 3.0, 4.0])  # B = 4 sorted draws
+    tail = min(0.2 * scipy.stats.chi2.sf(10.0, 1) / scipy.stats.chi2.sf(4.0, 1),
+               3 * scipy.stats.chi2.sf(10.0, 1))
+    np.testing.assert_allclose(
+        _smooth_bootstrap_p(sup, np.array([0.5, 2.25, 3.0, 4.0, 10.0]), 3, 1),
+        [1.0, (1 + 2 + 0.75) / 5, (1 + 2) / 5, (1 + 1) / 5, tail], rtol=1e-12)
+
+    rng = np.random.default_rng(67)
+    q, _ = np.linalg.qr(rng.standard_normal((50, 3)))
+    w1 = q[:, :1]
+    w2 = np.c_[q[:, 0] * 0.6 + q[:, 1] * 0.8, q[:, 2]]  # overlaps w1 by 0.6
+    t1, t2 = score_draws([w1, w2], 200_000, rng)
+    assert t1.shape == (1, 200_000) and t2.shape == (2, 200_000)
+    w = np.c_[w1, w2]
+    np.testing.assert_allclose(np.cov(np.r_[t1, t2]), w.T @ w, atol=0.01)
+
+    assert _median_index([3.0, 1.0, 2.0, 5.0], [1.0, 1.0, 1.0, 1.0]) == 2  # the value 2
+    assert _median_index([3.0, 1.0, 2.0, 5.0], [1.0, 1.0, 1.0, 5.0]) == 3  # the value 5
+
+    g = np.array([8.0 / 2, 8.0 / 1])
+    parts = 0.5 * g / (1 + g) * np.array([4.0, 1.0]) - 0.5 * np.array([2, 1]) * np.log1p(g)
+    z = zellner_log_bf([4.0, 1.0], [2, 1], [8.0])
+    assert z[0] == pytest.approx(np.log(np.mean(np.exp(parts))), rel=1e-12)
+    assert mix_log_bf(1.5, -0.5) == pytest.approx(np.log((np.exp(1.5) + np.exp(-0.5)) / 2))
+
+
 def test_pipeline_pieces_by_hand():
     """The pipeline's small pieces against hand computations on synthetic inputs.
     - The weighted-BH weights: the library's share split over its tests, the rest over the
