@@ -621,6 +621,54 @@ def test_calibrated_level_gives_alpha_on_fresh_nulls_by_the_per_residual_code():
     assert level_out > 0.05 and np.mean(minq_out < 0.05) < far_out
 
 
+def test_library_pvalues_of_many_residuals_are_the_screens_one_at_a_time():
+    """The calibrated level scores the library on its null draws all at once
+    (``library_pvalues``); each column must be what ``screen`` gives that residual alone (the
+    per-residual code, a second method), a grid effect's at the grid value of the largest
+    score. Residuals: pure nulls, and nulls plus a step at one grid point (noncentrality 25),
+    whose p-value must then be the one at that grid point's score (stop 68)."""
+    from gyrojax.diagnose._stats import (
+        _grid_lm,
+        _pvalue,
+        library_pvalues,
+        nominal_basis,
+        screen_designs,
+    )
+
+    rng = np.random.default_rng(68)
+    n, c = 150, 2
+    tt = np.linspace(-1, 1, n)
+    jn = np.zeros((n, c, 2))
+    jn[:, :, 0], jn[:, 1, 1] = 1.0, tt
+    jn = jn.reshape(n * c, 2)
+    ramp = np.zeros((n, c, 1))
+    ramp[:, 0, 0] = tt ** 2
+    steps = np.stack([((tt > s)[:, None] * np.array([1.0, -0.5])).reshape(n * c, 1)
+                      for s in np.linspace(-0.6, 0.6, 5)])
+    sigs = [Signature("ramp", "trend", ("r",), ("1",), np.ones(1), ramp.reshape(1, n * c, 1)),
+            Signature("step", "step", ("s",), ("1",), np.ones(1), steps, grid=tuple(range(5)))]
+    designs = screen_designs(jn, sigs, n_boot=300)
+    u = nominal_basis(jn)
+    z = rng.standard_normal((n * c, 12))
+    z -= u @ (u.T @ z)
+    x = steps[3, :, 0] - u @ (u.T @ steps[3, :, 0])
+    z[:, 6:] += 5.0 * x[:, None] / np.linalg.norm(x)
+    p_lib = library_pvalues(designs[1], z)
+    assert p_lib.shape == (2, 12)
+    p_one = np.array([[r.p for r in screen(z[:, j], jn, sigs, designs=designs)]
+                      for j in range(12)]).T
+    np.testing.assert_allclose(p_lib, p_one, rtol=1e-12, atol=0)
+    assert np.all(p_lib[1, 6:] < 1e-3) and np.median(p_lib[1, :6]) > 0.05
+    # the step's p-value is the bootstrap tail of the largest grid score, not of another one
+    des = designs[1][1]
+    lms = _grid_lm(des, z)
+    dofs = np.array([w.size for w in des.w])
+    p_each = np.array([_pvalue(des, lms[g], dofs[g]) for g in range(lms.shape[0])])
+    np.testing.assert_allclose(p_lib[1], p_each[np.argmax(lms, axis=0), np.arange(12)],
+                               rtol=1e-12)
+    assert np.all(p_lib[1] <= p_each.min(axis=0) * (1 + 1e-12))
+
+
 def test_canonical_correlations_are_the_cosines_of_the_principal_angles():
     """The ambiguity report's canonical correlations between two effects' column spans are the
     cosines of the spans' principal angles (scipy's ``subspace_angles``, a second method),
