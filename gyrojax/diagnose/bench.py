@@ -187,7 +187,8 @@ def _hidden(rng, family, p, cond, design, lam):
         else:
             for name, v in zip(_EFFECT_PARAMS[family], b):
                 p[name] = jnp.asarray(v)
-            truth["coefficients"] = {n: float(v) for n, v in zip(_EFFECT_PARAMS[family], b)}
+            truth["coefficients"] = {n: float(_TRUTH_RIG.param_space[n].to_display(v))
+                                     for n, v in zip(_EFFECT_PARAMS[family], b)}
             truth |= truth_visibility(jb, projector(jn)(jb))
             if family == "drift_step":
                 dj = [_model_jac(p | {"t_step": p["t_step"] + d}, cond, ts[:n_train], names)

@@ -263,7 +263,8 @@ def _noise_theta(family, design):
 
 def _hidden(rng, family, p, design, lam):
     p = dict(p)
-    truth = {"family": family, "lambda": float(lam) if family != "null" else 0.0}
+    truth = {"family": family, "lambda": float(lam) if family != "null" else 0.0,
+             "nominal": {k: float(_SPACE[k].to_display(p[k])) for k in _SPACE.nominal_names()}}
     if effect_family_name(family) in _EFFECT_PARAMS:
         names = _effect_params(design)[family] if family in _EFFECT_PARAMS else (
             family.split(":", 1)[1],)
@@ -276,7 +277,7 @@ def _hidden(rng, family, p, design, lam):
         b = b * math.sqrt(lam) * scale
         for n, v in zip(names, b):
             p[n] = p[n] + v
-        truth["coefficients"] = {n: float(v) for n, v in zip(names, b)}
+        truth["coefficients"] = {n: float(_SPACE[n].to_display(v)) for n, v in zip(names, b)}
         truth |= visibility
     elif family in ("quantization", "bias_instability", "rate_random_walk"):
         theta = math.sqrt(lam) * _noise_theta(family, design)  # coefficient of the spectrum
