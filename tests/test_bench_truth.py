@@ -349,3 +349,26 @@ def test_imu_additive_cases_have_the_stated_noncentrality(tmp_path):
         e = np.asarray(rec.y)[:, :6] / sig - y_nom - term / sig
         assert np.all(np.abs(e.mean(0)) < 0.05) and np.allclose(e.std(0), 1.0, atol=0.03)
     assert seen == set(fams)
+
+
+@pytest.mark.slow  # ~10 s: one 40-min static record at 50 Hz
+def test_imu_quantization_case_has_the_stated_noncentrality(tmp_path):
+    """The static design's noise truth side against a closed form: quantization ``Q`` adds the
+    first difference of a white angle error over ``tau0``, an MA(1) whose lag-1 autocorrelation
+    ``-Q^2 / (tau0^2 sigma^2)`` the score test sees in ``N`` train samples with noncentrality
+    ``N Q^4 / (tau0^4 sigma^4)`` (to first order in ``Q^2``); the manifest's ``Q`` must give the
+    case's lambda so, and the record's own lag-1 autocorrelation must be the model's."""
+    from gyrojax.diagnose import bench_imu as bi
+
+    design = bi.IMUDesign(kind="static")
+    bi.generate(tmp_path, 1, seed=21, null_fraction=0.0, lambdas=(64.0,), design=design,
+                families=("quantization",))
+    ((truth, rec),) = _cases(tmp_path)
+    q, tau0, s = truth["term"]["q_g"], 1.0 / design.rate_hz, design.sigma[0]
+    n_train = 0.75 * design.static_s * design.rate_hz
+    assert n_train * q**4 / (tau0**4 * s**4) == pytest.approx(64.0, rel=1e-3)
+    w = np.asarray(rec.y)[:, :3]
+    w = w - w.mean(0)
+    rho = np.sum(w[1:] * w[:-1]) / np.sum(w * w)
+    rho_model = -(q / tau0) ** 2 / (s**2 + 2 * (q / tau0) ** 2)  # -0.026 here
+    assert abs(rho - rho_model) < 4 / np.sqrt(w.size), (rho, rho_model)
