@@ -154,6 +154,61 @@ def test_multiposition_calibration_recovers_the_generating_parameters(tmp_path, 
     assert wz == pytest.approx(3.0 + 15.041 * np.sin(np.radians(45.0)), abs=1.0)
 
 
+def test_records_in_other_units_are_refused_with_the_fix(tmp_path, capsys):
+    """A record that is not SI is named, with its factor and fix, before a fit turns it into
+    values that are no calibration (a gyro in deg/s "converged" with 17-deg turn residuals
+    before stop 68). On a simulated 14-pose record (minimal turns: the integrated rotation is
+    the angle between the poses, ratio 1) the accelerometers in g, mg or counts and the gyros in
+    deg/s or stuck are refused; ``gyrojax fit`` stops with exit 2 on the accelerometers, and
+    reports the accelerometer calibration with the gyros' problem as its gyro note; the
+    diagnosis refuses the accelerometers in g too."""
+    from gyrojax.estimate.multiposition import turn_rotation_ratio
+
+    p = SPACE.make(BIAS | CAL)
+    rec = simulate_imu(p, cube_poses(14, 5.0, seed=1), rate_hz=100.0, arw=1e-4, vrw=1e-3,
+                       key=jax.random.key(2))
+    segs = detect_static(rec)
+    means, _ = segment_means(rec, segs)
+    acc = calibrate_accelerometer(means, units.G0)
+    # the check's statistic, by hand: turns of the simulator's minimal rotation read 1
+    w = np.asarray(rec.y)[:, :3]
+    b = w[segs[0].i0:segs[0].i1].mean(0)
+    ups = means / np.linalg.norm(means, axis=1, keepdims=True)
+    turns = [(k, segs[k].i1, segs[k + 1].i0) for k in range(len(segs) - 1)]
+    ratio, n = turn_rotation_ratio(w, b, 0.01, turns, ups)
+    assert n >= 10 and ratio == pytest.approx(1.0, abs=0.02)
+    assert turn_rotation_ratio(np.degrees(w), np.degrees(b), 0.01, turns, ups)[0] == \
+        pytest.approx(np.degrees(ratio), rel=1e-12)
+    for k, fix in ((1 / units.G0, "look like g: multiply them by 9.80665"),
+                   (1e3 / units.G0, "look like mg: multiply them by 0.00980665"),
+                   (417.0, "convert ax ay az to m/s^2")):
+        with pytest.raises(ValueError, match="accelerometer means have magnitude") as err:
+            calibrate_accelerometer(means * k, units.G0)
+        assert fix in str(err.value)
+    y = np.asarray(rec.y).copy()
+    y[:, 3:] /= units.G0
+    with pytest.raises(ValueError, match=r"magnitude 1\.00\d \(median over 14 poses\).*look like g"):
+        diagnose(BenchRecord(rec.t, y, rec.channels, rec.attrs), rig="imu")
+    for k, fix in ((np.degrees(1.0), "look like deg/s: multiply them by pi/180"),
+                   (0.0, "barely move during the turns")):
+        y = np.asarray(rec.y).copy()
+        y[:, :3] *= k
+        with pytest.raises(ValueError, match="the gyros integrate to") as err:
+            calibrate_gyro(BenchRecord(rec.t, y, rec.channels, rec.attrs), segs, acc)
+        assert fix in str(err.value)
+    for cols, k, code in ((slice(3, 6), 1 / units.G0, 2), (slice(0, 3), np.degrees(1.0), 0)):
+        y = np.asarray(rec.y).copy()
+        y[:, cols] *= k
+        save_record(BenchRecord(rec.t, y, rec.channels, rec.attrs), tmp_path / "r.nc")
+        assert main(["fit", str(tmp_path / "r.nc"), "--rig", "imu"]) == code
+        out = capsys.readouterr()
+        if code:
+            assert "multiply them by 9.80665" in out.err
+        else:
+            assert "accelerometers: 14 poses, rank 9" in out.out
+            assert "gyros: the gyros integrate to 57" in out.out and "sgx" not in out.out
+
+
 def test_few_poses_report_the_terms_they_determine(tmp_path, capsys):
     """The classic six-position test (the six axis-up poses, ``simulate --rig imu --poses 6``)
     determines the accelerometer biases and scale factors but not its misalignments, whose |f|

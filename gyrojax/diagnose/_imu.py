@@ -43,7 +43,7 @@ import numpy as np
 from .. import units
 from ..analysis.spectral import fit_noise_likelihood
 from ..datasets import masked
-from ..estimate.multiposition import Segment, detect_static
+from ..estimate.multiposition import Segment, accel_units_problem, detect_static
 from ..models.imu import (
     IMU_CHANNELS,
     MEAN_EFFECTS,
@@ -139,6 +139,12 @@ class IMUProblem:
                              "(conditions table_rate_s): the IMU diagnosis needs a static, "
                              "multi-position or rate-table record")
         self.segments = [s for s, _ in steady]
+        if all(c in record.channels for c in ("ax", "ay", "az")):  # in m/s^2 (SI)?
+            f = np.stack([np.asarray(record.channel(c), float) for c in ("ax", "ay", "az")], 1)
+            problem = accel_units_problem([f[s.i0:s.i1].mean(0) for s in self.segments],
+                                          self.cond.gravity)
+            if problem:
+                raise ValueError(problem)
         self.omega = np.array([w for _, w in steady])  # table rate per segment, rad/s
         self.noise_std = noise_std
         self.rate_hz = self.cond.rate_hz

@@ -278,6 +278,59 @@ def _free_terms(jac0, names) -> np.ndarray:
 
 _accel_jac = jax.jit(jax.jacfwd(_accel_resid))
 
+# Unit checks of the inputs (SI by contract). A real stand's static |f| is within a few per
+# cent of g (the five real sets' 18 records: 0.91-1.02 g, the MPU-6050 and the Xsens through
+# nominal count scales), and a hand-moved turn's integrated rotation is 1-2x the angle between
+# its poses (the eight multi-position records' medians: 1.24-1.77; single turns 0.67-12.5).
+# A record in g, mg or counts, or with the gyros in deg/s (57x) or counts, falls far outside
+# these ranges, where the fits fail or converge to values that are no calibration (a gyro in
+# deg/s: turn residuals of ~17 deg, "converged").
+ACCEL_MAGNITUDE_RANGE = (0.5, 2.0)  # median static |f| / g
+TURN_ROTATION_RANGE = (0.25, 10.0)  # median integrated rotation / angle between poses
+_TURN_MIN_DEG = 20.0  # turns counted in that median
+
+
+def accel_units_problem(means, gravity: float) -> str | None:
+    """Why static accelerometer means ``(n, 3)`` cannot be in m/s^2 (their median magnitude is
+    outside ``ACCEL_MAGNITUDE_RANGE`` times ``gravity``), with the fix; ``None`` when they can."""
+    mag = float(np.median(np.linalg.norm(np.asarray(means, float), axis=1)))
+    if ACCEL_MAGNITUDE_RANGE[0] <= mag / gravity <= ACCEL_MAGNITUDE_RANGE[1]:
+        return None
+    fix = ("ax ay az look like g: multiply them by 9.80665" if 0.5 <= mag <= 2.0 else
+           "ax ay az look like mg: multiply them by 0.00980665" if 500 <= mag <= 2000 else
+           "convert ax ay az to m/s^2 (raw counts need the sensor's scale factor and zero offset)")
+    return (f"the static accelerometer means have magnitude {mag:#.4g} (median over {len(means)} "
+            f"poses), {mag / gravity:.3g} times gravity ({gravity:.6g} m/s^2), where a stand "
+            f"reads 1 within a few per cent; gyrojax records are SI: {fix}")
+
+
+def turn_rotation_ratio(w, b, dt, turns, ups) -> tuple[float, int]:
+    """The median over ``turns`` ``(k, i0, i1)`` of more than ``_TURN_MIN_DEG`` between the up
+    vectors ``ups[k]`` and ``ups[k + 1]`` of the gyros' integrated rotation ``sum |w - b| dt``
+    over the angle between them, and how many turns it counts (NaN, 0 when none)."""
+    out = []
+    for k, i0, i1 in turns:
+        ang = float(np.arccos(np.clip(np.dot(ups[k], ups[k + 1]), -1.0, 1.0)))
+        if ang > np.radians(_TURN_MIN_DEG):
+            out.append(float(np.sum(np.linalg.norm(w[i0:i1] - b, axis=1))) * dt / ang)
+    return (float(np.median(out)), len(out)) if out else (float("nan"), 0)
+
+
+def gyro_units_problem(ratio: float, n_turns: int) -> str | None:
+    """Why gyro rates whose turns integrate to ``ratio`` times the poses' angles
+    (:func:`turn_rotation_ratio`) cannot be in rad/s, with the fix; ``None`` when they can."""
+    if not n_turns or TURN_ROTATION_RANGE[0] <= ratio <= TURN_ROTATION_RANGE[1]:
+        return None
+    fix = ("wx wy wz barely move during the turns: check that they are the gyro rates in rad/s, "
+           "not stuck, saturated or filtered" if ratio < TURN_ROTATION_RANGE[0] else
+           "wx wy wz look like deg/s: multiply them by pi/180 = 0.0174533"
+           if 20 <= ratio <= 200 else
+           "convert wx wy wz to rad/s (raw counts need the sensor's scale factor and zero offset)")
+    return (f"the gyros integrate to {ratio:.3g} times the angle between the poses over the "
+            f"turns (median over {n_turns} turns of more than {_TURN_MIN_DEG:g} deg, the angles "
+            "from the accelerometers), where a hand-moved turn gives 1-2; gyrojax records are "
+            f"SI: {fix}")
+
 
 @dataclasses.dataclass
 class AccelCalibration:
@@ -309,6 +362,9 @@ def calibrate_accelerometer(means, gravity: float, *, weights=None) -> AccelCali
     and gives standard errors for those only; ``determined`` is True when all nine are."""
     means = np.asarray(means, float)
     n = len(means)
+    problem = accel_units_problem(means, gravity)
+    if problem:
+        raise ValueError(problem)
     w = np.ones(n) if weights is None else np.asarray(weights, float)
     th0 = np.zeros(9)
     th0[:3] = means.mean(0) * (n >= 6)
@@ -429,6 +485,9 @@ def calibrate_gyro(record: BenchRecord, segments, accel: AccelCalibration, *, bi
         raise ValueError("no turns between static poses shorter than max_turn_s with every "
                          "sample recorded; gyro calibration by gravity propagation needs the "
                          "motions between poses" + (f" ({why})" if why else ""))
+    problem = gyro_units_problem(*turn_rotation_ratio(w, b, dt, turns, ups))
+    if problem:
+        raise ValueError(problem)
     # pad all turns to one length (zero rate after the end) so one scan serves every turn
     lmax = max(i1 - i0 for _, i0, i1 in turns)
     wt = np.zeros((len(turns), lmax, 3))
