@@ -17,6 +17,9 @@ from pathlib import Path
 import numpy as np
 
 EXIT_USAGE = 2
+# `fit` notes a residual RMS beyond this many times the record's sample-to-sample noise: a
+# missing effect is a few times it, a record in other units (hours for seconds) thousands
+MISFIT_RATIO = 10.0
 
 
 class UsageError(Exception):
@@ -231,7 +234,13 @@ def cmd_fit(args):
     ex = report.extra
     conv = (convergence_text(report.converged, ex["num_steps"], ex["remaining_step_se"])
             if "remaining_step_se" in ex else f"converged: {report.converged}")
-    print(f"residual RMS {report.to_json()['residual_rms_arcsec']:.4g} arcsec; {conv}")
+    rms, noise = report.to_json()["residual_rms_arcsec"], ex["sample_noise_arcsec"]
+    print(f"residual RMS {rms:.4g} arcsec; {conv}")
+    if rms > MISFIT_RATIO * noise:
+        print(f"note: the residual RMS is {rms / noise:.3g} times the record's sample-to-sample "
+              f"noise ({noise:.3g} arcsec, from third differences): the model does not describe "
+              "this record; check its units (SI: s, rad), --scheme and --latitude, or see where "
+              f"it departs with: gyrojax diagnose {args.record} --rig esg")
     if "residual_noise_arcsec" in ex and "noise_std_arcsec" in ex:
         print(f"standard errors at the given noise {ex['noise_std_arcsec']:.4g} arcsec (the "
               f"residual's estimate: {ex['residual_noise_arcsec']:.4g} arcsec)")

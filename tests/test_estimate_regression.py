@@ -134,3 +134,18 @@ def test_fit_refuses_a_record_it_would_misread():
     with pytest.raises(ValueError, match=r"record channels \['alpha2', 'alpha1'\] are not the "
                        r"rig's \['alpha1', 'alpha2'\]"):
         fit(rig, gj.BenchRecord(TS_24H[:10], jnp.zeros((10, 2)), ("alpha2", "alpha1")), cond)
+    # angles in arcsec (or in deg, where alpha2 passes 1.57 deg): beyond the gimbal lock at
+    # pi/2 rad they cannot be radians (the fits ended in inf/NaN before stop 68). alpha1 wraps
+    # freely (two days on the equatorial scheme: 720 deg); alpha2 reaches 89.5 deg on the
+    # vertical scheme at the equator, here 1.51 rad
+    from gyrojax.diagnose import diagnose
+
+    rec = gj.simulate(rig, p, cond, TS_24H, attrs=dict(scheme="polar", latitude_deg=55.75))
+    y = rec.y.at[:, 0].add(4 * np.pi).at[:, 1].set(1.5 + 0.01 * jnp.sin(TS_24H / 3600))
+    assert fit(rig, gj.BenchRecord(rec.t, y, rec.channels), cond, method="regression")
+    for k in (1 / units.ARCSEC, np.degrees(1.0)):
+        with pytest.raises(ValueError, match=r"alpha2 reaches .*, beyond the gimbal lock at pi/2 "
+                           r"rad.*from deg: x 0.0174533; from arcsec: x 4.84814e-6"):
+            fit(rig, gj.BenchRecord(rec.t, y * k, rec.channels), cond)
+    with pytest.raises(ValueError, match=r"beyond the gimbal lock"):
+        diagnose(gj.BenchRecord(rec.t, rec.y / units.ARCSEC, rec.channels, rec.attrs), rig="esg")

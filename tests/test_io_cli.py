@@ -172,6 +172,20 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     assert fit["parameters"]["m11"]["value"] == pytest.approx(0.3, abs=5 * fit["parameters"]["m11"]["stderr"])
     assert fit["parameters"]["theta1"]["unit"] == "arcsec"
     assert fit["residual_rms_arcsec"] == pytest.approx(1.0, rel=0.1)
+    # the record's own noise from third differences, read against the residual: 1 arcsec
+    assert fit["sample_noise_arcsec"] == pytest.approx(1.0, rel=0.1)
+    assert "note: the residual RMS" not in capsys.readouterr().out
+    # the same record with its times in hours: the fit "converges" to a residual of thousands
+    # of arcsec, which the note names against the noise, with the checks to make (stop 68)
+    from gyrojax.io import load_record, save_record
+    from gyrojax.record import BenchRecord
+
+    r = load_record(rec)
+    save_record(BenchRecord(r.t / 3600, r.y, r.channels, r.attrs), tmp_path / "hours.nc")
+    assert main(["fit", str(tmp_path / "hours.nc")]) == 0
+    note = capsys.readouterr().out.splitlines()[-1]
+    ratio = float(note.split("RMS is ")[1].split(" times")[0])
+    assert ratio > 300 and "check its units (SI: s, rad), --scheme and --latitude" in note
     # a known noise sets Gauss-Newton's standard errors: sigma (J^T J)^-1/2 at 2 arcsec is the
     # residual estimate's times 2 / sigma_hat, and the estimates are the same fit's
     gout = tmp_path / "fit2.json"

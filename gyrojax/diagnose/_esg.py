@@ -32,7 +32,7 @@ from ..analysis.flicker import (
 from ..estimate._linalg import scaled_lstsq
 from ..estimate.least_squares import trajectory_jacobian
 from ..estimate.regression import integral_regression
-from ..models.esg import SCHEMES, ESGConditions, ESGRig
+from ..models.esg import SCHEMES, ESGConditions, ESGRig, check_angle_units
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._stats import Signature, onset_grid
@@ -216,6 +216,7 @@ class ESGProblem:
         self.record = record
         self.t = np.asarray(record.t, float)
         self.y = np.asarray(record.y, float)
+        check_angle_units(self.y)
         self.channels = record.channels
         n = len(self.t)
         self.n_train = n - int(round(holdout * n)) if holdout > 0 else n

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 import numpy as np
 
+from .. import units
 from ..simulate import integrate
 from .kalman import esg_augmented_filter
 from .least_squares import fit_trajectory
@@ -71,6 +72,10 @@ def _check_record(rig, record):
                          f"{list(rig.channels)}; name (and order) the record's channels as the "
                          "rig's")
     validate_samples(record.t, record.y, record.channels)
+    if tuple(rig.channels) == ("alpha1", "alpha2"):  # the ESG's gimbal angles
+        from ..models.esg import check_angle_units
+
+        check_angle_units(record.y)
 
 
 def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "gauss-newton",
@@ -152,6 +157,11 @@ def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "
         extra["noise_std_arcsec"] = float(np.degrees(sigma) * 3600)
     pred = integrate(rig, p, conditions, record.t, throw=False)
     rms = float(jnp.sqrt(jnp.mean((pred - record.y) ** 2)))
+    # the record's sample-to-sample noise, for the residual to be read against: third
+    # differences (white noise: variance 20 sigma^2) see past the gimbals' motion (Earth-rate
+    # curvature: ~0.02 arcsec a minute's third difference)
+    d3 = np.diff(np.asarray(record.y, float), 3, axis=0)
+    extra["sample_noise_arcsec"] = float(np.sqrt(np.mean(d3**2) / 20) / units.ARCSEC)
     return FitReport(method, tuple(free), p, stderr, rms, converged, space, extra)
 
 

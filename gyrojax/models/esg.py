@@ -47,7 +47,7 @@ from ..params import Param, ParameterSpace, param
 from ..rotations import euler321_to_matrix, rotvec_to_matrix, sincos, skew
 from ._base import AbstractRig
 
-__all__ = ["ESGRig", "ESGConditions", "SCHEMES", "scheme_angles", "DRIFT_NAMES"]
+__all__ = ["ESGRig", "ESGConditions", "SCHEMES", "scheme_angles", "DRIFT_NAMES", "check_angle_units"]
 
 U = units.EARTH_RATE
 DRIFT_NAMES = ("m11", "m12", "m21", "m22", "mc1", "mc2")
@@ -336,6 +336,17 @@ class ESGRig(AbstractRig):
             b1 = [_combine(e1, {i: jac[i, j] for i in range(3)}) for j in range(3)]
             b2 = [_combine(e2, {i: jac[i, j] for i in range(3)}) for j in range(3)]
         return (-u1 * sec, -u2), row1 + b1, row2 + b2
+
+
+def check_angle_units(y):
+    """Refuse gimbal angles ``y`` ``(n, 2)`` that cannot be radians: the model's ``alpha2`` lies
+    within +-pi/2 (the gimbal lock, spec esg-drift §3.3), so a record reaching beyond it is in
+    other units (a 24-h record in deg or arcsec: the fits end in inf/NaN, "not converged")."""
+    a2 = float(np.max(np.abs(np.asarray(y, float)[:, 1])))
+    if a2 >= np.pi / 2:
+        raise ValueError(f"the record's alpha2 reaches {a2:.6g}, beyond the gimbal lock at pi/2 "
+                         "rad, so it is not in radians; gyrojax records are SI: convert alpha1 "
+                         "alpha2 to rad (from deg: x 0.0174533; from arcsec: x 4.84814e-6)")
 
 
 def _combine(columns, coefficients):
