@@ -70,6 +70,21 @@ def validate_samples(t, y, channels: Sequence[str], *, source: str = "record",
     return t, y
 
 
+def check_radians(y, channels: Sequence[str], limit: float, why: str, convert=None):
+    """Refuse angle channels ``y`` ``(n, k)`` (named ``channels``) that reach ``limit`` rad, the
+    edge of the model's range (``why``): such a record is in other units (deg, arcsec), and the
+    fits read it as a trajectory far outside the model or as a scaled copy of one. The fix names
+    the channels ``convert`` (default: ``channels``)."""
+    peak = np.max(np.abs(np.asarray(y, float)), axis=0)
+    over = [(c, float(v)) for c, v in zip(channels, np.atleast_1d(peak)) if v >= limit]
+    if over:
+        c, v = over[0]
+        raise ValueError(f"the record's {c} reaches {v:.6g}, beyond {why} ({limit:.4g} rad), so "
+                         f"it is not in radians; gyrojax records are SI: convert "
+                         f"{' '.join(convert or channels)} to rad (from deg: x 0.0174533; from "
+                         "arcsec: x 4.84814e-6)")
+
+
 def _check_channels(channels, expected, source):
     if expected is None:
         return

@@ -93,6 +93,13 @@ def test_bad_input_names_the_fix():
                       ("azimuth",), {})
     with pytest.raises(ValueError, match="one channel 'alpha'"):
         diagnose(bad, rig="gyrotheodolite")
+    # in arcsec the small-angle model fits a scaled copy (no gap, a north offset of hundreds of
+    # "radians") unless refused (stop 68)
+    rec = _record()
+    with pytest.raises(ValueError, match=r"alpha reaches 20.65\d*, beyond the small-angle model's "
+                       r"range \(1 rad\).*from arcsec: x 4.84814e-6"):
+        diagnose(BenchRecord(rec.t, rec.y / units.ARCSEC, rec.channels, rec.attrs),
+                 rig="gyrotheodolite")
 
 
 @pytest.mark.slow

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..io import check_radians
 from ..models.gyrotheodolite import (
     ODE_OPTIONS,
     TEST_PARAMS,
@@ -99,6 +100,9 @@ class GyrotheodoliteProblem:
         self.conditions = GyrotheodoliteConditions.create(float(c.get("latitude_deg", 50.45)))
         self.t = np.asarray(record.t, float)
         self.y = np.asarray(record.y, float)
+        # the sensing element's model is for small angles (it swings by degrees): a record in
+        # arcsec fits it as a scaled copy, with a north offset of hundreds of "radians"
+        check_radians(self.y, tuple(record.channels), 1.0, "the small-angle model's range")
         self.channels = ("alpha",)
         n = len(self.t)
         self.n_train = n - int(round(holdout * n)) if holdout > 0 else n

@@ -341,12 +341,12 @@ class ESGRig(AbstractRig):
 def check_angle_units(y):
     """Refuse gimbal angles ``y`` ``(n, 2)`` that cannot be radians: the model's ``alpha2`` lies
     within +-pi/2 (the gimbal lock, spec esg-drift §3.3), so a record reaching beyond it is in
-    other units (a 24-h record in deg or arcsec: the fits end in inf/NaN, "not converged")."""
-    a2 = float(np.max(np.abs(np.asarray(y, float)[:, 1])))
-    if a2 >= np.pi / 2:
-        raise ValueError(f"the record's alpha2 reaches {a2:.6g}, beyond the gimbal lock at pi/2 "
-                         "rad, so it is not in radians; gyrojax records are SI: convert alpha1 "
-                         "alpha2 to rad (from deg: x 0.0174533; from arcsec: x 4.84814e-6)")
+    other units (a 24-h record in deg or arcsec: the fits end in inf/NaN, "not converged");
+    ``alpha1`` turns freely (720 deg in two days on the equatorial scheme)."""
+    from ..io import check_radians
+
+    check_radians(np.asarray(y)[:, 1:2], ("alpha2",), np.pi / 2, "the gimbal lock",
+                  convert=("alpha1", "alpha2"))
 
 
 def _combine(columns, coefficients):
