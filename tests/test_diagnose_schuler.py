@@ -14,6 +14,7 @@ from gyrojax.cli import main
 from gyrojax.diagnose import diagnose
 from gyrojax.io import load_record
 from gyrojax.models.schuler import SchulerConditions
+from gyrojax.record import BenchRecord
 
 RAMP = 0.05  # deg/h/h, the catalogue's prior scale
 
@@ -224,6 +225,11 @@ def test_schuler_problem_lines_designs_and_jacobians_by_hand(tmp_path):
     with pytest.raises(ValueError, match=r"the train part spans \d+ s, less than half a Schuler "
                                          r"period \(2531 s\)"):
         SchulerProblem(load_record(_simulate(tmp_path, "short", ["nu1=0"], seed=1)), holdout=0.8)
+    y = np.asarray(prob.record.y).copy()
+    y[:, 2:] = np.degrees(y[:, 2:]) + 200.0  # attitude in deg, 200 deg off: no rotation vector
+    with pytest.raises(ValueError, match=r"\|rot1 rot2 rot3\| reaches .*, beyond a rotation "
+                       r"vector's largest angle"):
+        SchulerProblem(BenchRecord(prob.record.t, y, prob.record.channels, prob.record.attrs))
 
 
 @pytest.mark.slow  # ~60 s: the Schuler refit's compilation

@@ -143,6 +143,14 @@ def test_bad_records():
         schuler_filter(RIG, uneven, y, COND)
     with pytest.raises(ValueError, match="strictly increasing"):
         fit_schuler(RIG, ts[::-1], y, COND)
+    # attitude in deg: a rotation vector's angle is at most pi rad (stop 68); at pi it passes
+    turned = y.copy()
+    turned[:, 2:5] = np.array([2.0, -2.0, 1.0]) / 3 * np.pi
+    check_schuler_record(ts, turned, COND)
+    with pytest.raises(ValueError, match=r"rotation angle \|rot1 rot2 rot3\| reaches 180, "
+                       r"beyond a rotation vector's largest angle \(3.152 rad\).*convert rot1 "
+                       r"rot2 rot3 to rad \(from deg: x 0.0174533"):
+        fit_schuler(RIG, ts, np.degrees(turned), COND)
 
 
 @pytest.mark.slow

@@ -24,7 +24,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import units
-from ..estimate.schuler import THETA_NAMES, _gauss_newton, fit_schuler, schuler_residuals
+from ..estimate.schuler import (
+    THETA_NAMES,
+    _gauss_newton,
+    check_rotation_units,
+    fit_schuler,
+    schuler_residuals,
+)
 from ..models.schuler import SchulerConditions, SchulerRig
 from ..record import BenchRecord
 from ..simulate import integrate
@@ -85,6 +91,7 @@ class SchulerProblem:
             v20=float(c.get("v20", -200.0)), azimuth0_deg=float(c.get("azimuth0_deg", 0.0)))
         self.t = np.asarray(record.t, float)
         self.y = np.asarray(record.y, float)
+        check_rotation_units(self.y)
         self.channels = CHANNELS
         n = len(self.t)
         self.n_train = n - int(round(holdout * n)) if holdout > 0 else n

@@ -46,8 +46,8 @@ from .kalman import rts_smoother, square_root_filter
 from .least_squares import STATIONARY_SE
 
 __all__ = ["attitude_residual", "schuler_residuals", "SchulerEstimate", "fit_schuler",
-           "schuler_filter", "check_schuler_record", "linearised_model", "measurement_variations",
-           "prior_factor"]
+           "schuler_filter", "check_schuler_record", "check_rotation_units", "linearised_model",
+           "measurement_variations", "prior_factor"]
 
 THETA_NAMES = PARAM_NAMES
 
@@ -119,6 +119,17 @@ def _prior_std(rig, prior_std):
     return jnp.array([float(base[n]) for n in THETA_NAMES])
 
 
+def check_rotation_units(y):
+    """Refuse attitude channels ``rot1 rot2 rot3`` (columns 2-4 of ``y``) that cannot be a
+    rotation vector in rad: its angle ``|rot|`` is at most pi (0.01 rad of noise allowed). A
+    record in deg or arcmin fails the fit ("not converged", its last step 1e4 standard errors)."""
+    from ..io import check_radians
+
+    angle = np.linalg.norm(np.asarray(y, float)[:, 2:5], axis=1)[:, None]
+    check_radians(angle, ("rotation angle |rot1 rot2 rot3|",), np.pi + 0.01,
+                  "a rotation vector's largest angle", convert=("rot1", "rot2", "rot3"))
+
+
 def check_schuler_record(ts, y, conditions: SchulerConditions, *, uniform: bool = False):
     """Validate a Schuler-test record at the boundary: ``ts`` (N,) strictly increasing, ``y``
     (N, 5) finite with the velocity and attitude channels, spanning at least half a Schuler
@@ -135,6 +146,7 @@ def check_schuler_record(ts, y, conditions: SchulerConditions, *, uniform: bool 
         bad = np.argwhere(~np.isfinite(y))[0]
         raise ValueError(f"non-finite value at t={ts[bad[0]]} s, channel {bad[1]}; remove or "
                          "interpolate the gap")
+    check_rotation_units(y)
     half = 0.5 * float(conditions.schuler_period)
     if ts[-1] - ts[0] < half:
         raise ValueError(f"the record spans {ts[-1] - ts[0]:.0f} s, less than half a Schuler period "
