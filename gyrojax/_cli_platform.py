@@ -9,6 +9,7 @@ import numpy as np
 
 from .models.platform_schedule import (
     CHANNELS,
+    accelerations_g,
     dwell_times,
     load_schedule,
     schedule_conditions,
@@ -62,7 +63,7 @@ def fit(args, load, emit_json):
     ts = jnp.asarray(dwell_times(s))
     recs, conds, kappas = [], [], []
     for k, c in enumerate(schedule_conditions(s)):
-        acc = data[k, :, :, 3:6]
+        acc = accelerations_g(data[k])
         kap = float(np.mean(np.asarray(kappa_from_accelerometers(acc, ts, s["frequency_hz"]))))
         kappas.append(kap)
         recs.append(jnp.asarray(data[k, :, :, :3]))

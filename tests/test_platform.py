@@ -529,6 +529,7 @@ def test_a_records_vibration_phases_travel_with_it():
     import json
 
     from gyrojax.models.platform_schedule import (
+        accelerations_g,
         default_phases,
         load_schedule,
         schedule_conditions,
@@ -550,10 +551,16 @@ def test_a_records_vibration_phases_travel_with_it():
     back = load_schedule(json.loads(rec.conditions["schedule_json"]))
     assert back["phases_rad"] == phases
     ts = jnp.asarray(np.arange(41) * 0.025)
-    y = split_record(rec, back)[..., :6]
+    def in_g(rec):  # the file's accelerometers are SI (m/s^2), the model's in g (stop 68)
+        y = split_record(rec, back)[..., :6]
+        return np.concatenate([y[..., :3], accelerations_g(y)], axis=-1)
+
+    y = in_g(rec)
+    np.testing.assert_allclose(np.asarray(rec.y)[:, 3:6] / units.G0,
+                               y[..., 3:6].reshape(-1, 3), rtol=1e-15)
     again = np.stack([np.asarray(jax.vmap(lambda c: integrate(rig, truth, c, ts))(c))
                       for c in schedule_conditions(back)])
-    y_default = split_record(record(load_schedule(fields)), back)[..., :6]
+    y_default = in_g(record(load_schedule(fields)))
     for block in (slice(0, 3), slice(3, 6)):  # angles (rad), accelerometers (g)
         centred = y[..., block] - y[..., block].mean(axis=2, keepdims=True)  # without the poses
         spread = np.ptp(centred)
@@ -569,6 +576,45 @@ def test_a_records_vibration_phases_travel_with_it():
         load_schedule(fields | {"phases_rad": "x"})
     with pytest.raises(ValueError, match="and a non-finite value"):
         load_schedule(fields | {"phases_rad": [[0.0, 1.0, float("nan")]] * 2})
+
+
+def test_platform_records_are_si_and_a_record_in_g_is_refused(tmp_path, capsys):
+    """DESIGN's record files are SI: the platform's accelerometers in m/s^2 (before stop 68 they
+    were written in g, the rig's unit, and a record in m/s^2 made kappa G0^2 = 96x too large
+    without a word). The accelerometers read gravity, 1 g or more (kappa = mean |f|^2 = 1 +
+    a0^2/2 g^2 over whole cycles, spec S19c), so a record in g is told from one in m/s^2 and
+    refused with the fix, by the library and by ``gyrojax fit`` and ``diagnose`` (exit 2)."""
+    from gyrojax.cli import main
+    from gyrojax.estimate.platform import kappa_from_accelerometers
+    from gyrojax.io import save_record
+    from gyrojax.models.platform_schedule import (
+        accelerations_g,
+        dwell_times,
+        load_schedule,
+        schedule_conditions,
+        simulate_schedule,
+        split_record,
+    )
+    from gyrojax.record import BenchRecord
+
+    s = load_schedule({"table_amplitudes_g": [0.0, 6.0], "attenuation": 1.5, "dwell_s": 2.0,
+                       "sample_s": 0.005, "frequency_hz": 50.0})
+    rec = simulate_schedule(PlatformRig().param_space.make(), s, jax.random.key(0),
+                            noise_arcsec=0.0, accel_noise_g=0.0)
+    data = split_record(rec, s)
+    ts = dwell_times(s)
+    for k, c in enumerate(schedule_conditions(s)):
+        kap = np.asarray(kappa_from_accelerometers(accelerations_g(data[k]), ts, 50.0))
+        np.testing.assert_allclose(kap, 1 + 0.5 * float(c.a0[0]) ** 2, rtol=1e-3)
+    y = np.asarray(rec.y).copy()
+    y[:, 3:6] /= units.G0
+    with pytest.raises(ValueError, match=r"median \|f\| 0.10\d* g .*look like g.*multiply them "
+                       r"by 9.80665"):
+        accelerations_g(split_record(BenchRecord(rec.t, y, rec.channels, rec.attrs), s))
+    save_record(BenchRecord(rec.t, y, rec.channels, rec.attrs), tmp_path / "in_g.nc")
+    for cmd in ("fit", "diagnose"):
+        assert main([cmd, str(tmp_path / "in_g.nc"), "--rig", "platform"]) == 2
+        assert "multiply them by 9.80665" in capsys.readouterr().err
 
 
 def test_design_information_is_the_slope_variance_of_a_dwell():

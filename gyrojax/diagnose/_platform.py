@@ -62,6 +62,7 @@ from ..models.platform import (
 )
 from ..models.platform_schedule import CHANNELS as REC_CHANNELS
 from ..models.platform_schedule import (
+    accelerations_g,
     dwell_span,
     dwell_times,
     load_schedule,
@@ -221,7 +222,7 @@ class PlatformProblem:
         s = self.schedule
         self.amps = [float(a) / s["attenuation"] for a in s["table_amplitudes_g"]]
         self.kappas = [float(np.mean(np.asarray(kappa_from_accelerometers(
-            jnp.asarray(data[k, :, :, 3:6]), jnp.asarray(self.ts), s["frequency_hz"]))))
+            jnp.asarray(accelerations_g(data[k])), jnp.asarray(self.ts), s["frequency_hz"]))))
             for k in range(len(self.amps))]
         self.conds = [eqx.tree_at(lambda c: c.kappa, c, jnp.full(len(s["positions_deg"]), kap))
                       for c, kap in zip(schedule_conditions(s), self.kappas)]

@@ -1,6 +1,8 @@
 """A platform test as recorded: the *schedule* (JSON: positions and table amplitudes, run as
 dwells) and the record layout. A record holds every dwell one after another (time runs on,
-amplitude-major), with channels ``alpha beta gamma`` (rad), ``ax ay az`` (g) and the labels
+amplitude-major), with channels ``alpha beta gamma`` (rad), ``ax ay az`` (m/s^2, SI as every
+record file; the rig's model and its accelerometer terms work in g: :func:`accelerations_g`
+reads them back, refusing a record written in g) and the labels
 ``position`` (row of the schedule) and ``amplitude`` (index into the table amplitudes); the
 schedule travels as the record attribute ``schedule_json``. Used by the CLI (simulate, fit) and
 by the platform gap diagnosis."""
@@ -15,7 +17,8 @@ import numpy as np
 from .platform import DEFAULT_MOUNTING, ENU_MOUNTING, TABLE1_DEG, PlatformRig, schedule
 
 __all__ = ["CHANNELS", "SCHEDULE_FIELDS", "load_schedule", "default_phases", "schedule_json",
-           "schedule_conditions", "dwell_times", "dwell_span", "split_record", "simulate_schedule"]
+           "schedule_conditions", "dwell_times", "dwell_span", "split_record", "simulate_schedule",
+           "accelerations_g"]
 
 CHANNELS = ("alpha", "beta", "gamma", "ax", "ay", "az", "position", "amplitude")
 SCHEDULE_FIELDS = {
@@ -152,6 +155,25 @@ def split_record(record, s):
     return y.reshape(n_amp, n_pos, n, len(CHANNELS))
 
 
+def accelerations_g(data):
+    """The accelerometer channels of a split record (:func:`split_record`, ``(..., 8)``) in g, the
+    rig's unit, from the file's m/s^2. The accelerometers always read gravity (1 g at rest, more
+    under vibration: the mean |f|^2 is 1 + a0^2/2 g^2), so a median |f| outside 0.5-20 g means
+    another unit: refused, with the fix."""
+    from .. import units
+
+    acc = np.asarray(data, float)[..., 3:6]
+    mag = float(np.median(np.linalg.norm(acc, axis=-1))) / units.G0
+    if not 0.5 <= mag <= 20.0:
+        fix = ("they look like g (gyrojax records before December 2026 wrote them so): multiply "
+               "them by 9.80665" if 0.5 <= mag * units.G0 <= 20.0 else
+               "convert them to m/s^2")
+        raise ValueError(f"the record's accelerometers ax ay az have median |f| {mag:.4g} g "
+                         f"({mag * units.G0:.4g} in the file's units), where an accelerometer on "
+                         f"the table reads gravity, 1 g or more; gyrojax records are SI: {fix}")
+    return acc / units.G0
+
+
 def simulate_schedule(params, s, key, *, noise_arcsec: float = 1.0, accel_noise_g: float = 1e-4,
                       rig=None):
     """The record of a whole test: every dwell of schedule ``s`` (from :func:`load_schedule`)
@@ -175,6 +197,7 @@ def simulate_schedule(params, s, key, *, noise_arcsec: float = 1.0, accel_noise_
         y[..., :3] += noise_arcsec * units.ARCSEC * np.asarray(
             jax.random.normal(k1, y[..., :3].shape))
         y[..., 3:] += accel_noise_g * np.asarray(jax.random.normal(k2, y[..., 3:].shape))
+        y[..., 3:] *= units.G0  # the record file is SI
         for p in range(y.shape[0]):
             lab = np.stack([np.full(len(ts), p), np.full(len(ts), k)], axis=1)
             blocks.append(np.concatenate([y[p], lab], axis=1))
