@@ -18,7 +18,8 @@ import numpy as np
 
 EXIT_USAGE = 2
 # `fit` notes a residual RMS beyond this many times the record's sample-to-sample noise: a
-# missing effect is a few times it, a record in other units (hours for seconds) thousands
+# record in other units (hours for seconds) or a wrong scheme gives thousands, an unmodelled
+# effect anything from 1 up (11 for a 300-arcsec base misalignment on a day's record)
 MISFIT_RATIO = 10.0
 
 
