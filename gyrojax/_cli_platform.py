@@ -9,7 +9,6 @@ import numpy as np
 
 from .models.platform_schedule import (
     CHANNELS,
-    accelerations_g,
     dwell_times,
     load_schedule,
     schedule_conditions,
@@ -43,10 +42,10 @@ def fit(args, load, emit_json):
     from . import units
     from .estimate.least_squares import convergence_text
     from .estimate.platform import (
-        kappa_from_accelerometers,
         platform_gauss_newton,
         platform_kalman,
         platform_regression,
+        record_kappas,
         two_amplitude_resolution,
     )
     from .models.platform import COEFF_NAMES, PlatformRig
@@ -61,11 +60,8 @@ def fit(args, load, emit_json):
         raise ValueError("the record carries no schedule; give --schedule FILE")
     data = split_record(record, s)
     ts = jnp.asarray(dwell_times(s))
-    recs, conds, kappas = [], [], []
-    for k, c in enumerate(schedule_conditions(s)):
-        acc = accelerations_g(data[k])
-        kap = float(np.mean(np.asarray(kappa_from_accelerometers(acc, ts, s["frequency_hz"]))))
-        kappas.append(kap)
+    recs, conds, kappas = [], [], record_kappas(data, s)
+    for k, (c, kap) in enumerate(zip(schedule_conditions(s), kappas)):
         recs.append(jnp.asarray(data[k, :, :, :3]))
         conds.append(eqx.tree_at(lambda x: x.kappa, c, jnp.full(len(s["positions_deg"]), kap)))
     space = PlatformRig().param_space

@@ -162,7 +162,7 @@ def test_records_in_other_units_are_refused_with_the_fix(tmp_path, capsys):
     deg/s or stuck are refused; ``gyrojax fit`` stops with exit 2 on the accelerometers, and
     reports the accelerometer calibration with the gyros' problem as its gyro note; the
     diagnosis refuses the accelerometers in g too."""
-    from gyrojax.estimate.multiposition import turn_rotation_ratio
+    from gyrojax.estimate.multiposition import gyro_units_problem, turn_rotation_ratio
 
     p = SPACE.make(BIAS | CAL)
     rec = simulate_imu(p, cube_poses(14, 5.0, seed=1), rate_hz=100.0, arw=1e-4, vrw=1e-3,
@@ -196,6 +196,16 @@ def test_records_in_other_units_are_refused_with_the_fix(tmp_path, capsys):
         with pytest.raises(ValueError, match="the gyros integrate to") as err:
             calibrate_gyro(BenchRecord(rec.t, y, rec.channels, rec.attrs), segs, acc)
         assert fix in str(err.value)
+    # t in ms: the turns last 2000 "s", beyond max_turn_s, and the error asks whether t is in s;
+    # with a longer max_turn_s the turns integrate to 1000x their angles
+    with pytest.raises(ValueError, match=r"the 13 intervals between poses last 2.0\de\+03 s at "
+                       r"the median, over max_turn_s = 30 s: a turn by hand takes seconds; is t "
+                       r"in s\?"):
+        calibrate_gyro(BenchRecord(rec.t * 1000, rec.y, rec.channels, rec.attrs),
+                       detect_static(BenchRecord(rec.t * 1000, rec.y, rec.channels, rec.attrs)),
+                       acc)
+    assert "t looks like ms" in gyro_units_problem(1000 * ratio, n)
+    assert gyro_units_problem(ratio, n) is None and gyro_units_problem(57.3, 0) is None
     for cols, k, code in ((slice(3, 6), 1 / units.G0, 2), (slice(0, 3), np.degrees(1.0), 0)):
         y = np.asarray(rec.y).copy()
         y[:, cols] *= k

@@ -585,7 +585,7 @@ def test_platform_records_are_si_and_a_record_in_g_is_refused(tmp_path, capsys):
     a0^2/2 g^2 over whole cycles, spec S19c), so a record in g is told from one in m/s^2 and
     refused with the fix, by the library and by ``gyrojax fit`` and ``diagnose`` (exit 2)."""
     from gyrojax.cli import main
-    from gyrojax.estimate.platform import kappa_from_accelerometers
+    from gyrojax.estimate.platform import kappa_from_accelerometers, record_kappas
     from gyrojax.io import save_record
     from gyrojax.models.platform_schedule import (
         accelerations_g,
@@ -615,6 +615,14 @@ def test_platform_records_are_si_and_a_record_in_g_is_refused(tmp_path, capsys):
     for cmd in ("fit", "diagnose"):
         assert main([cmd, str(tmp_path / "in_g.nc"), "--rig", "platform"]) == 2
         assert "multiply them by 9.80665" in capsys.readouterr().err
+    # the readers' kappas are those; a schedule whose amplitudes are not the record's (here
+    # in m/s^2) is refused with both numbers
+    np.testing.assert_allclose(record_kappas(data, s), [1.0, 9.0], rtol=1e-3)
+    wrong = dict(s, table_amplitudes_g=[0.0, 6.0 * units.G0])
+    with pytest.raises(ValueError, match=r"kappa = mean \|f\|\^2 = [89]\.\d+ g\^2 at table "
+                       r"amplitude 58.8399 g, where the schedule .attenuation 1.5. implies 1 \+ "
+                       r"a0\^2/2 = 770.\d g\^2"):
+        record_kappas(data, wrong)
 
 
 def test_design_information_is_the_slope_variance_of_a_dwell():

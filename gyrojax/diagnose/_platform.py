@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import units
-from ..estimate.platform import _position_design, cumulative_trapezoid, kappa_from_accelerometers
+from ..estimate.platform import _position_design, cumulative_trapezoid, record_kappas
 from ..models.platform import (
     COEFF_NAMES,
     TERMS,
@@ -62,7 +62,6 @@ from ..models.platform import (
 )
 from ..models.platform_schedule import CHANNELS as REC_CHANNELS
 from ..models.platform_schedule import (
-    accelerations_g,
     dwell_span,
     dwell_times,
     load_schedule,
@@ -221,9 +220,7 @@ class PlatformProblem:
         self.ts = np.asarray(dwell_times(self.schedule))
         s = self.schedule
         self.amps = [float(a) / s["attenuation"] for a in s["table_amplitudes_g"]]
-        self.kappas = [float(np.mean(np.asarray(kappa_from_accelerometers(
-            jnp.asarray(accelerations_g(data[k])), jnp.asarray(self.ts), s["frequency_hz"]))))
-            for k in range(len(self.amps))]
+        self.kappas = record_kappas(data, s)
         self.conds = [eqx.tree_at(lambda c: c.kappa, c, jnp.full(len(s["positions_deg"]), kap))
                       for c, kap in zip(schedule_conditions(s), self.kappas)]
         self.angles = jnp.asarray(data[..., :3])

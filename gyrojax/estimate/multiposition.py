@@ -322,10 +322,13 @@ def gyro_units_problem(ratio: float, n_turns: int) -> str | None:
     if not n_turns or TURN_ROTATION_RANGE[0] <= ratio <= TURN_ROTATION_RANGE[1]:
         return None
     fix = ("wx wy wz barely move during the turns: check that they are the gyro rates in rad/s, "
-           "not stuck, saturated or filtered" if ratio < TURN_ROTATION_RANGE[0] else
-           "wx wy wz look like deg/s: multiply them by pi/180 = 0.0174533"
+           "not stuck, saturated or filtered, and that t is in s" if ratio < TURN_ROTATION_RANGE[0]
+           else "wx wy wz look like deg/s: multiply them by pi/180 = 0.0174533"
            if 20 <= ratio <= 200 else
-           "convert wx wy wz to rad/s (raw counts need the sensor's scale factor and zero offset)")
+           "t looks like ms (or wx wy wz like mrad/s): give t in s and wx wy wz in rad/s"
+           if 500 <= ratio <= 2000 else
+           "convert wx wy wz to rad/s and t to s (raw counts need the sensor's scale factor and "
+           "zero offset)")
     return (f"the gyros integrate to {ratio:.3g} times the angle between the poses over the "
             f"turns (median over {n_turns} turns of more than {_TURN_MIN_DEG:g} deg, the angles "
             "from the accelerometers), where a hand-moved turn gives 1-2; gyrojax records are "
@@ -482,9 +485,13 @@ def calibrate_gyro(record: BenchRecord, segments, accel: AccelCalibration, *, bi
     why = (f"{skipped} interval(s) between poses skipped: a time gap or masked samples there, so "
            "the record does not hold the rotation" if skipped else "")
     if not turns:
+        gaps = [(segments[k + 1].i0 - segments[k].i1) * dt for k in range(len(segments) - 1)]
+        long = (f" (the {len(gaps)} intervals between poses last {np.median(gaps):.3g} s at the "
+                f"median, over max_turn_s = {max_turn_s:g} s: a turn by hand takes seconds; is t "
+                "in s?)" if gaps and not near else "")
         raise ValueError("no turns between static poses shorter than max_turn_s with every "
                          "sample recorded; gyro calibration by gravity propagation needs the "
-                         "motions between poses" + (f" ({why})" if why else ""))
+                         "motions between poses" + (f" ({why})" if why else "") + long)
     problem = gyro_units_problem(*turn_rotation_ratio(w, b, dt, turns, ups))
     if problem:
         raise ValueError(problem)

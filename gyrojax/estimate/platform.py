@@ -29,7 +29,8 @@ from ..models.platform import (
 from ._linalg import scaled_lstsq, value_and_jacfwd
 from ._result import AbstractNamedEstimate
 
-__all__ = ["amplitude_first_harmonic", "kappa_from_accelerometers", "forgetting_blend",
+__all__ = ["amplitude_first_harmonic", "kappa_from_accelerometers", "record_kappas",
+           "forgetting_blend",
            "accelerometer_amplitude_error", "regression_design", "platform_regression",
            "PlatformFit", "two_amplitude_resolution", "check_sampling"]
 
@@ -82,6 +83,31 @@ def kappa_from_accelerometers(acc, ts=None, frequency_hz=None):
     if ts is not None and frequency_hz is not None:
         acc = acc[..., :_whole_cycles(ts, frequency_hz), :]
     return jnp.mean(jnp.sum(acc**2, axis=-1), axis=-1)
+
+
+def record_kappas(data, s) -> list[float]:
+    """Each table amplitude's ``kappa`` (S19c) from a split platform record ``data`` (``(A, P,
+    n, 8)``, :func:`~gyrojax.models.platform_schedule.split_record`) of schedule ``s``: the
+    accelerometers (m/s^2 in the file, g here) over whole vibration cycles, averaged over the
+    positions. Each must lie within a factor 2 of the schedule's ``1 + a0^2 / 2`` (``a0`` the
+    table amplitude over the attenuation): a schedule in other units (m/s^2 for g) or with
+    another record's amplitudes is refused, with both numbers."""
+    from ..models.platform_schedule import accelerations_g, dwell_times
+
+    ts = jnp.asarray(dwell_times(s))
+    out = []
+    for k, amp in enumerate(s["table_amplitudes_g"]):
+        kap = float(np.mean(np.asarray(kappa_from_accelerometers(
+            jnp.asarray(accelerations_g(data[k])), ts, s["frequency_hz"]))))
+        want = 1.0 + 0.5 * (float(amp) / s["attenuation"]) ** 2
+        if not 0.5 <= kap / want <= 2.0:
+            raise ValueError(
+                f"the accelerometers give kappa = mean |f|^2 = {kap:#.4g} g^2 at table "
+                f"amplitude {amp:g} g, where the schedule (attenuation {s['attenuation']:g}) "
+                f"implies 1 + a0^2/2 = {want:#.4g} g^2; give the schedule the record was taken with "
+                "(table_amplitudes_g in g, amplitude-major dwells)")
+        out.append(kap)
+    return out
 
 
 def forgetting_blend(prior, running_estimates, lam: float = 0.95):
