@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import units
+from ..models.esg import check_angle_units
 from ..simulate import integrate
 from .kalman import esg_augmented_filter
 from .least_squares import fit_trajectory
@@ -63,7 +64,8 @@ def _linear_names(rig, effects):
 def _check_record(rig, record):
     """The record a fit is given: the rig's channels, in its order (the fits read the columns by
     position), and samples as a record file must have them (:func:`gyrojax.io.validate_samples`:
-    finite, strictly increasing times, at least 3). A record built in memory skipped those
+    finite, strictly increasing times, at least 3), with gimbal angles in radians
+    (:func:`gyrojax.models.esg.check_angle_units`). A record built in memory skipped those
     checks, and a NaN sample made every estimate NaN without a word."""
     from ..io import validate_samples
 
@@ -72,10 +74,7 @@ def _check_record(rig, record):
                          f"{list(rig.channels)}; name (and order) the record's channels as the "
                          "rig's")
     validate_samples(record.t, record.y, record.channels)
-    if tuple(rig.channels) == ("alpha1", "alpha2"):  # the ESG's gimbal angles
-        from ..models.esg import check_angle_units
-
-        check_angle_units(record.y)
+    check_angle_units(record.y)
 
 
 def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "gauss-newton",
