@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .record import sample_times
+from .record import sample_noise, sample_times
 
 CHANNELS = ("V1", "V2", "rot1", "rot2", "rot3")
 
@@ -80,7 +80,17 @@ def simulate(args, parse_sets, emit_json):
                "parameters": space.display_json(params, shown)}, args.json)
 
 
+def _channels_text(x, first=0):
+    """Per-channel levels as shown: velocities in m/s, attitude in arcmin."""
+    from . import units
+
+    return ", ".join(f"{CHANNELS[i]} {v:.3g} m/s" if i < 2 else
+                     f"{CHANNELS[i]} {v / units.ARCMIN:.3g} arcmin"
+                     for i, v in enumerate(x, start=first))
+
+
 def fit(args, load, emit_json):
+    from .cli import misfit_note
     from .estimate.schuler import fit_schuler, schuler_filter
     from .models.schuler import SchulerRig, schuler_period
 
@@ -105,12 +115,31 @@ def fit(args, load, emit_json):
     if args.method == "gauss-newton":
         print(f"converged: {bool(est.converged)} ({int(est.iterations)} iterations; the last "
               f"step: {float(est.last_step_se):.2g} standard errors)")
+    rms, noise = np.asarray(est.residual_rms), sample_noise(y)
+    print(f"residual RMS {_channels_text(rms)}; the record's sample-to-sample noise "
+          f"{_channels_text(noise)}")
+    worst = int(np.argmax(rms / noise))
+    ratio, worst_noise = float(rms[worst] / noise[worst]), _channels_text(noise[worst:worst + 1], worst)
+    note = misfit_note(ratio, f"{worst_noise}, the worst channel",
+                       "its units (SI: t in s, V1 V2 in m/s, rot1-3 in rad) and the latitude "
+                       f"(deg; {lat:g} used)", args.record, "schuler")
+    if note and args.method == "kalman":  # the single pass stops short of the fit at prior-scale
+        # errors (15-20x the noise on records the iterated fit meets at 1x)
+        note = (f"note: the single pass leaves a residual {ratio:.3g} times the record's "
+                f"sample-to-sample noise ({worst_noise}): linearised about zero errors it stops "
+                "short of the fit; --method gauss-newton iterates it, and tells a record the "
+                "model does not describe")
+    if note:
+        print(note)
     space = rig.param_space
     emit_json({"rig": "schuler", "method": args.method, "latitude_deg": lat,
                "period_min": [p["period_min"] for p in periods],
                "theoretical_period_min": periods[0]["theoretical_min"],
                "iterations": int(est.iterations), "converged": bool(est.converged),
                "last_step_se": float(est.last_step_se),
+               "residual_rms": dict(zip(CHANNELS, rms.tolist(), strict=True)),
+               "sample_noise": dict(zip(CHANNELS, noise.tolist(), strict=True)),
+               "residual_rms_unit": "m/s for V1 V2, rad for rot1-3",
                "parameters": {n: {"value": float(space[n].to_display(v)),
                                   "stderr": float(space[n].to_display(s)),
                                   "unit": space[n].display_unit}

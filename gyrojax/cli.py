@@ -23,6 +23,17 @@ EXIT_USAGE = 2
 MISFIT_RATIO = 10.0
 
 
+def misfit_note(ratio: float, noise: str, checks: str, record, rig: str) -> str | None:
+    """``fit``'s note when its residual RMS is more than :data:`MISFIT_RATIO` times the record's
+    sample-to-sample noise (``ratio``; ``noise`` the level as shown, from
+    :func:`gyrojax.record.sample_noise`), naming what to ``check`` and the diagnosis to run."""
+    if not ratio > MISFIT_RATIO:
+        return None
+    return (f"note: the residual RMS is {ratio:.3g} times the record's sample-to-sample noise "
+            f"({noise}, from third differences): the model does not describe this record; check "
+            f"{checks}, or see where it departs with: gyrojax diagnose {record} --rig {rig}")
+
+
 class UsageError(Exception):
     """Bad user input: printed as one line, exit status 2."""
 
@@ -237,11 +248,10 @@ def cmd_fit(args):
             if "remaining_step_se" in ex else f"converged: {report.converged}")
     rms, noise = report.to_json()["residual_rms_arcsec"], ex["sample_noise_arcsec"]
     print(f"residual RMS {rms:.4g} arcsec; {conv}")
-    if rms > MISFIT_RATIO * noise:
-        print(f"note: the residual RMS is {rms / noise:.3g} times the record's sample-to-sample "
-              f"noise ({noise:.3g} arcsec, from third differences): the model does not describe "
-              "this record; check its units (SI: s, rad), --scheme and --latitude, or see where "
-              f"it departs with: gyrojax diagnose {args.record} --rig esg")
+    note = misfit_note(rms / noise, f"{noise:.3g} arcsec", "its units (SI: s, rad), --scheme and "
+                       "--latitude", args.record, "esg")
+    if note:
+        print(note)
     if "residual_noise_arcsec" in ex and "noise_std_arcsec" in ex:
         print(f"standard errors at the given noise {ex['noise_std_arcsec']:.4g} arcsec (the "
               f"residual's estimate: {ex['residual_noise_arcsec']:.4g} arcsec)")

@@ -39,6 +39,18 @@ def sample_times(span_s: float, sample_s: float, *, span: str = "the test length
     return ts
 
 
+def sample_noise(y) -> np.ndarray:
+    """Each channel's sample-to-sample (white) noise level of ``y`` (N, c), from its third
+    differences (white noise: variance 20 sigma^2). They see past a record's smooth motion (the
+    ESG's Earth-rate curvature adds ~0.02 arcsec a minute, a Schuler oscillation ~1e-6 m/s a
+    second), so a fit's residual RMS read against this level tells a model that misses the
+    record (a record in other units, wrong conditions) from one that fits to its noise."""
+    y = np.asarray(y, float)
+    if y.shape[0] < 4:
+        raise ValueError(f"sample_noise: {y.shape[0]} samples; third differences need at least 4")
+    return np.sqrt(np.mean(np.diff(y, 3, axis=0) ** 2, axis=0) / 20)
+
+
 class BenchRecord(eqx.Module):
     """A bench test record.
 

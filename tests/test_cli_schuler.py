@@ -5,12 +5,14 @@ import json
 import numpy as np
 import pytest
 
+from gyrojax import units
 from gyrojax.cli import main
-from gyrojax.io import load_record
+from gyrojax.io import load_record, save_record
+from gyrojax.record import BenchRecord
 
 
 @pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
-def test_simulate_fit_observability(tmp_path):
+def test_simulate_fit_observability(tmp_path, capsys):
     rec = tmp_path / "schuler.nc"
     truth = {"nu1": 0.1, "D22": 5000.0, "K11": -3000.0, "dA0": 20.0}
     sets = [a for k, v in truth.items() for a in ("--set", f"{k}={v}")]
@@ -30,6 +32,19 @@ def test_simulate_fit_observability(tmp_path):
     # the scale errors raise the V1 channel's Schuler frequency by about (K11 + D22) / 2 = 1e-3:
     # the period shortens by ~0.1 % (one noisy period, other errors present: 0.06-0.16 %)
     assert -1.6e-3 < rep["period_min"][0] / rep["theoretical_period_min"] - 1 < -0.6e-3
+    # the residual at the estimate and the record's own noise: the simulated 0.05 m/s, 1 arcmin
+    sim = np.array([0.05, 0.05] + [units.ARCMIN] * 3)
+    for key in ("residual_rms", "sample_noise"):
+        np.testing.assert_allclose(list(rep[key].values()), sim, rtol=0.1)
+    assert "note:" not in capsys.readouterr().out
+    # the same record with its velocities in km/h: Gauss-Newton does not converge, and the
+    # note names the misfit against the noise with the units to check
+    save_record(BenchRecord(r.t, r.y * np.array([3.6, 3.6, 1, 1, 1]), r.channels, r.attrs),
+                tmp_path / "kmh.nc")
+    assert main(["fit", str(tmp_path / "kmh.nc"), "--rig", "schuler"]) == 0
+    note = capsys.readouterr().out.splitlines()[-1]
+    assert float(note.split("RMS is ")[1].split(" times")[0]) > 100
+    assert "V1 V2 in m/s" in note and "diagnose" in note
     obs = tmp_path / "obs.json"
     assert main(["observability", "--rig", "schuler", "--periods", "0.5", "--sample", "5",
                  "--json", str(obs)]) == 0

@@ -30,6 +30,7 @@ T = float(COND.schuler_period)
 SPACE = RIG.param_space
 SIG = jnp.array([SPACE[n].scale for n in PARAM_NAMES])
 DISPLAY = np.array([SPACE[n].display_factor for n in PARAM_NAMES])
+SIGMA_Y = np.array([0.05, 0.05] + [units.ARCMIN] * 3)  # add_measurement_noise's defaults
 
 # spec §12, Cramer-Rao bounds at 1 and 2 periods (deg/h, 1, m/s^2, 1, arcmin)
 CRLB = {1: [4.7e-4, 2.1e-3, 3.6e-4, 5.0e-5, 2.5e-4, 2.3e-4, 2.5e-4, 2.5e-4, 5.6e-5, 0.088, 0.080,
@@ -71,8 +72,12 @@ def test_single_pass_filter_is_one_gauss_newton_step():
     kf2, extras2 = schuler_filter(RIG, ts, ys[0], COND,
                                   params_ref=dict(zip(PARAM_NAMES, gn.values, strict=True)))
     assert np.max(np.abs(np.asarray((kf2.values - gn.values) / gn.stderr))) < 1e-3
-    # about the converged estimate the standardized innovations are white N(0, 1)
-    np.testing.assert_allclose(np.asarray(kf2.residual_rms), 1.0, atol=0.05)
+    # about the converged estimate the standardized innovations are white N(0, 1), and the
+    # residual at the estimate is the measurement noise (0.05 m/s, 1 arcmin), as Gauss-Newton's
+    np.testing.assert_allclose(np.sqrt(np.mean(np.asarray(extras2["innovations"]) ** 2, axis=0)),
+                               1.0, atol=0.05)
+    np.testing.assert_allclose(np.asarray(kf2.residual_rms) / SIGMA_Y, 1.0, atol=0.05)
+    np.testing.assert_allclose(kf2.residual_rms, gn.residual_rms, rtol=1e-4)
     assert extras2["states"].shape == (ts.shape[0], 17)
 
 

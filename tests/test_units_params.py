@@ -112,3 +112,21 @@ def test_param_space_flatten_unflatten_and_errors():
         sp.effect_names("tilt")
     # null values switch every effect off
     assert all(float(sp.null_values()[n]) == 0.0 for n in sp.effect_names("rotor_tilt"))
+
+
+def test_sample_noise_reads_the_white_level_past_a_smooth_signal():
+    """``record.sample_noise``: third differences of white noise have variance 20 sigma^2, and a
+    smooth signal (a Schuler oscillation of 200 m/s at 1 s, an Earth-rate ramp) adds nothing
+    visible; a record with too few samples is refused."""
+    from gyrojax.record import sample_noise
+
+    rng = np.random.default_rng(5)
+    t = np.arange(20_000.0)
+    sigma = np.array([0.05, 3e-4])
+    smooth = np.column_stack([200 * np.cos(2 * np.pi * t / 5063.0), 7.3e-5 * t])
+    level = sample_noise(smooth + sigma * rng.standard_normal((t.size, 2)))
+    # the estimate's relative sd: sqrt(var(d3^2)) / (20 sqrt(n)) ~ 0.9 % here (d3 is MA(3))
+    np.testing.assert_allclose(level, sigma, rtol=0.04)
+    assert np.all(sample_noise(smooth) < 1e-3 * sigma)
+    with pytest.raises(ValueError, match="at least 4"):
+        sample_noise(np.zeros((3, 2)))

@@ -114,7 +114,7 @@ class GyrotheodoliteProblem:
         if span < period:
             raise ValueError(f"the train part spans {span:.0f} s, less than one north-seeking "
                              f"period ({period:.0f} s): record at least {2 * period / 60:.0f} "
-                             "min or lower --holdout")
+                             "min or lower --holdout (t is in s: a record in min spans 60x less)")
         self.noise_std = noise_std
         self.effects = tuple(effects) if effects is not None else tuple(GYROTHEODOLITE_LIBRARY)
         sp = self.space

@@ -10,6 +10,7 @@ import numpy as np
 
 from .. import units
 from ..models.esg import check_angle_units
+from ..record import sample_noise
 from ..simulate import integrate
 from .kalman import esg_augmented_filter
 from .least_squares import fit_trajectory
@@ -156,11 +157,8 @@ def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "
         extra["noise_std_arcsec"] = float(np.degrees(sigma) * 3600)
     pred = integrate(rig, p, conditions, record.t, throw=False)
     rms = float(jnp.sqrt(jnp.mean((pred - record.y) ** 2)))
-    # the record's sample-to-sample noise, for the residual to be read against: third
-    # differences (white noise: variance 20 sigma^2) see past the gimbals' motion (Earth-rate
-    # curvature: ~0.02 arcsec a minute's third difference)
-    d3 = np.diff(np.asarray(record.y, float), 3, axis=0)
-    extra["sample_noise_arcsec"] = float(np.sqrt(np.mean(d3**2) / 20) / units.ARCSEC)
+    # the record's sample-to-sample noise (both channels), for the residual to be read against
+    extra["sample_noise_arcsec"] = float(np.sqrt(np.mean(sample_noise(record.y) ** 2)) / units.ARCSEC)
     return FitReport(method, tuple(free), p, stderr, rms, converged, space, extra)
 
 

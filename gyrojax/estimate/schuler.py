@@ -74,7 +74,8 @@ class SchulerEstimate(AbstractNamedEstimate):
 
     - ``covariance`` (12, 12) posterior covariance (prior included); ``stderr`` its root diagonal.
     - ``iterations``: Gauss-Newton iterations (0 for the filter); ``residual_rms`` (5,): RMS of
-      the final residuals per channel (m/s, rad).
+      the measured minus modelled channels at the estimate (:func:`schuler_residuals`: m/s,
+      rad), for either method (the filter's standardized innovations are in its extras).
     - ``method``: ``"gauss-newton"`` or ``"kalman"``.
     - ``converged``: Gauss-Newton's last step was under its ``tol`` or under ``STATIONARY_SE``
       (1e-2) standard errors (False when it stopped at ``max_iter`` still moving, or stalled
@@ -150,7 +151,8 @@ def check_schuler_record(ts, y, conditions: SchulerConditions, *, uniform: bool 
     half = 0.5 * float(conditions.schuler_period)
     if ts[-1] - ts[0] < half:
         raise ValueError(f"the record spans {ts[-1] - ts[0]:.0f} s, less than half a Schuler period "
-                         f"({half:.0f} s): the errors are not separable; record 1-4 periods")
+                         f"({half:.0f} s): the errors are not separable; record 1-4 periods (t is in s: "
+                         "a record in min spans 60x less)")
     if uniform:
         dt = np.diff(ts)
         if np.max(np.abs(dt - dt[0])) > 1e-6 * dt[0]:
@@ -376,7 +378,10 @@ def schuler_filter(rig: SchulerRig, ts, y, conditions: SchulerConditions, *,
     xf, pf, innov, states = _filter(rig, conditions, ts, y, ref, sqrt_r, s0, x0, smooth)
     theta = theta_ref + xf[5:]
     cov = pf[5:, 5:]
+    # the output residual at the estimate, as Gauss-Newton reports it (one more integration)
+    r = schuler_residuals(rig, conditions, ts, y, ref | dict(zip(THETA_NAMES, theta, strict=True)),
+                          throw=False)
     est = SchulerEstimate(names=THETA_NAMES, values=theta, stderr=jnp.sqrt(jnp.diagonal(cov)),
                           covariance=cov, iterations=jnp.asarray(0),
-                          residual_rms=jnp.sqrt(jnp.mean(innov**2, axis=0)), method="kalman")
+                          residual_rms=jnp.sqrt(jnp.mean(r**2, axis=0)), method="kalman")
     return est, {"innovations": innov, "states": states}
