@@ -625,6 +625,47 @@ def test_platform_records_are_si_and_a_record_in_g_is_refused(tmp_path, capsys):
         record_kappas(data, wrong)
 
 
+def test_a_record_that_disagrees_with_its_schedule_is_refused_by_name():
+    """Every platform reader takes the dwells in the schedule's order, at its ``sample_s``, about
+    its positions. Before stop 69 none of that was checked against the record: gimbal angles in
+    deg fitted D_ii_z at 15 deg/h/g^2 (truth 0.03), a record in ms and one with two dwells
+    swapped gave no word. Now each is refused naming the dwell and the fix; a position recorded
+    a turn away (270 deg as -90 deg) reads as the same record."""
+    from gyrojax.models.platform_schedule import load_schedule, simulate_schedule, split_record
+    from gyrojax.record import BenchRecord
+
+    s = load_schedule({"positions_deg": [[0, 0, 0], [90, 0, 0], [270, 0, 90]],
+                       "table_amplitudes_g": [9.0, 6.0], "dwell_s": 1.0, "sample_s": 0.025})
+    rec = simulate_schedule(PlatformRig().param_space.make(TRUE_TABLE2, display=True), s,
+                            jax.random.key(0))
+    y, n = np.asarray(rec.y), 41
+
+    def split(t=rec.t, y=y):
+        return split_record(BenchRecord(t, y, rec.channels, rec.attrs), s)
+
+    wrapped = y.copy()
+    wrapped[:, 0] = np.where(wrapped[:, 0] > np.pi, wrapped[:, 0] - 2 * np.pi, wrapped[:, 0])
+    assert np.min(wrapped[:, 0]) < -1.5  # the 270 deg dwells now read -90 deg
+    np.testing.assert_array_equal(split(y=wrapped)[..., 1:], split()[..., 1:])
+    deg = y.copy()
+    deg[:, :3] = np.degrees(deg[:, :3])
+    with pytest.raises(ValueError, match=r"dwell 1 .position 1, amplitude 0.: the gimbal angles' "
+                       r"median .* more than 5 deg .* they look like deg: convert alpha beta gamma"):
+        # (dwell 0, at 0 deg, drifts by less than 5 "deg" in its 1 s: it passes)
+        split(y=deg)
+    with pytest.raises(ValueError, match=r"samples every 25 .* sample_s = 0.025 s: t is in s"):
+        split(t=rec.t * 1000)
+    swapped = np.concatenate([y[:n], y[2 * n:3 * n], y[n:2 * n], y[3 * n:]])
+    with pytest.raises(ValueError, match=r"dwell 1 of the record is labelled .position, "
+                       r"amplitude. \[\[2.0, 0.0\]\], where .* puts position 1 at amplitude 0"):
+        split(y=swapped)
+    relabelled = swapped.copy()  # labels made to match the order: the angles still tell
+    relabelled[:, 6:8] = y[:, 6:8]
+    with pytest.raises(ValueError, match=r"dwell 1 .position 1, amplitude 0.*\(\[90, 0, "
+                       r"0\] deg\).*give the schedule the record was taken with"):
+        split(y=relabelled)
+
+
 def test_design_information_is_the_slope_variance_of_a_dwell():
     """``design_information`` by the textbook: a dwell measures each angle every ``dt`` for
     ``dwell_s`` with white noise ``sigma``, and a rate enters as the slope of that angle, whose

@@ -18,7 +18,7 @@ from .platform import DEFAULT_MOUNTING, ENU_MOUNTING, TABLE1_DEG, PlatformRig, s
 
 __all__ = ["CHANNELS", "SCHEDULE_FIELDS", "load_schedule", "default_phases", "schedule_json",
            "schedule_conditions", "dwell_times", "dwell_span", "split_record", "simulate_schedule",
-           "accelerations_g"]
+           "accelerations_g", "POSITION_TOLERANCE_DEG"]
 
 CHANNELS = ("alpha", "beta", "gamma", "ax", "ay", "az", "position", "amplitude")
 SCHEDULE_FIELDS = {
@@ -142,9 +142,19 @@ def dwell_span(s):
     return float(dwell_times(s)[-1]) + float(s["sample_s"])
 
 
+POSITION_TOLERANCE_DEG = 5.0
+"""How far a dwell's median gimbal angles may sit from the schedule's position: the platform
+drifts by its coefficients within a dwell (0.3 deg over 100 s on Table 2's), and 5 deg in a
+dwell would take ~180 deg/h."""
+
+
 def split_record(record, s):
     """The record's samples as (amplitudes, positions, samples per dwell, channels); a clear
-    error when the record does not match the schedule."""
+    error when the record does not match the schedule: its sample count, each dwell's labels
+    (``position``, ``amplitude``: the schedule's order, amplitude-major), its sample interval
+    (``sample_s``: t in s) and its gimbal angles (within :data:`POSITION_TOLERANCE_DEG` of the
+    schedule's position: rad, and the schedule's positions). Every reader takes the dwells in
+    the schedule's order and times, so a record that disagrees would be read wrong silently."""
     y = np.asarray(record.y)
     n_pos, n_amp = len(s["positions_deg"]), len(s["table_amplitudes_g"])
     n = len(dwell_times(s))
@@ -152,7 +162,40 @@ def split_record(record, s):
         raise ValueError(f"record has {y.shape[0]} samples; the schedule needs {n_pos} positions "
                          f"x {n_amp} amplitudes x {n} samples = {n_pos * n_amp * n}: give the "
                          "schedule the record was taken with (--schedule)")
-    return y.reshape(n_amp, n_pos, n, len(CHANNELS))
+    data = y.reshape(n_amp, n_pos, n, len(CHANNELS))
+    expected = np.stack(np.meshgrid(np.arange(n_pos), np.arange(n_amp)), axis=-1)  # (A, P, 2)
+    wrong = np.argwhere(np.any(data[..., 6:8] != expected[:, :, None, :], axis=(2, 3)))
+    if wrong.size:
+        k, p = wrong[0]
+        got = np.unique(data[k, p, :, 6:8], axis=0)
+        raise ValueError(f"dwell {k * n_pos + p} of the record is labelled (position, amplitude) "
+                         f"{got.tolist()}, where the schedule's order (amplitude-major) puts "
+                         f"position {p} at amplitude {k}: reorder the record's dwells to the "
+                         "schedule's, or give the schedule it was taken with (--schedule)")
+    dt = float(np.median(np.diff(np.asarray(record.t, float).reshape(n_amp, n_pos, n), axis=-1)))
+    if not abs(dt - s["sample_s"]) <= 1e-3 * s["sample_s"]:
+        raise ValueError(f"the record samples every {dt:.6g} (its t's median step within a dwell), "
+                         f"the schedule every sample_s = {s['sample_s']:g} s: t is in s; give the "
+                         "schedule the record was taken with (--schedule)")
+    pos = np.radians(np.asarray(s["positions_deg"], float))  # (P, 3)
+    angles = np.median(data[..., :3], axis=2)  # (A, P, 3)
+
+    def off(a):  # each dwell's largest wrapped distance from its position (rad)
+        return np.max(np.abs(np.angle(np.exp(1j * (a - pos)))), axis=-1)
+
+    far = np.argwhere(off(angles) > np.radians(POSITION_TOLERANCE_DEG))
+    if far.size:
+        k, p = far[0]
+        fix = ("they look like deg: convert alpha beta gamma to rad"
+               if np.all(off(np.radians(angles)) <= np.radians(POSITION_TOLERANCE_DEG)) else
+               "give the schedule the record was taken with (--schedule), and alpha beta gamma "
+               "in rad")
+        raise ValueError(f"dwell {k * n_pos + p} (position {p}, amplitude {k}): the gimbal angles' "
+                         f"median {np.round(angles[k, p], 4).tolist()} lies more than "
+                         f"{POSITION_TOLERANCE_DEG:g} deg from the schedule's position "
+                         f"{np.round(pos[p], 4).tolist()} rad ({s['positions_deg'][p]} deg), "
+                         f"where the platform drifts far less in a dwell: {fix}")
+    return data
 
 
 def accelerations_g(data):
