@@ -136,9 +136,12 @@ def fit(args, load_imu, emit_json, usage_error):
     gravity = IMUConditions.from_record(rec).gravity
     segs = detect_static(rec)
     if len(segs) < 2:
-        raise usage_error(f"{args.record}: {len(segs)} static pose(s) found; the multi-position "
+        t = np.asarray(rec.t, float)
+        raise usage_error(f"{args.record}: {len(segs)} static pose(s) found in {t[-1] - t[0]:.4g} "
+                          f"s at {1 / np.median(np.diff(t)):.4g} Hz; the multi-position "
                           "calibration needs a record of still poses (>= 12, spread over the "
-                          "sphere) joined by turns")
+                          "sphere) joined by turns, with t in s (poses are found over 1-s "
+                          "windows)")
     means, _ = segment_means(rec, segs)
     n_orient = orientations(means)
     if n_orient < 2:

@@ -217,6 +217,12 @@ def test_records_in_other_units_are_refused_with_the_fix(tmp_path, capsys):
         else:
             assert "accelerometers: 14 poses, rank 9" in out.out
             assert "gyros: the gyros integrate to 57" in out.out and "sgx" not in out.out
+    # t in min: no pose holds still over a 1-s window of 60 "samples a second"; the error gives
+    # the span and rate it read
+    save_record(BenchRecord(rec.t / 60, rec.y, rec.channels, rec.attrs), tmp_path / "min.nc")
+    assert main(["fit", str(tmp_path / "min.nc"), "--rig", "imu"]) == 2
+    err = capsys.readouterr().err
+    assert "0 static pose(s) found in" in err and "6000 Hz" in err and "with t in s" in err
 
 
 def test_few_poses_report_the_terms_they_determine(tmp_path, capsys):
