@@ -2,6 +2,7 @@
 the blind harness, bad input."""
 
 import ast
+import dataclasses
 import json
 import math
 import shutil
@@ -878,6 +879,12 @@ def test_null_record_no_gap(tmp_path):
     rep = diagnose(_record(seed=5), design_advice=False)
     assert rep.kind == "no-gap", rep.markdown()
     assert 0.9 < rep.noise["std"][0] / units.ARCSEC < 1.1
+    # the units check: asked for where the nominal fit misses the record by more than
+    # UNITS_CHECK_RATIO times the noise (RMS: train gap 1599 is 40x), not on this record
+    assert "check the record's units" not in rep.markdown()
+    far = dataclasses.replace(rep, gap=rep.gap | {"train": 40.0**2 - 1}).markdown()
+    assert "Note: the nominal fit's residual is 40 times the noise level" in far
+    assert "check the record's units (SI" in far
     assert rep.refits == []
     # the figure of a report with no refit: its residual panel has no lines (a legend there was
     # a matplotlib warning, an error under this suite's filterwarnings)
