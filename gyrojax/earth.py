@@ -10,8 +10,23 @@ import jax.numpy as jnp
 
 from .units import EARTH_RATE, G0
 
-__all__ = ["EARTH_RATE", "G0", "earth_rate_unit_enu", "gravity_unit_enu", "earth_rate_enu",
-           "normal_gravity"]
+__all__ = ["EARTH_RATE", "G0", "GRAVITY_RANGE", "earth_rate_unit_enu", "gravity_unit_enu",
+           "earth_rate_enu", "normal_gravity", "check_gravity"]
+
+GRAVITY_RANGE = (9.70, 9.90)
+"""Local gravity a bench can see (m/s^2): 9.764 on Huascaran's summit to 9.834 at the poles."""
+
+
+def check_gravity(g: float, field: str) -> None:
+    """Refuse a local gravity ``g`` (m/s^2) outside :data:`GRAVITY_RANGE`, naming ``field``: a
+    value in g (1.0) or mm/s^2 would scale every accelerometer term, or the Schuler period, by
+    itself."""
+    g = float(g)
+    if not GRAVITY_RANGE[0] <= g <= GRAVITY_RANGE[1]:
+        raise ValueError(f"gravity {g:g} m/s^2 ({field}) is outside {GRAVITY_RANGE[0]}-"
+                         f"{GRAVITY_RANGE[1]} m/s^2, the Earth's surface gravity at any latitude "
+                         "and height; give it in m/s^2 (1 g = 9.80665 m/s^2), or leave it out "
+                         "for normal gravity at the latitude")
 
 
 def earth_rate_unit_enu(latitude):

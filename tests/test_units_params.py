@@ -130,3 +130,24 @@ def test_sample_noise_reads_the_white_level_past_a_smooth_signal():
     assert np.all(sample_noise(smooth) < 1e-3 * sigma)
     with pytest.raises(ValueError, match="at least 4"):
         sample_noise(np.zeros((3, 2)))
+
+
+def test_gravity_outside_the_earths_range_is_refused_by_name():
+    """Local gravity is 9.76-9.84 m/s^2 anywhere a bench stands (normal gravity at the equator and
+    the pole, Huascaran's summit 9.764); a record giving it in g or mm/s^2 is refused where the
+    rig's conditions are built, naming the record's field."""
+    from gyrojax.earth import GRAVITY_RANGE, check_gravity, normal_gravity
+    from gyrojax.models.imu import IMUConditions
+    from gyrojax.models.schuler import SchulerConditions
+
+    for lat in (0.0, 90.0):
+        g = float(normal_gravity(np.radians(lat)))
+        assert GRAVITY_RANGE[0] < g < GRAVITY_RANGE[1]
+        check_gravity(g, "x")
+    assert normal_gravity(0.0) == pytest.approx(9.7803, abs=1e-4)
+    assert normal_gravity(np.pi / 2) == pytest.approx(9.8322, abs=1e-4)
+    for bad in (1.0, 9806.65, 0.0, float("nan")):
+        with pytest.raises(ValueError, match=r"the record's gravity_mps2\) is outside 9.7-9.9"):
+            IMUConditions(gravity=bad)
+        with pytest.raises(ValueError, match=r"the record's g\) is outside 9.7-9.9 m/s\^2"):
+            SchulerConditions.create(g=bad)

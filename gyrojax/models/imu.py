@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import units
+from ..earth import check_gravity, normal_gravity
 from ..params import ParameterSpace, param
 from ..record import BenchRecord, freeze
 from ..rotations import rotvec_to_matrix
@@ -132,6 +133,7 @@ class IMUConditions(eqx.Module):
         if not (np.isnan(lat) or -90.0 <= lat <= 90.0):
             raise ValueError(f"latitude {lat:g} deg is outside [-90, 90]; give the test site's "
                              "latitude (--latitude) in degrees North, or none for no Earth rate")
+        check_gravity(self.gravity, "the record's gravity_mps2")
 
     @property
     def vertical_earth_rate(self) -> float:
@@ -140,8 +142,6 @@ class IMUConditions(eqx.Module):
 
     @staticmethod
     def from_record(record: BenchRecord) -> IMUConditions:
-        from ..earth import normal_gravity
-
         c = record.conditions
         lat = float(c.get("latitude_deg", float("nan")))
         if "gravity_mps2" in c:

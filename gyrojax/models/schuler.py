@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import units
-from ..earth import normal_gravity
+from ..earth import check_gravity, normal_gravity
 from ..params import Param, ParameterSpace
 from ..rotations import matrix_to_rotvec, rot1, rot2, rot3, rotvec_to_matrix
 from ._base import AbstractRig
@@ -116,8 +116,7 @@ class SchulerConditions(eqx.Module):
             raise ValueError(f"latitude {latitude_deg} deg is outside [-89, 89]; give degrees North")
         lat = jnp.asarray(latitude_deg * units.DEG, dtype=float)
         g_val = normal_gravity(lat) if g is None else jnp.asarray(g, dtype=float)
-        if not float(g_val) > 0:
-            raise ValueError(f"g={g} m/s^2 must be > 0")
+        check_gravity(g_val, "the record's g")
         f = lambda x: jnp.asarray(x, dtype=float)  # noqa: E731
         return SchulerConditions(lat, f(g_val), f(v10), f(v20), f(azimuth0_deg * units.DEG))
 
