@@ -110,6 +110,51 @@ def test_grid_scores_of_stacked_bases_are_each_values_residual_drop():
     assert _grid_lm(des, e)[1].tolist() == [0.0] * 7
 
 
+
+def test_directions_from_the_information_are_the_canonical_correlations():
+    """``_directions`` works from ``J^T J`` and ``J~^T J~`` (no factorisation of the rows). Its
+    visible fractions must be ``1 - rho^2`` of the canonical correlations between the raw
+    signature's span and the nominal span (an SVD of their orthonormal bases), its directions
+    ``D^T J^T J D = I`` and ``D^T J~^T J~ D = diag(w)``; a dependent column gives one
+    no-signature direction (the combination itself), a column inside the nominal span one
+    confounded direction; one column reads its norms. Fewer rows than columns, too."""
+    from gyrojax.diagnose._stats import VISIBLE_MIN, _directions, _project, nominal_basis
+
+    rng = np.random.default_rng(5)
+    m = 400
+    jn = rng.standard_normal((m, 5))
+    u = nominal_basis(jn)
+    c0, c1 = rng.standard_normal(m), rng.standard_normal(m) + 3 * jn[:, 0]
+    c2 = jn @ rng.standard_normal(5)  # inside the nominal span
+    j = np.stack([c0, c1, c2, 2 * c0 - c1], axis=1)  # the last one dependent
+    jt = _project(u, j)
+    d, w, v_min, null, conf = _directions(j, jt)
+    q = np.linalg.svd(j, full_matrices=False)[0][:, :3]  # the rank-3 span
+    rho = np.linalg.svd(q.T @ u, compute_uv=False)
+    want = np.sort(1 - rho ** 2)
+    assert want[0] < 1e-12 and want[1] > 0.05  # one absorbed direction, two visible
+    np.testing.assert_allclose(np.sort(w), want[1:], rtol=1e-9)
+    assert abs(v_min) < 1e-12
+    np.testing.assert_allclose(d.T @ (j.T @ j) @ d, np.eye(2), atol=1e-9)
+    np.testing.assert_allclose(d.T @ (jt.T @ jt) @ d, np.diag(w), atol=1e-9)
+    assert len(null) == 1 and len(conf) == 1
+    n_dir = np.array([2.0, -1.0, 0.0, -1.0]) / math.sqrt(6)
+    assert abs(abs(float(null[0] @ n_dir)) - 1) < 1e-9
+    sig_conf = j @ conf[0]
+    assert np.linalg.norm(_project(u, sig_conf)) < 1e-9 * np.linalg.norm(sig_conf)
+    # one column: the visible fraction is the projected squared norm over the raw one
+    d1, w1, v1, null1, conf1 = _directions(j[:, 1:2], jt[:, 1:2])
+    want1 = np.sum(jt[:, 1] ** 2) / np.sum(j[:, 1] ** 2)
+    np.testing.assert_allclose([w1[0], v1, d1[0, 0]], [want1, want1,
+                                                       1 / np.linalg.norm(j[:, 1])], rtol=1e-12)
+    assert null1 == [] and conf1 == []
+    d2, w2, v2, null2, conf2 = _directions(j[:, 2:3], jt[:, 2:3])
+    assert d2.shape == (1, 0) and w2.size == 0 and v2 < VISIBLE_MIN and len(conf2) == 1
+    # fewer rows than columns: the third coefficient direction has no signature
+    a = rng.standard_normal((2, 3))
+    _, _, _, null3, _ = _directions(a, a)
+    assert len(null3) == 1 and np.linalg.norm(a @ null3[0]) < 1e-7
+
 def test_score_equals_refit_drop_in_the_linear_regime():
     """LM = s^T I^-1 s equals the drop of the residual sum of squares when the effect is refitted
     jointly with the nominal parameters (exact for a linear model)."""

@@ -459,17 +459,17 @@ class PlatformProblem:
             cols = self._cols
         else:
             _, _, cols = self._design(*conditions, self._theta(params))
-        w = (1.0 / np.asarray(sigma))[None, :, None]
         n = cols.shape[0]
-        jn = (self._nominal_cols(cols) * w).reshape(n * 3, -1) * self.nominal_scales
+        # every column whitened in one pass (rows contiguous), then each effect's a view of it
+        white = (cols * (1.0 / np.asarray(sigma))[None, :, None]).reshape(n * 3, -1)
+        jn = self._nominal_cols(white[:, None, :])[:, 0] * self.nominal_scales
         sigs = []
         for e in self.effects:
             fam, prior = self.library[e]
             unit, si = self._unit_si(e)
             f = prior * si
             gs = range(N_GRID) if e in _GRID_EFFECTS else range(1)
-            jac = np.stack([(self._effect_cols(cols, e, g) * w).reshape(n * 3, -1) * f
-                            for g in gs])
+            jac = np.stack([self._effect_cols(white[:, None, :], e, g)[:, 0] for g in gs]) * f
             grid, gname, gunit = ((tuple(x / 3600 for x in self.taus), "decay time", "h")
                                   if e in _GRID_EFFECTS else ((), "", ""))
             names = self._effect_names(e)

@@ -178,8 +178,8 @@ def visible(u, j) -> bool:
 
 def _directions(j, jt):
     """The coefficient directions an effect's score test uses, their information, and
-    :func:`_visibility`'s answer, from one SVD of the raw signature ``j`` and its projection
-    ``jt``.
+    :func:`_visibility`'s answer, from the raw signature ``j`` and its projection ``jt``
+    (through their information matrices: no factorisation of the ``m`` rows).
 
     Raw-signature directions (relative singular value above ``NULL_TOL``) whose visible fraction
     ``1 - rho^2`` after the nominal projection is at least ``VISIBLE_MIN``: the generalised
@@ -187,27 +187,42 @@ def _directions(j, jt):
     the visible fractions. Directions below ``VISIBLE_MIN`` are absorbed by the nominal model
     (structurally confounded); what little of them survives the projection is second-order
     physics or round-off, and testing it would let such an effect claim any residual with an
-    implausibly large coefficient. Returns ``(D (p, k), w (k,), v_min, no-signature
-    directions, confounded directions)``.
+    implausibly large coefficient. The singular values come from the eigenvalues of ``J^T J``:
+    a direction without signature reads at most ``sqrt(eps) ~ 1.5e-8`` of the largest there,
+    far below ``NULL_TOL``. Returns ``(D (p, k), w (k,), v_min, no-signature directions,
+    confounded directions)``.
     """
     p = j.shape[1]
-    if j.shape[0] < p:  # fewer rows than coefficients: pad so that vt spans all p directions
-        pad = np.zeros((p - j.shape[0], p))
-        j, jt = np.concatenate([j, pad]), np.concatenate([jt, pad])
-    _, s, vt = np.linalg.svd(j, full_matrices=False)  # (p, p): never the m x m factor
-    if s.size == 0 or s[0] == 0:
-        return np.zeros((p, 0)), np.zeros(0), 0.0, [vt[i] for i in range(p)], []
+    if p == 1:  # one column: its norms say it all
+        return _column_directions(float(np.sum(j * j)), float(np.sum(jt * jt)))
+    lam, v = np.linalg.eigh(j.T @ j)
+    s, v = np.sqrt(np.clip(lam[::-1], 0.0, None)), v[:, ::-1]  # largest first, as an SVD's
+    if p == 0 or s[0] == 0:
+        return np.zeros((p, 0)), np.zeros(0), 0.0, [v[:, i] for i in range(p)], []
     keep = s > NULL_TOL * s[0]
-    null = [vt[i] for i in range(p) if not keep[i]]
-    vr = vt[keep].T / s[keep]  # J vr has orthonormal columns
+    null = [v[:, i] for i in range(p) if not keep[i]]
+    vr = v[:, keep] / s[keep]  # J vr has orthonormal columns
     b = jt @ vr
-    w, evec = np.linalg.eigh((b.T @ b + (b.T @ b).T) / 2)
+    w, evec = np.linalg.eigh(b.T @ b)
     dirs = vr @ evec
     k = w >= VISIBLE_MIN
     w_vis = np.clip(w, 0.0, 1.0)
     confounded = [dirs[:, i] / np.linalg.norm(dirs[:, i]) for i in range(len(w))
                   if w_vis[i] < 1e-6]
     return dirs[:, k], w[k], float(w_vis[0]), null, confounded
+
+
+def _column_directions(ss: float, ss_t: float):
+    """:func:`_directions` of a one-column signature with squared norm ``ss`` (``ss_t`` after
+    the projection): its direction is the coefficient itself, ``w = ss_t / ss``."""
+    if ss <= 0.0:
+        return np.zeros((1, 0)), np.zeros(0), 0.0, [np.ones(1)], []
+    w = ss_t / ss
+    d = np.full((1, 1), 1.0 / math.sqrt(ss))
+    conf = [np.ones(1)] if w < 1e-6 else []
+    ok = w >= VISIBLE_MIN
+    return (d if ok else np.zeros((1, 0))), np.array([w] if ok else []), \
+        min(max(w, 0.0), 1.0), [], conf
 
 
 def grid_log_bf(lms, dofs, lambda0) -> float:
@@ -253,19 +268,27 @@ def shape_log_bf_scores(blocks, lambdas) -> np.ndarray:
     return np.logaddexp.reduce(out, axis=0) - math.log(out.shape[0])
 
 
-def _shape_log_bf_grid(blocks, lambdas) -> np.ndarray:
+def _info_eig(info):
+    """``(trace, eigenvalues clipped at 0, eigenvectors)`` of an information matrix."""
+    if info.shape == (1, 1):  # one coefficient: its information is its eigenvalue
+        x = float(info[0, 0])
+        return x, np.array([max(x, 0.0)]), np.ones((1, 1))
+    w, v = np.linalg.eigh((info + info.T) / 2)
+    return float(np.trace(info)), np.clip(w, 0.0, None), v
+
+
+def _shape_log_bf_grid(blocks, lambdas, eigs=None) -> np.ndarray:
     """:func:`shape_log_bf_scores` at each grid value, before the grid average:
-    ``(G, len(lambdas), ...)``."""
+    ``(G, len(lambdas), ...)``; ``eigs``: each block's :func:`_info_eig`, where the caller has
+    them."""
     lambdas = np.atleast_1d(np.asarray(lambdas, float))
     out = []
-    for info, score in blocks:
+    for k, (info, score) in enumerate(blocks):
         score = np.asarray(score, float)
-        tr = float(np.trace(info))
+        tr, w, v = eigs[k] if eigs is not None else _info_eig(info)
         if tr <= 0.0:
             out.append(np.zeros((lambdas.size,) + score.shape[1:]))
             continue
-        w, v = np.linalg.eigh((info + info.T) / 2)
-        w = np.clip(w, 0.0, None)
         z2 = (v.T @ score) ** 2  # squared scores in the information's eigenbasis
         c2w = lambdas[:, None] / tr * w  # (L, p)
         fit = np.tensordot(c2w / np.where(w > 0, w, 1.0) / (1 + c2w), z2, axes=(1, 0))
@@ -370,7 +393,9 @@ class SignatureDesign:
       (``LM_g = |W_g^T e|^2``);
     - `sup_null`: for grid effects, the bootstrap draws of ``sup_g LM_g`` under H0 (sorted);
     - `vis`: per grid value, :func:`_visibility`'s ``(v_min, no-signature directions,
-      confounded directions)``.
+      confounded directions)``;
+    - `infos`: per grid value, the information ``J~^T J~`` (`info_eigs`: its
+      :func:`_info_eig`); `stacked`: the bases side by side.
     """
 
     sig: Signature
@@ -380,6 +405,16 @@ class SignatureDesign:
     bases: list
     sup_null: np.ndarray | None
     vis: list
+    infos: list | None = None  # per grid value, J~^T J~ (computed when not given)
+
+    def __post_init__(self):
+        if self.infos is None:
+            self.infos = [x.T @ x for x in self.jt]
+        self.info_eigs = [_info_eig(x) for x in self.infos]  # the shape prior's, once
+        self.ks = np.array([b.shape[1] for b in self.bases], int)
+        # the grid values' bases side by side: ``e`` is read once by one product
+        self.stacked = (self.bases[0] if len(self.bases) == 1 else
+                        np.concatenate(self.bases, axis=1) if self.bases else np.zeros((0, 0)))
 
 
 def screen_designs(jn: np.ndarray, sigs: list[Signature], *, n_boot: int = 2000,
@@ -389,25 +424,34 @@ def screen_designs(jn: np.ndarray, sigs: list[Signature], *, n_boot: int = 2000,
     and the null draws of the calibrated global test) are scored by matrix products."""
     u = nominal_basis(jn)
     rng = np.random.default_rng(seed)
-    # every signature's columns at every grid value projected by one product
-    raw = [sig.jac[g] for sig in sigs for g in range(sig.jac.shape[0])]
-    projected = iter(np.split(_project(u, np.concatenate(raw, axis=1)),
-                              np.cumsum([j.shape[1] for j in raw])[:-1], axis=1)
-                     if raw else [])
+    blocks = [(i, g) for i, sig in enumerate(sigs) for g in range(sig.jac.shape[0])]
+    # one-column signatures are projected together (one product) and their directions read
+    # off the column norms; wider ones block by block, where each copy stays small
+    ones = [b for b in blocks if sigs[b[0]].jac.shape[2] == 1]
+    part = {}
+    if ones:
+        j = np.stack([sigs[i].jac[g][:, 0] for i, g in ones])  # (n, m): one row each
+        jt = j - (j @ u) @ u.T
+        for b, row, ss, ss_t in zip(ones, jt, np.sum(j * j, axis=1), np.sum(jt * jt, axis=1)):
+            part[b] = (row[:, None], _column_directions(float(ss), float(ss_t)))
     out = []
-    for sig in sigs:
-        jts, ds, ws, bases, vis = [], [], [], [], []
+    for i, sig in enumerate(sigs):
+        jts, ds, ws, bases, vis, infos = [], [], [], [], [], []
         for g in range(sig.jac.shape[0]):
-            j = sig.jac[g]
-            jt = next(projected)
-            d, w, *v = _directions(j, jt)
+            if (i, g) in part:
+                jt, (d, w, *v) = part[(i, g)]
+            else:
+                j = sig.jac[g]
+                jt = _project(u, j)
+                d, w, *v = _directions(j, jt)
             jts.append(jt)
+            infos.append(jt.T @ jt)
             ds.append(d)
             ws.append(w)
             vis.append(tuple(v))
-            bases.append((jt @ d) / np.sqrt(w) if w.size else np.zeros((jt.shape[0], 0)))
+            bases.append(jt @ (d / np.sqrt(w)) if w.size else np.zeros((jt.shape[0], 0)))
         sup = _sup_null(bases, n_boot, rng) if len(bases) > 1 else None
-        out.append(SignatureDesign(sig, jts, ds, ws, bases, sup, vis))
+        out.append(SignatureDesign(sig, jts, ds, ws, bases, sup, vis, infos))
     return u, out
 
 
@@ -418,9 +462,8 @@ def _grid_lm(design: SignatureDesign, e: np.ndarray) -> np.ndarray:
     The grid values' bases are stacked into one ``m x sum(k_g)`` matrix, so that ``e`` is read
     once by one matrix product instead of once per grid value (a grid effect has 8-15 values of
     1-3 columns each, and the calibrated global test scores ~500 residuals at once)."""
-    ks = np.array([b.shape[1] for b in design.bases])
-    stacked = np.concatenate(design.bases, axis=1)
-    sq = (stacked.T @ e) ** 2
+    ks = design.ks
+    sq = (design.stacked.T @ e) ** 2
     out = np.zeros((len(ks), *sq.shape[1:]))
     full = ks > 0
     if full.any():
@@ -523,16 +566,18 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
         dofs = [w.size for w in des.w]
         gi = int(np.argmax(lms))
         jt, d, w, dof = des.jt[gi], des.d[gi], des.w[gi], dofs[gi]
-        sd = (jt @ d).T @ e
+        scores = [x.T @ e for x in des.jt]  # J~^T e per grid value
+        sd = d.T @ scores[gi]
         beta = d @ (sd / w) if w.size else np.zeros(jt.shape[1])
         cov = (d / w) @ d.T if w.size else np.zeros((jt.shape[1], jt.shape[1]))
         lams = PRIOR_LAMBDAS + (lambda0,)
-        shape_grid = _shape_log_bf_grid([(x.T @ x, x.T @ e) for x in des.jt], lams)  # (G, L)
+        shape_grid = _shape_log_bf_grid(list(zip(des.infos, scores)), lams,
+                                        des.info_eigs)  # (G, L)
         shape = np.logaddexp.reduce(shape_grid, axis=0) - math.log(shape_grid.shape[0])
         zell = zellner_log_bf(lms, dofs, lams)
         curve = mix_log_bf(shape, zell)
         if prior == "scale":
-            lbf = [_log_bf(x.T @ x, x.T @ e) for x in des.jt]
+            lbf = [_log_bf(info, sc) for info, sc in zip(des.infos, scores)]
             log_bf = float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
         else:
             log_bf = float({"design": curve, "shape": shape, "zellner": zell}[prior][-1])
