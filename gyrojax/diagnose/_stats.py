@@ -34,7 +34,8 @@ LAMBDA_80 = 7.85  # noncentrality giving 80 % power at alpha = 0.05, 1 dof
 SEPARABLE = 0.9  # spec §5.6: separable = largest projected canonical correlation <= this
 INDISTINGUISHABLE = 0.98  # spec §4.2 stage 3: pairs at or above "cannot be told apart"
 NULL_TOL = 1e-6  # relative singular value of a raw signature direction counted as no signature
-PRIORS = ("design", "shape", "zellner", "scale")  # Bayes-factor priors of the screening (see screen)
+PRIORS = ("design", "shape", "zellner", "scale", "shell")  # Bayes-factor priors (see screen)
+SHELL_RANGE = (8.0, 2.0 ** 24)  # the shell prior's noncentralities, log-uniform (see screen)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -310,6 +311,57 @@ def zellner_log_bf(lms, dofs, lambdas) -> np.ndarray:
     return out.reshape((out.shape[0],) + lms.shape[1:])
 
 
+def noncentral_log_bf(lms, dofs, lambdas) -> np.ndarray:
+    """Log Bayes factor of a (grid) effect whose noncentrality is exactly ``lambda``, its
+    direction uniform over the tested directions: the density ratio of the score statistic,
+    noncentral over central chi-square, ``exp(-lambda/2) 0F1(; dof/2; lambda LM / 4)``
+    (exact for the linearised model; one dof: ``exp(-lambda/2) cosh(sqrt(lambda LM))``),
+    averaged over the grid with equal weights. Its mean under the null is 1 at every
+    ``lambda``. ``lms`` ``(G,)`` or ``(G, B)``, ``dofs`` ``(G,)`` -> ``(len(lambdas),)`` or
+    ``(len(lambdas), B)``; 0 dof: factor 1.
+
+    Unlike the Gaussian priors (:func:`zellner_log_bf`, :func:`shape_log_bf`), which put most
+    of their mass on effects far smaller than ``lambda``, the shell puts none there: at the
+    spec's sizes it is the Bayes factor of its validation population (§5.4: noncentrality
+    8, 16, 32 or 64, direction uniform), and :func:`shell_log_bf` mixes it over sizes."""
+    lms = np.asarray(lms, float)
+    flat = np.maximum(lms.reshape(lms.shape[0], -1), 0.0)[None]  # (1, G, B)
+    dofs = np.asarray(dofs, float)[None, :, None]
+    lam = np.atleast_1d(np.asarray(lambdas, float))[:, None, None]
+    nu = np.maximum(dofs, 1.0) / 2 - 1
+    y = np.sqrt(lam * flat)
+    safe = np.where(y > 1e-8, y, 1.0)
+    # 0F1(; nu + 1; y^2 / 4) = Gamma(nu + 1) (y / 2)^-nu I_nu(y), with I_nu scaled by exp(-y)
+    log_f = special.gammaln(nu + 1) - nu * np.log(safe / 2) + np.log(special.ive(nu, safe)) + safe
+    lbf = -0.5 * lam + np.where(y > 1e-8, log_f, 0.0)
+    lbf = np.where(dofs > 0, lbf, 0.0)
+    out = np.logaddexp.reduce(lbf, axis=1) - math.log(flat.shape[1])
+    return out.reshape((out.shape[0],) + lms.shape[1:])
+
+
+def shell_log_bf(lms, noncentrality=SHELL_RANGE) -> np.ndarray:
+    """Log Bayes factor of an effect of one coefficient whose noncentrality is log-uniform over
+    ``noncentrality = (lo, hi)``, at each score ``lms`` (any shape; one dof): the mixture of
+    :func:`noncentral_log_bf` over the sizes. With ``s = sqrt(lambda)`` and ``z = sqrt(LM)``,
+    ``BF = e^(LM/2) / log(hi/lo) * int (phi(s - z) + phi(s + z)) sqrt(2 pi) / s ds`` over
+    ``[sqrt lo, sqrt hi]``: a unit-width bump at ``s = z`` whatever the score, integrated by
+    Simpson's rule on 481 points within 12 of it (the rest is below ``e^-72``)."""
+    lms = np.maximum(np.asarray(lms, float), 0.0)
+    z = np.sqrt(lms)[..., None]
+    sa, sb = math.sqrt(noncentrality[0]), math.sqrt(noncentrality[1])
+    half = 12.0
+    a = np.maximum(sa, np.minimum(z - half, sb - 2 * half))
+    b = np.minimum(sb, a + 2 * half)
+    t = np.linspace(0.0, 1.0, 481)
+    x = a + (b - a) * t  # (..., 241)
+    # log of (exp(-(x - z)^2 / 2) + exp(-(x + z)^2 / 2)) / x, stable for large x z
+    f = -0.5 * (x - z) ** 2 + np.log1p(np.exp(-2.0 * x * z)) - np.log(x)
+    top = f.max(axis=-1, keepdims=True)
+    w = np.r_[1.0, np.tile([4.0, 2.0], (t.size - 3) // 2), 4.0, 1.0] * (b - a) / (3 * (t.size - 1))
+    integral = top[..., 0] + np.log(np.sum(np.exp(f - top) * w, axis=-1))
+    return 0.5 * lms + integral - math.log(math.log(noncentrality[1] / noncentrality[0]))
+
+
 def design_log_bf(jts, bases, e, lambdas) -> np.ndarray:
     """The screening's default Bayes factor (log) at each prior size in ``lambdas``: the equal
     mixture of the shape prior (:func:`shape_log_bf`: coefficients spread as their prior
@@ -541,7 +593,10 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
     next, both expecting noncentrality ``lambda0``), ``prior="shape"`` (the prior scales' shape,
     :func:`shape_log_bf`), ``prior="zellner"`` (the g-prior ``b ~ N(0, g I^-1)``,
     ``g = lambda0 / dof``, on the tested directions: :func:`grid_log_bf`) or ``prior="scale"``
-    (``b ~ N(0, prior_scale^2)``, spec §4.2 step 5). Each row also carries ``log_bf_curve``, the
+    (``b ~ N(0, prior_scale^2)``, spec §4.2 step 5) or ``prior="shell"`` (the noncentrality
+    log-uniform over :data:`SHELL_RANGE`, not fixed: an effect of one coefficient gets the
+    exact factor, :func:`shell_log_bf`; any other the design prior's mixed over the same sizes,
+    :func:`_shell_grid`). Each row also carries ``log_bf_curve``, the
     design prior's factor at the sizes ``PRIOR_LAMBDAS`` (how the evidence depends on the prior
     size). ``designs``: the output of :func:`screen_designs` for these ``jn`` and ``sigs``
     (computed here when not given).
@@ -579,6 +634,9 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
         if prior == "scale":
             lbf = [_log_bf(info, sc) for info, sc in zip(des.infos, scores)]
             log_bf = float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
+        elif prior == "shell":
+            lbf = _shell_grid(des, scores, lms, dofs)
+            log_bf = float(np.logaddexp.reduce(lbf) - math.log(len(lbf)))
         else:
             log_bf = float({"design": curve, "shape": shape, "zellner": zell}[prior][-1])
         p = float(_pvalue(des, lms[gi], dof))
@@ -597,6 +655,31 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
     return out
 
 
+# the design prior's sizes under prior="shell": powers of 2 over SHELL_RANGE, trapezoid weights in
+# log lambda (the Gaussian factors vary slowly with the size, unlike the shell's)
+_SHELL_DESIGN_LAMBDAS = 2.0 ** np.arange(math.log2(SHELL_RANGE[0]), math.log2(SHELL_RANGE[1]) + 1)
+_SHELL_DESIGN_LOGW = np.log(np.r_[0.5, np.ones(len(_SHELL_DESIGN_LAMBDAS) - 2), 0.5]
+                            / (len(_SHELL_DESIGN_LAMBDAS) - 1))
+
+
+def _shell_grid(design: SignatureDesign, scores, lms, dofs) -> np.ndarray:
+    """``prior="shell"``'s log factor at each grid value of one effect (:func:`screen`): the
+    noncentrality log-uniform over :data:`SHELL_RANGE`. An effect of one coefficient (the
+    shape and the g-prior are one prior there) gets :func:`shell_log_bf`, the exact factor;
+    any other the design prior's (:func:`design_log_bf`) averaged over the same sizes, which
+    keeps its spread of the coefficients' directions (the shell would have to assume one).
+    ``scores``: ``J~^T e`` per grid value."""
+    lms, dofs = np.asarray(lms, float), np.asarray(dofs, float)
+    if design.sig.jac.shape[2] == 1:
+        return np.where(dofs > 0, shell_log_bf(lms), 0.0)
+    lams = _SHELL_DESIGN_LAMBDAS
+    shape = _shape_log_bf_grid(list(zip(design.infos, scores)), lams, design.info_eigs)  # (G, L)
+    g = lams[None, :] / np.maximum(dofs, 1.0)[:, None]
+    zell = np.where(dofs[:, None] > 0, 0.5 * g / (1 + g) * lms[:, None]
+                    - 0.5 * dofs[:, None] * np.log1p(g), 0.0)
+    return np.logaddexp.reduce(mix_log_bf(shape, zell) + _SHELL_DESIGN_LOGW, axis=1)
+
+
 def grid_posterior(design: SignatureDesign, e, lms, dofs, lambda0: float = 32.0,
                    prior: str = "design", shape=None) -> np.ndarray:
     """Posterior weights of a grid effect's grid values given that the effect is present: each
@@ -609,8 +692,12 @@ def grid_posterior(design: SignatureDesign, e, lms, dofs, lambda0: float = 32.0,
     else:
         if shape is None:
             shape = np.array([shape_log_bf([jt], e, [lambda0])[0] for jt in design.jt])
-        zell = np.array([zellner_log_bf([lm], [d], [lambda0])[0] for lm, d in zip(lms, dofs)])
-        lbf = {"design": mix_log_bf(shape, zell), "shape": shape, "zellner": zell}[prior]
+        if prior == "shell":
+            lbf = _shell_grid(design, [x.T @ e for x in design.jt], lms, dofs)
+        else:
+            zell = np.array([zellner_log_bf([lm], [d], [lambda0])[0]
+                             for lm, d in zip(lms, dofs)])
+            lbf = {"design": mix_log_bf(shape, zell), "shape": shape, "zellner": zell}[prior]
     return np.exp(lbf - np.logaddexp.reduce(lbf))
 
 
