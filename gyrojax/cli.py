@@ -586,7 +586,7 @@ def cmd_diagnose(args):
                       refit_all=args.refit_all, null_draws=args.null_draws,
                       noise_model=args.noise_model, flicker_b=flicker,
                       nominal_terms=nominal_terms, per_coefficient=args.per_coefficient,
-                      progress=_stage_printer("diagnose"))
+                      prior=args.prior, progress=_stage_printer("diagnose"))
     print(report.markdown())
     _emit_json(report.to_json(), args.json)
     if args.plot:
@@ -826,6 +826,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "repeat per run (default: the record's table_rate_s, if any)")
     p.add_argument("--alpha", type=float, default=0.05,
                    help="significance level after Benjamini-Hochberg control (default 0.05)")
+    p.add_argument("--prior", choices=("design", "shell", "shape", "zellner", "scale"),
+                   default="design",
+                   help="Bayes-factor prior of the posteriors (default design: Gaussian "
+                        "coefficients expecting noncentrality 32; shell: the noncentrality "
+                        "log-uniform over 8 to 2^24 and never near 0, calibrated where one "
+                        "coefficient is an effect, e.g. with --nominal-terms or "
+                        "--per-coefficient; see docs/notes.md, stop 71)")
     p.add_argument("--null-draws", type=int, default=499,
                    help="residuals drawn from the linearised null to calibrate the BH level to "
                         "a false-alarm rate of exactly --alpha (default 499; 0: plain weighted "

@@ -120,6 +120,15 @@ def test_first_order_nominal_screens_each_left_out_coefficient(tmp_path, capsys)
     b2 = refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]))
     assert b2["b2_choice"] == b2["b2_lr_choice"] == "D_ii_y"
     assert b2["n_refits"] == 21 + 8  # 21 one-shot effects, the transient at its 8 decay times
+    # the shell prior (docs/notes.md, stop 71) from the CLI: the same verdict, named in the JSON
+    out = tmp_path / "shell.json"
+    assert main(["diagnose", "--rig", "platform", str(path), "--nominal-terms", "f,i,o,s",
+                 "--prior", "shell", "--json", str(out)]) == 0
+    js = json.loads(out.read_text())
+    assert js["prior"] == "shell" and js["verdict"]["effects"] == ["D_ii_y"], js["verdict"]
+    top = max(js["candidates"], key=lambda r: r["posterior"])
+    assert top["name"] == "D_ii_y" and top["posterior"] > 0.9
+    assert "posteriors under the shell prior" in capsys.readouterr().out
     for argv, field in ((["--nominal-terms", "f,i,x"], "'x'"),
                         (["--nominal-terms", "i,o,s"], "lack 'f'")):
         capsys.readouterr()

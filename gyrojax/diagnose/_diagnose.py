@@ -292,8 +292,11 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     - `order`: ESG model, ``"exact"`` (5.1) or the paper's first-order ``"first"`` (3.1).
     - `prior`: Bayes-factor prior of the posteriors: ``"design"`` (default: the equal mixture of
       the next two), ``"shape"`` (coefficients spread as their prior scales, sized to expect
-      noncentrality 32 on this record's design), ``"zellner"`` (g-prior expecting 32) or
-      ``"scale"`` (the prior scales themselves).
+      noncentrality 32 on this record's design), ``"zellner"`` (g-prior expecting 32),
+      ``"scale"`` (the prior scales themselves) or ``"shell"`` (the noncentrality log-uniform
+      over 8 to 2^24, never near 0: an effect of one coefficient gets the exact noncentral
+      chi-square factor, any other the design prior over the same sizes; calibrated where the
+      Gaussian priors are under-confident, on catalogues of one-coefficient effects).
     - `library_share`: share of the weighted-BH weight held by the library's tests (the gap map
       holds the rest; ``None``: equal weights, plain BH over every test).
     - `split`: the held-out plan where a rig offers more than one (platform:
@@ -537,7 +540,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
                                if r.dof > 0])},
         second=second.sig.name if second is not None else None,
         refits=refits, design_advice=advice, verdict=verdict, alpha=alpha, timings=timings,
-        multiplicity=multiplicity,
+        multiplicity=multiplicity, prior=prior,
         noise_effects=noise_rows,
         **({"split": prob.split_kind} if hasattr(prob, "split_kind") else {}),
         residual_all=resid_all / sigma, t=prob.t,

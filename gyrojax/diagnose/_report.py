@@ -83,6 +83,7 @@ class GapReport:
     noise_effects: list = dataclasses.field(default_factory=list)
     split: str = "time-ordered (held-out = the record's end)"
     multiplicity: dict = dataclasses.field(default_factory=dict)
+    prior: str = "design"  # the posteriors' Bayes-factor prior (diagnose's ``prior``)
 
     @property
     def kind(self) -> str:
@@ -129,6 +130,7 @@ class GapReport:
             "noise_effects": self.noise_effects,
             "refits": self.refits, "design_advice": self.design_advice,
             "verdict": self.verdict, "alpha": self.alpha, "multiplicity": self.multiplicity,
+            "prior": self.prior,
             "timings": self.timings,
         })
 
@@ -195,7 +197,8 @@ class GapReport:
                              f"{x['statistic']:.4g} | {x['expected']:.4g} | {x['q']:.2g} |")
         else:
             lines.append("none")
-        lines += ["", "## Which (efficient score tests at the nominal fit)", "",
+        lines += ["", "## Which (efficient score tests at the nominal fit; posteriors under the "
+                  f"{self.prior} prior)", "",
                   "| effect | score | dof | p | posterior | visible | flag | absorbed by |",
                   "|---|---|---|---|---|---|---|---|"]
         for r in self.ranking:
