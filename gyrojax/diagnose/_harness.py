@@ -159,7 +159,8 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
             prob = _problem(rec, rig, holdout, None, None, "exact", rec_split,
                             nominal_terms=kw.get("nominal_terms"),
                             per_coefficient=kw.get("per_coefficient", False))
-            results[-1] |= refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]))
+            results[-1] |= refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]),
+                                              prior=kw.get("prior", "design"))
         if progress is not None:
             progress(k + 1, len(paths))
     return results

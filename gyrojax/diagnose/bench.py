@@ -35,15 +35,18 @@ from ..models.esg import ESGConditions, ESGRig
 from ..record import BenchRecord
 from ._esg import ESG_LIBRARY, TRANSIENT_TIMES_H
 from ._stats import (
+    _SHELL_DESIGN_LAMBDAS,
+    _SHELL_DESIGN_LOGW,
     _directions,
     _project,
-    grid_log_bf,
     ljung_box,
     mix_log_bf,
     nominal_basis,
     onset_grid,
     shape_log_bf_scores,
+    shell_log_bf,
     visibility_flag,
+    zellner_log_bf,
 )
 
 __all__ = ["generate", "run", "score", "LIBRARY_FAMILIES", "OUT_OF_LIBRARY"]
@@ -508,7 +511,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
     return results
 
 
-def refit_all_baseline(prob, ranking, sigma) -> dict:
+def refit_all_baseline(prob, ranking, sigma, prior: str = "design") -> dict:
     """Spec §5.7 B2 on one record: refit every catalogued effect alone (a grid effect at every
     grid value, keeping the best: refit-all has no score to pick a decay time or onset, and the
     grid value counts as one more parameter) from the same nominal fit as the diagnosis, on its
@@ -516,7 +519,10 @@ def refit_all_baseline(prob, ranking, sigma) -> dict:
     the choice by the screening's own Bayes factor with each refit's estimate in place of the
     one-step one (``b2_lr_choice``: the answer screening approximates, spec §6 G10), their log
     Bayes factors, the refits' wall time and count. ``ranking``: the report's rows (the dof each
-    effect was screened on); ``sigma``: the report's noise level."""
+    effect was screened on); ``sigma``: the report's noise level; ``prior``: the screening's
+    (``"design"`` or ``"shell"``, :func:`~gyrojax.diagnose._stats.screen`)."""
+    if prior not in ("design", "shell"):
+        raise ValueError(f"prior={prior!r}: B2's Bayes factors follow 'design' or 'shell'")
     params0 = prob.fit_nominal()
     n = prob.n_train
 
@@ -551,9 +557,16 @@ def refit_all_baseline(prob, ranking, sigma) -> dict:
         k = len(sig.names) + (1 if sig.grid else 0)
         bic[sig.name] = m * math.log(min(rss) / m) + k * math.log(m)
         drops = [max(rss0 - r, 0.0) for r in rss]
-        lr_bf[sig.name] = float(mix_log_bf(
-            shape_log_bf_scores(blocks, [32.0])[0],
-            grid_log_bf(drops, [screened_dof[sig.name]] * len(rss), 32.0)))
+        dof = screened_dof[sig.name]
+        if prior == "shell" and len(sig.names) == 1:  # one coefficient: the exact shell factor
+            v = shell_log_bf(drops) if dof > 0 else np.zeros(len(drops))
+            lr_bf[sig.name] = float(np.logaddexp.reduce(v) - math.log(len(v)))
+            continue
+        lams, logw = (_SHELL_DESIGN_LAMBDAS, _SHELL_DESIGN_LOGW) if prior == "shell" else (
+            np.array([32.0]), np.zeros(1))
+        per_size = mix_log_bf(shape_log_bf_scores(blocks, lams),
+                              zellner_log_bf(drops, [dof] * len(rss), lams))
+        lr_bf[sig.name] = float(np.logaddexp.reduce(per_size + logw))
     return {"b2_choice": min(bic, key=bic.get),
             "b2_lr_choice": max(lr_bf, key=lr_bf.get) if lr_bf else None,
             "b2_lr_log_bf": lr_bf, "time_refit_all_s": time.perf_counter() - t0,

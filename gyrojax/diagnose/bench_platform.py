@@ -239,14 +239,16 @@ def _ool_shape(rng, family, s, shape):
 
 
 def run(case_dir, *, design: PlatformDesign | None = None, progress=None,
-        baselines: bool = False, refit_all: bool = True) -> list:
+        baselines: bool = False, refit_all: bool = True, prior: str = "design") -> list:
     """Diagnose every record in ``case_dir`` (never reading ``sealed/``) with the design's
     split and nominal, refitting every catalogue effect as well (the scorer's oracle). Records
     on one amplitude (the structural cases) have no design shift and keep the same-design
     split. ``baselines``: B2 refit-all + BIC per record as well (spec §6 G10's comparison);
-    ``refit_all=False``: no refit of every effect inside the diagnosis (no G7 oracle)."""
+    ``refit_all=False``: no refit of every effect inside the diagnosis (no G7 oracle);
+    ``prior``: the diagnosis' Bayes-factor prior (and B2's)."""
     design = design or PlatformDesign()
-    kw = {} if design.nominal_terms is None else {"nominal_terms": design.nominal_terms}
+    kw = ({} if design.nominal_terms is None else {"nominal_terms": design.nominal_terms}) | (
+        {} if prior == "design" else {"prior": prior})
     return run_cases(case_dir, "platform", design.holdout, split=design.split, refit_all=refit_all,
                      progress=progress, split_for=_split_for, baselines=baselines,
                      diagnose_kw=kw)
