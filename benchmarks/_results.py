@@ -153,8 +153,8 @@ def g10_text(s, refits: str) -> str:
             f"screening stage with the gap map {c['median_screen_s'] * 1e3:.0f} ms "
             f"({c['median_refit_all_s'] / c['median_screen_s']:.1f}x), the null calibration "
             f"of the BH level {c['median_calibration_s'] * 1e3:.0f} ms more. Top-1 agreement "
-            "of screening (top posterior) with the refits' answer (the same design prior's "
-            "Bayes factor with each refit's estimate in place of the one-step one) at lambda "
+            "of screening (top posterior) with the refits' answer (the screening's Bayes "
+            "factor, same prior, with each refit's estimate in place of the one-step one) at lambda "
             f">= 32: {fmt_rate(s['screen_refit_agreement'])} (G10: >= 0.98)"
             + ("" if s.get("screen_refit_agreement_classes") is None else
                f"; up to effects the design cannot tell apart (the report's classes: smallest "
@@ -263,13 +263,42 @@ def reusable_cases(work, n_cases: int, seed: int, design) -> list | None:
     return paths
 
 
+def add_prior_arg(ap, section: str):
+    """``--prior``: the diagnosis' Bayes-factor prior; a suite run under ``shell`` writes its
+    own section (``section`` + ``_shell``) beside the default's."""
+    ap.add_argument("--prior", choices=("design", "shell"), default="design",
+                    help="the diagnosis' Bayes-factor prior (shell: the noncentrality "
+                         f"log-uniform over 8..2^24; section {section}_shell)")
+
+
+def prior_section(section: str, prior: str) -> str:
+    """The RESULTS.md section of a suite run under ``prior`` (:func:`add_prior_arg`)."""
+    return section + ("_shell" if prior == "shell" else "")
+
+
+def shell_note(ranking) -> str:
+    """The bullet a suite run under ``prior="shell"`` adds: what the prior is and what it
+    leaves alone; ``ranking``: the rows of one of the suite's reports (each effect's
+    ``params``)."""
+    n_one = sum(len(r["params"]) == 1 for r in ranking)
+    n_other = len(ranking) - n_one
+    other = (f", the design prior over the same sizes for the {n_other} other"
+             + ("s" if n_other != 1 else "")) if n_other else ""
+    return ("- The posteriors under `prior=\"shell\"` (the noncentrality log-uniform over 8 to "
+            f"2^24: the exact noncentral chi-square factor for the {n_one} one-coefficient "
+            f"effects{other}; docs/notes.md, stop 71); p-values, power and the gap map do not "
+            "depend on the prior. B2's Bayes factors, where run, follow the same prior.")
+
+
 def blind_suite(harness, work, n_cases: int, *, seed: int, design, desc: str,
-                null_fraction: float = 0.3, reuse: bool = False, **generate_kw):
+                null_fraction: float = 0.3, reuse: bool = False, prior: str = "design",
+                **generate_kw):
     """Generate ``n_cases`` sealed cases of a rig's harness module (``generate``/``run``/
     ``score``) into ``work``, diagnose them with a progress bar, keep ``results.json`` and score.
     ``generate_kw``: more arguments of ``generate`` (``lambdas``, ``families``). ``reuse``:
     diagnose the cases already in ``work`` when its manifest has this design, seed and size
-    (:func:`reusable_cases`; then ``t_generate_s`` is ``None``).
+    (:func:`reusable_cases`; then ``t_generate_s`` is ``None``); ``prior``: the diagnosis'
+    Bayes-factor prior (:func:`add_prior_arg`).
     Returns ``(paths, score, t_generate_s, t_diagnose_s)``."""
     import time
 
@@ -280,7 +309,7 @@ def blind_suite(harness, work, n_cases: int, *, seed: int, design, desc: str,
         paths = harness.generate(work, n_cases, seed=seed, design=design,
                                  null_fraction=null_fraction, **generate_kw)
         t_gen = time.perf_counter() - t0
-    results, t_run = diagnose_suite(harness, work, design, desc)
+    results, t_run = diagnose_suite(harness, work, design, desc, prior=prior)
     return paths, harness.score(work, results), t_gen, t_run
 
 
@@ -303,9 +332,10 @@ def null_run(harness, work, n_nulls: int, *, seed: int, design, out: str, key: s
     return s
 
 
-def diagnose_suite(harness, work, design, desc: str, name: str = "results.json"):
-    """Diagnose the sealed cases in ``work`` under ``design`` (a progress bar), keep the
-    results as ``name``; returns ``(results, seconds)``."""
+def diagnose_suite(harness, work, design, desc: str, name: str = "results.json",
+                   prior: str = "design"):
+    """Diagnose the sealed cases in ``work`` under ``design`` (a progress bar) with the
+    Bayes-factor ``prior``, keep the results as ``name``; returns ``(results, seconds)``."""
     import json
     import time
     from pathlib import Path
@@ -315,7 +345,8 @@ def diagnose_suite(harness, work, design, desc: str, name: str = "results.json")
     n = len(list(Path(work).glob("case_*.nc")))
     bar = tqdm(total=n, desc=desc, unit="case")
     t0 = time.perf_counter()
-    results = harness.run(work, design=design, progress=lambda i, n: bar.update(1))
+    kw = {} if prior == "design" else {"prior": prior}
+    results = harness.run(work, design=design, progress=lambda i, n: bar.update(1), **kw)
     bar.close()
     t_run = time.perf_counter() - t0
     with open(os.path.join(work, name), "w") as fh:
@@ -360,17 +391,18 @@ def onset_text(g8: dict, ts, n_train: int, digits: int = 1) -> str:
             f"{crb_text(g8.get('g8_step_onset_crb'))})")
 
 
-def g8_suite(harness, work, n_cases: int, *, seed: int, design, families):
+def g8_suite(harness, work, n_cases: int, *, seed: int, design, families,
+             prior: str = "design"):
     """Spec §6 G8 on ``n_cases`` more sealed cases of ``families`` (no nulls, lambda 32/64) in
-    ``work/g8``: generated, diagnosed and scored by ``harness.localisation_scores``. Returns
-    ``(scores, seconds)``."""
+    ``work/g8``: generated, diagnosed (with the Bayes-factor ``prior``) and scored by
+    ``harness.localisation_scores``. Returns ``(scores, seconds)``."""
     import time
 
     g8_dir = os.path.join(work, "g8")
     t0 = time.perf_counter()
     harness.generate(g8_dir, n_cases, seed=seed, design=design, null_fraction=0.0,
                      lambdas=(32.0, 64.0), families=families)
-    results, _ = diagnose_suite(harness, g8_dir, design, "g8")
+    results, _ = diagnose_suite(harness, g8_dir, design, "g8", prior=prior)
     return harness.localisation_scores(g8_dir, results), time.perf_counter() - t0
 
 
@@ -379,7 +411,8 @@ def g8_line(harness, args, work, design, *, step: str, decay_grid: str, digits: 
     transient at lambda 32/64, :func:`g8_suite`): onset and decay time at the largest score
     against the truth. ``decay_grid``: the transient's grid in words."""
     g8, secs = g8_suite(harness, work, args.g8_cases, seed=args.seed + 3, design=design,
-                        families=(step, "drift_transient"))
+                        families=(step, "drift_transient"),
+                        prior=getattr(args, "prior", "design"))
     return (f"- Localisation (spec §6 G8: onsets within 5 % of the record in >= 0.90 at lambda "
             f">= 32; {args.g8_cases} more sealed cases, {step} and drift_transient at "
             f"lambda 32/64, seed {args.seed + 3}, generated and diagnosed in {secs:.0f} s): "

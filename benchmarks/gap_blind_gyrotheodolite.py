@@ -10,6 +10,7 @@ each effect with another one). Writes the section ``gap_blind_gyrotheodolite`` o
     python benchmarks/gap_blind_gyrotheodolite.py              # 96 cases (~8 min on 2 cores)
     python benchmarks/gap_blind_gyrotheodolite.py --cases 12   # quick look
     python benchmarks/gap_blind_gyrotheodolite.py --cases 0 --nulls 1000   # G1 null run (~35 min)
+    python benchmarks/gap_blind_gyrotheodolite.py --prior shell --g8-cases 200   # the shell prior
 """
 
 from __future__ import annotations
@@ -24,14 +25,17 @@ sys.path.insert(0, os.path.dirname(__file__))
 from _results import (  # noqa: E402
     ORACLE_LAMBDAS,
     ORACLE_NOTE,
+    add_prior_arg,
     blind_parser,
     blind_suite,
     far_text,
     g8_line,
     machine_line,
     one_design_main,
+    prior_section,
     publish,
     rescore,
+    shell_note,
     suite_lines,
 )
 from _results import fmt_rate as _fmt  # noqa: E402
@@ -50,6 +54,7 @@ def main(argv=None):
     ap.add_argument("--g8-cases", type=int, default=60,
                     help="extra torque_step / drift_transient cases at lambda 32/64 for the "
                          "localisation of spec §6 G8 (onset, decay time)")
+    add_prior_arg(ap, "gap_blind_gyrotheodolite")
     one_design_main(ap.parse_args(argv), bg, bg.GyrotheodoliteDesign(), suite,
                     name="gyrotheodolite", title="Gap diagnosis, gyrotheodolite null run",
                     label=("the 40-min north-seeking design (index offset, initial azimuth, "
@@ -58,12 +63,16 @@ def main(argv=None):
 
 def suite(args, work, design):
     paths, s, t_gen, t_run = blind_suite(bg, work, args.cases, seed=args.seed, design=design,
-                                         desc="gyrotheodolite")
+                                         desc="gyrotheodolite", prior=args.prior)
     sep = separability(load_record(paths[0]), "gyrotheodolite", [units.ARCSEC])
     separable = sorted(e for e, v in sep.items() if v <= 0.9)
     s = rescore(bg, work, separable=separable, oracle_thresholds=oracle_detection_thresholds(
         load_record(paths[0]), "gyrotheodolite", [units.ARCSEC], ORACLE_LAMBDAS))
-    lines = ["## Gap diagnosis, blind gyrotheodolite suite (`benchmarks/gap_blind_gyrotheodolite.py`)",
+    shell = args.prior == "shell"
+    lines = ["## Gap diagnosis, blind gyrotheodolite suite"
+             + (", the shell prior" if shell else "")
+             + " (`benchmarks/gap_blind_gyrotheodolite.py"
+             + (" --prior shell" if shell else "") + "`)",
              "", machine_line(), "",
              f"Design: {json.dumps(dataclasses.asdict(design))}. {args.cases} sealed cases "
              f"(seed {args.seed}, 30 % nulls), generated in {t_gen:.0f} s, diagnosed in "
@@ -85,7 +94,12 @@ def suite(args, work, design):
     if args.g8_cases:
         lines.insert(-1, g8_line(bg, args, work, design, step="torque_step",
                                  decay_grid="8 values, 3-30 min", digits=0))
-    publish(args.out, "gap_blind_gyrotheodolite", lines)
+    if shell:
+        from gyrojax.diagnose import diagnose
+
+        rep = diagnose(load_record(paths[0]), rig="gyrotheodolite", design_advice=False)
+        lines.insert(-1, shell_note(rep.ranking))
+    publish(args.out, prior_section("gap_blind_gyrotheodolite", args.prior), lines)
 
 
 if __name__ == "__main__":

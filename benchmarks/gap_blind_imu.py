@@ -11,6 +11,7 @@ and the out-of-library effects. Writes the section ``gap_blind_imu`` of RESULTS.
     python benchmarks/gap_blind_imu.py --cases 0 --calibration-cases 100   # G4 on the static design
     python benchmarks/gap_blind_imu.py --cases 0 --g6-cases 40   # G6: cw/ccw, temperature cycle
     python benchmarks/gap_blind_imu.py --cases 0 --per-coefficient-cases 120   # G10, K = 40
+    python benchmarks/gap_blind_imu.py --cases 0 --per-coefficient-cases 160 --prior shell
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from _results import (  # noqa: E402
     ORACLE_LAMBDAS,
     ORACLE_NOTE,
+    add_prior_arg,
     blind_parser,
     calibration_line,
     diagnose_suite,
@@ -36,7 +38,9 @@ from _results import (  # noqa: E402
     g10_text,
     machine_line,
     null_run,
+    prior_section,
     publish,
+    shell_note,
     suite_lines,
     work_dir,
 )
@@ -95,10 +99,18 @@ def main(argv=None):
                          "coefficient an effect of its own (K = 40), each hiding one "
                          "coefficient; B2 refit-all timed on every record; section "
                          "gap_blind_imu_per_coefficient")
+    add_prior_arg(ap, "gap_blind_imu_per_coefficient")  # with --per-coefficient-cases only
     ap.add_argument("--reuse-cases", action="store_true",
                     help="null run: diagnose the sealed nulls already in --keep DIR when their "
                          "manifest has the same design, seed and number (no regeneration)")
     args = ap.parse_args(argv)
+    others = {"--cases": args.cases, "--table-cases": args.table_cases,
+              "--calibration-cases": args.calibration_cases, "--g8-cases": args.g8_cases,
+              "--aux-cases": args.aux_cases, "--g6-cases": args.g6_cases}
+    if args.prior != "design" and any(others.values()):
+        ap.error(f"--prior {args.prior} runs the per-coefficient suite only (its own section); "
+                 "set " + ", ".join(f"{k} 0" for k, v in others.items() if v)
+                 + " or leave --prior out")
     work = work_dir(args, "gyrojax-blind-imu-")
     if args.cases > 0:
         suites(args, work, SUITES, args.cases)
@@ -203,7 +215,8 @@ def per_coefficient(args, work):
                                families=fams)
     t_gen = time.perf_counter() - t0
     harness = types.SimpleNamespace(run=functools.partial(bench_imu.run, baselines=True))
-    results, t_run = diagnose_suite(harness, work, design, f"imu K=40 ({len(fams)} hidden)")
+    results, t_run = diagnose_suite(harness, work, design, f"imu K=40 ({len(fams)} hidden)",
+                                    prior=args.prior)
     first = load_record(paths[0])
     sep = separability(first, "imu", None, per_coefficient=True)
     separable = sorted(e for e, v in sep.items() if v <= 0.9)
@@ -211,14 +224,16 @@ def per_coefficient(args, work):
                         oracle_thresholds=oracle_detection_thresholds(
                             first, "imu", None, ORACLE_LAMBDAS, per_coefficient=True))
     rec = load_record(paths[1])  # one record diagnosed whole (design advice on), after JIT
-    diagnose(rec, rig="imu", per_coefficient=True)
+    diagnose(rec, rig="imu", per_coefficient=True, prior=args.prior)
     t1 = time.perf_counter()
-    rep = diagnose(rec, rig="imu", per_coefficient=True)
+    rep = diagnose(rec, rig="imu", per_coefficient=True, prior=args.prior)
     t_ref = time.perf_counter() - t1
     b2 = ", ".join(f"{lam} {_fmt(b['b2_top1'])}" for lam, b in s["by_lambda"].items())
+    shell = args.prior == "shell"
     lines = ["## Gap diagnosis, IMU per coefficient: K = "
-             f"{s['cost']['n_effects']} effects (`benchmarks/gap_blind_imu.py "
-             "--per-coefficient-cases N`)", "", machine_line(), "",
+             f"{s['cost']['n_effects']} effects" + (", the shell prior" if shell else "")
+             + " (`benchmarks/gap_blind_imu.py --per-coefficient-cases N"
+             + (" --prior shell" if shell else "") + "`)", "", machine_line(), "",
              f"The 12-pose multi design ({design.dwell_s:g} s poses at {design.rate_hz:g} Hz, "
              "last quarter held out) diagnosed with every coefficient of the catalogue's error "
              "model an effect of its own (`diagnose(..., per_coefficient=True)`, CLI "
@@ -239,7 +254,9 @@ def per_coefficient(args, work):
               f"{len(rep.ranking)} effects, design advice on): one record of the suite "
               f"diagnosed whole in {t_ref:.1f} s after compilation (G10: <= 60 s); verdict "
               f"{rep.verdict['kind']} {', '.join(rep.verdict.get('effects') or [])}".rstrip() + ".", ""]
-    publish(args.out, "gap_blind_imu_per_coefficient", lines)
+    if shell:
+        lines.insert(-1, shell_note(rep.ranking))
+    publish(args.out, prior_section("gap_blind_imu_per_coefficient", args.prior), lines)
 
 
 def static_calibration(args, work):

@@ -42,6 +42,7 @@ import numpy as np  # noqa: E402
 from _results import (  # noqa: E402
     ORACLE_LAMBDAS,
     ORACLE_NOTE,
+    add_prior_arg,
     blind_parser,
     blind_suite,
     diagnose_suite,
@@ -50,7 +51,9 @@ from _results import (  # noqa: E402
     g10_text,
     machine_line,
     null_run,
+    prior_section,
     publish,
+    shell_note,
     suite_lines,
     work_dir,
 )
@@ -82,11 +85,11 @@ def main(argv=None):
                     help="run the K >= 20 suite on this nominal instead (e.g. f,i,o,s: each "
                          "g^2 coefficient an effect of its own; section "
                          "gap_blind_platform_first_order)")
-    ap.add_argument("--prior", choices=("design", "shell"), default="design",
-                    help="with --nominal-terms: the diagnosis' Bayes-factor prior (shell: the "
-                         "noncentrality log-uniform, section "
-                         "gap_blind_platform_first_order_shell)")
+    add_prior_arg(ap, "gap_blind_platform_first_order")  # with --nominal-terms
     args = ap.parse_args(argv)
+    if args.prior != "design" and not args.nominal_terms:
+        ap.error(f"--prior {args.prior} runs the first-order suite only (its own section); "
+                 "add --nominal-terms f,i,o,s or leave --prior out")
     work = work_dir(args, "gyrojax-blind-platform-")
     design = bp.PlatformDesign()
     if args.nominal_terms:
@@ -126,8 +129,9 @@ def many_effects(args, work, design):
     paths = bp.generate(work, args.cases, seed=args.seed + 70, design=design)
     t_gen = time.perf_counter() - t0
     harness = types.SimpleNamespace(run=functools.partial(bp.run, baselines=True,
-                                                          refit_all=False, prior=args.prior))
-    results, t_run = diagnose_suite(harness, work, design, f"platform K={len(fams)}")
+                                                          refit_all=False))
+    results, t_run = diagnose_suite(harness, work, design, f"platform K={len(fams)}",
+                                    prior=args.prior)
     full = load_record(paths[0])
     sigma = np.full(3, units.ARCSEC)
     sep = separability(full, "platform", sigma, nominal_terms=design.nominal_terms)
@@ -175,12 +179,8 @@ def many_effects(args, work, design):
               f"<= 60 s); verdict {rep.verdict['kind']} "
               f"{', '.join(rep.verdict.get('effects') or [])}".rstrip() + ".", ""]
     if shell:
-        lines[-1:-1] = ["- The posteriors under `prior=\"shell\"` (the noncentrality log-uniform "
-                        "over 8 to 2^24: the exact noncentral chi-square factor for the 18 "
-                        "one-coefficient effects, the design prior over the same sizes for the "
-                        "four others; docs/notes.md, stop 71); p-values, power and the gap map "
-                        "do not depend on the prior. B2's Bayes factors follow the same prior."]
-    publish(args.out, "gap_blind_platform_first_order" + ("_shell" if shell else ""), lines)
+        lines[-1:-1] = [shell_note(rep.ranking)]
+    publish(args.out, prior_section("gap_blind_platform_first_order", args.prior), lines)
 
 
 def closed_loop(args, work, design):

@@ -293,3 +293,27 @@ def test_a_large_torque_step_is_fitted_with_damped_steps(tmp_path):
     _, coeffs, _ = prob.refit(p0, [(step, 5)], sigma)
     assert coeffs["M_step"] == pytest.approx(3.0, rel=0.01)
     assert prob.notes == []
+
+
+@pytest.mark.parametrize("prior", ["design", "shell"])
+def test_blind_harness_diagnoses_under_the_prior_it_is_given(tmp_path, monkeypatch, prior):
+    """The blind suites' ``--prior`` reaches the diagnosis: ``run(prior=...)`` calls
+    ``diagnose`` with that prior (none given: the default's)."""
+    from gyrojax.diagnose import _diagnose
+    from gyrojax.diagnose import bench_gyrotheodolite as bg
+
+    bg.generate(tmp_path, 1, seed=3, null_fraction=1.0)
+    seen = {}
+
+    class Called(Exception):
+        pass
+
+    def fake(record, **kw):
+        seen.update(kw)
+        raise Called
+
+    monkeypatch.setattr(_diagnose, "diagnose", fake)
+    with pytest.raises(Called):
+        bg.run(tmp_path, prior=prior)
+    assert seen.get("prior", "design") == prior
+    assert seen["rig"] == "gyrotheodolite"

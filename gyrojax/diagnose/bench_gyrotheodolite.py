@@ -154,10 +154,12 @@ def _ool_shape(rng, family, ts, n_train):
     raise ValueError(f"unknown out-of-library family {family!r}")
 
 
-def run(case_dir, *, design: GyrotheodoliteDesign | None = None, progress=None) -> list:
-    """Diagnose every record in ``case_dir`` (never reading ``sealed/``)."""
+def run(case_dir, *, design: GyrotheodoliteDesign | None = None, progress=None,
+        prior: str = "design") -> list:
+    """Diagnose every record in ``case_dir`` (never reading ``sealed/``); ``prior``: the
+    diagnosis' Bayes-factor prior."""
     design = design or GyrotheodoliteDesign()
-    return run_cases(case_dir, "gyrotheodolite", design.holdout, progress=progress)
+    return run_cases(case_dir, "gyrotheodolite", design.holdout, progress=progress, prior=prior)
 
 
 def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:

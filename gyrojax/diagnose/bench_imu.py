@@ -381,11 +381,14 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: IMUDesign | None =
 
 
 def run(case_dir, *, design: IMUDesign | None = None, progress=None,
-        baselines: bool = False) -> list:
-    """Diagnose every record in ``case_dir`` (never reading ``sealed/``)."""
+        baselines: bool = False, prior: str = "design") -> list:
+    """Diagnose every record in ``case_dir`` (never reading ``sealed/``); ``baselines``: B2
+    refit-all + BIC per record as well; ``prior``: the diagnosis' Bayes-factor prior (and
+    B2's)."""
     design = design or IMUDesign()
     return run_cases(case_dir, "imu", design.holdout, progress=progress, baselines=baselines,
-                     diagnose_kw={"per_coefficient": True} if design.per_coefficient else None)
+                     diagnose_kw={"per_coefficient": True} if design.per_coefficient else None,
+                     prior=prior)
 
 
 def score(case_dir, results, separable=None, oracle_thresholds=None,

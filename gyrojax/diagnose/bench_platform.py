@@ -247,11 +247,10 @@ def run(case_dir, *, design: PlatformDesign | None = None, progress=None,
     ``refit_all=False``: no refit of every effect inside the diagnosis (no G7 oracle);
     ``prior``: the diagnosis' Bayes-factor prior (and B2's)."""
     design = design or PlatformDesign()
-    kw = ({} if design.nominal_terms is None else {"nominal_terms": design.nominal_terms}) | (
-        {} if prior == "design" else {"prior": prior})
+    kw = {} if design.nominal_terms is None else {"nominal_terms": design.nominal_terms}
     return run_cases(case_dir, "platform", design.holdout, split=design.split, refit_all=refit_all,
                      progress=progress, split_for=_split_for, baselines=baselines,
-                     diagnose_kw=kw)
+                     diagnose_kw=kw, prior=prior)
 
 
 def _split_for(record, split):

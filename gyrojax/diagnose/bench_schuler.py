@@ -197,10 +197,12 @@ def _ool_shape(rng, family, ts, n_train):
     return out
 
 
-def run(case_dir, *, design: SchulerDesign | None = None, progress=None) -> list:
-    """Diagnose every record in ``case_dir`` (never reading ``sealed/``)."""
+def run(case_dir, *, design: SchulerDesign | None = None, progress=None,
+        prior: str = "design") -> list:
+    """Diagnose every record in ``case_dir`` (never reading ``sealed/``); ``prior``: the
+    diagnosis' Bayes-factor prior."""
     design = design or SchulerDesign()
-    return run_cases(case_dir, "schuler", design.holdout, progress=progress)
+    return run_cases(case_dir, "schuler", design.holdout, progress=progress, prior=prior)
 
 
 def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
