@@ -353,7 +353,7 @@ def shell_log_bf(lms, noncentrality=SHELL_RANGE) -> np.ndarray:
     a = np.maximum(sa, np.minimum(z - half, sb - 2 * half))
     b = np.minimum(sb, a + 2 * half)
     t = np.linspace(0.0, 1.0, 481)
-    x = a + (b - a) * t  # (..., 241)
+    x = a + (b - a) * t  # (..., 481)
     # log of (exp(-(x - z)^2 / 2) + exp(-(x + z)^2 / 2)) / x, stable for large x z
     f = -0.5 * (x - z) ** 2 + np.log1p(np.exp(-2.0 * x * z)) - np.log(x)
     top = f.max(axis=-1, keepdims=True)
