@@ -830,8 +830,9 @@ def build_parser() -> argparse.ArgumentParser:
                    default="design",
                    help="Bayes-factor prior of the posteriors (default design: Gaussian "
                         "coefficients expecting noncentrality 32; shell: the noncentrality "
-                        "log-uniform over 8 to 2^24 and never near 0, calibrated where one "
-                        "coefficient is an effect, e.g. with --nominal-terms or "
+                        "log-uniform over 8 to 2^24 and never near 0: better calibrated on "
+                        "separable one-coefficient effects, e.g. --nominal-terms f,i,o,s; "
+                        "over-commits where effects are near-collinear, e.g. "
                         "--per-coefficient; see docs/notes.md, stop 71)")
     p.add_argument("--null-draws", type=int, default=499,
                    help="residuals drawn from the linearised null to calibrate the BH level to "

@@ -295,8 +295,10 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
       noncentrality 32 on this record's design), ``"zellner"`` (g-prior expecting 32),
       ``"scale"`` (the prior scales themselves) or ``"shell"`` (the noncentrality log-uniform
       over 8 to 2^24, never near 0: an effect of one coefficient gets the exact noncentral
-      chi-square factor, any other the design prior over the same sizes; calibrated where the
-      Gaussian priors are under-confident, on catalogues of one-coefficient effects).
+      chi-square factor, any other the design prior over the same sizes; better calibrated
+      where the effects are separable and of one coefficient each (the platform with a
+      first-order nominal), worse where they are near-collinear (the gyrotheodolite, the IMU
+      per coefficient: the top posterior goes to the wrong member of a pair more often)).
     - `library_share`: share of the weighted-BH weight held by the library's tests (the gap map
       holds the rest; ``None``: equal weights, plain BH over every test).
     - `split`: the held-out plan where a rig offers more than one (platform:
