@@ -345,8 +345,7 @@ def diagnose_suite(harness, work, design, desc: str, name: str = "results.json",
     n = len(list(Path(work).glob("case_*.nc")))
     bar = tqdm(total=n, desc=desc, unit="case")
     t0 = time.perf_counter()
-    kw = {} if prior == "design" else {"prior": prior}
-    results = harness.run(work, design=design, progress=lambda i, n: bar.update(1), **kw)
+    results = harness.run(work, design=design, progress=lambda i, n: bar.update(1), prior=prior)
     bar.close()
     t_run = time.perf_counter() - t0
     with open(os.path.join(work, name), "w") as fh:

@@ -355,7 +355,7 @@ def test_shell_prior_is_calibrated_on_effects_of_fixed_noncentrality():
     from scipy import integrate
 
     from gyrojax.diagnose._stats import (
-        _SHELL_DESIGN_LAMBDAS,
+        SHELL_DESIGN_LAMBDAS,
         SHELL_RANGE,
         Signature,
         _project,
@@ -419,7 +419,7 @@ def test_shell_prior_is_calibrated_on_effects_of_fixed_noncentrality():
     ub, des = screen_designs(jn, sigs)
     jt, ek_p = des[1].jt[0], _project(ub, ek)
     per = np.array([design_log_bf([jt], [np.linalg.qr(jt)[0]], ek_p, [x])[0]
-                    for x in _SHELL_DESIGN_LAMBDAS])
+                    for x in SHELL_DESIGN_LAMBDAS])
     wts = np.r_[0.5, np.ones(per.size - 2), 0.5] / (per.size - 1)
     assert rows["three"].log_bf == pytest.approx(math.log(np.sum(wts * np.exp(per))), rel=1e-9)
 

@@ -120,6 +120,12 @@ def test_first_order_nominal_screens_each_left_out_coefficient(tmp_path, capsys)
     b2 = refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]))
     assert b2["b2_choice"] == b2["b2_lr_choice"] == "D_ii_y"
     assert b2["n_refits"] == 21 + 8  # 21 one-shot effects, the transient at its 8 decay times
+    # B2's Bayes factors under the shell prior (exact for the one-coefficient D_ij, the design
+    # prior over the same sizes for the rest) pick the same hidden coefficient
+    b2s = refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]), prior="shell")
+    assert b2s["b2_lr_choice"] == "D_ii_y" and b2s["b2_choice"] == "D_ii_y"
+    with pytest.raises(ValueError, match="prior='scale'"):
+        refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]), prior="scale")
     # the shell prior (docs/notes.md, stop 71) from the CLI: the same verdict, named in the JSON
     out = tmp_path / "shell.json"
     assert main(["diagnose", "--rig", "platform", str(path), "--nominal-terms", "f,i,o,s",

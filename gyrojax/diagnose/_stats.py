@@ -657,9 +657,16 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
 
 # the design prior's sizes under prior="shell": powers of 2 over SHELL_RANGE, trapezoid weights in
 # log lambda (the Gaussian factors vary slowly with the size, unlike the shell's)
-_SHELL_DESIGN_LAMBDAS = 2.0 ** np.arange(math.log2(SHELL_RANGE[0]), math.log2(SHELL_RANGE[1]) + 1)
-_SHELL_DESIGN_LOGW = np.log(np.r_[0.5, np.ones(len(_SHELL_DESIGN_LAMBDAS) - 2), 0.5]
-                            / (len(_SHELL_DESIGN_LAMBDAS) - 1))
+SHELL_DESIGN_LAMBDAS = 2.0 ** np.arange(math.log2(SHELL_RANGE[0]), math.log2(SHELL_RANGE[1]) + 1)
+_SHELL_DESIGN_LOGW = np.log(np.r_[0.5, np.ones(len(SHELL_DESIGN_LAMBDAS) - 2), 0.5]
+                            / (len(SHELL_DESIGN_LAMBDAS) - 1))
+
+
+def shell_design_log_bf(shape, zell) -> np.ndarray:
+    """``prior="shell"`` for an effect of more than one coefficient: the design prior (the
+    equal mixture of the ``shape`` and ``zell`` log factors, each given at the sizes
+    :data:`SHELL_DESIGN_LAMBDAS` on the last axis) averaged over those sizes."""
+    return np.logaddexp.reduce(mix_log_bf(shape, zell) + _SHELL_DESIGN_LOGW, axis=-1)
 
 
 def _shell_grid(design: SignatureDesign, scores, lms, dofs) -> np.ndarray:
@@ -672,12 +679,12 @@ def _shell_grid(design: SignatureDesign, scores, lms, dofs) -> np.ndarray:
     lms, dofs = np.asarray(lms, float), np.asarray(dofs, float)
     if design.sig.jac.shape[2] == 1:
         return np.where(dofs > 0, shell_log_bf(lms), 0.0)
-    lams = _SHELL_DESIGN_LAMBDAS
+    lams = SHELL_DESIGN_LAMBDAS
     shape = _shape_log_bf_grid(list(zip(design.infos, scores)), lams, design.info_eigs)  # (G, L)
     g = lams[None, :] / np.maximum(dofs, 1.0)[:, None]
     zell = np.where(dofs[:, None] > 0, 0.5 * g / (1 + g) * lms[:, None]
                     - 0.5 * dofs[:, None] * np.log1p(g), 0.0)
-    return np.logaddexp.reduce(mix_log_bf(shape, zell) + _SHELL_DESIGN_LOGW, axis=1)
+    return shell_design_log_bf(shape, zell)
 
 
 def grid_posterior(design: SignatureDesign, e, lms, dofs, lambda0: float = 32.0,

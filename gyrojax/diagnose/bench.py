@@ -35,8 +35,7 @@ from ..models.esg import ESGConditions, ESGRig
 from ..record import BenchRecord
 from ._esg import ESG_LIBRARY, TRANSIENT_TIMES_H
 from ._stats import (
-    _SHELL_DESIGN_LAMBDAS,
-    _SHELL_DESIGN_LOGW,
+    SHELL_DESIGN_LAMBDAS,
     _directions,
     _project,
     ljung_box,
@@ -44,6 +43,7 @@ from ._stats import (
     nominal_basis,
     onset_grid,
     shape_log_bf_scores,
+    shell_design_log_bf,
     shell_log_bf,
     visibility_flag,
     zellner_log_bf,
@@ -456,11 +456,13 @@ class _Sealer:
 
 
 def run(case_dir, *, design: Design | None = None, baselines: bool = True,
-        refit_all: bool = True, progress=None, noise: dict | None = None) -> list:
+        refit_all: bool = True, progress=None, noise: dict | None = None,
+        prior: str = "design") -> list:
     """Diagnose every record in ``case_dir`` (never reading ``sealed/``); returns one result dict
     per case with the verdict, ranking summary, held-out gaps, timings and baseline answers
     (``refit_all=False`` skips the costly B2 and keeps B1; ``noise``: the diagnosis' noise
-    model arguments, e.g. ``{"noise_model": "white+flicker"}``)."""
+    model arguments, e.g. ``{"noise_model": "white+flicker"}``; ``prior``: the diagnosis'
+    Bayes-factor prior, and B2's)."""
     from ._diagnose import diagnose
     from ._esg import ESGProblem
 
@@ -470,7 +472,8 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
     for k, path in enumerate(paths):
         rec = load_record(path, channels=("alpha1", "alpha2"))
         t0 = time.perf_counter()
-        rep = diagnose(rec, holdout=design.holdout, design_advice=False, **(noise or {}))
+        rep = diagnose(rec, holdout=design.holdout, design_advice=False, prior=prior,
+                       **(noise or {}))
         t_diag = time.perf_counter() - t0
         ranking = rep.ranking
         res = {
@@ -504,7 +507,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
             res["b1_detect"] = bool(min(lb) * len(lb) < 0.05)
         if baselines and refit_all:
             prob = ESGProblem(rec, holdout=design.holdout, **(noise or {}))
-            res |= refit_all_baseline(prob, ranking, np.asarray(rep.noise["std"]))
+            res |= refit_all_baseline(prob, ranking, np.asarray(rep.noise["std"]), prior=prior)
         results.append(res)
         if progress is not None:
             progress(k + 1, len(paths))
@@ -562,11 +565,11 @@ def refit_all_baseline(prob, ranking, sigma, prior: str = "design") -> dict:
             v = shell_log_bf(drops) if dof > 0 else np.zeros(len(drops))
             lr_bf[sig.name] = float(np.logaddexp.reduce(v) - math.log(len(v)))
             continue
-        lams, logw = (_SHELL_DESIGN_LAMBDAS, _SHELL_DESIGN_LOGW) if prior == "shell" else (
-            np.array([32.0]), np.zeros(1))
-        per_size = mix_log_bf(shape_log_bf_scores(blocks, lams),
-                              zellner_log_bf(drops, [dof] * len(rss), lams))
-        lr_bf[sig.name] = float(np.logaddexp.reduce(per_size + logw))
+        lams = SHELL_DESIGN_LAMBDAS if prior == "shell" else np.array([32.0])
+        shape = shape_log_bf_scores(blocks, lams)
+        zell = zellner_log_bf(drops, [dof] * len(rss), lams)
+        lr_bf[sig.name] = float(shell_design_log_bf(shape, zell) if prior == "shell"
+                                else mix_log_bf(shape, zell)[0])
     return {"b2_choice": min(bic, key=bic.get),
             "b2_lr_choice": max(lr_bf, key=lr_bf.get) if lr_bf else None,
             "b2_lr_log_bf": lr_bf, "time_refit_all_s": time.perf_counter() - t0,
