@@ -613,16 +613,28 @@ def test_posteriors_and_the_90_percent_set_by_bayes_rule():
     effects; Bayes factors 1, 2, 4 give weights 1/2 : 1/6 : 2/6 : 4/6, i.e. 0.3 on none and
     posteriors 0.1, 0.2, 0.4. The ambiguity set is the smallest holding 90 % of the mass given
     an effect (spec §4.2): with posteriors 0.5, 0.3, 0.15, 0.05 (renormalised) it needs three
-    (0.8 < 0.9 <= 0.95)."""
+    (0.8 < 0.9 <= 0.95). An effect without a signature (no tested dof at any grid value:
+    Bayes factor 1 whatever the record) is part of "no gap": it gets posterior 0 and no prior
+    share, so two of them beside the three leave every figure above as it was."""
     from types import SimpleNamespace
 
     from gyrojax.diagnose._stats import _posteriors, ambiguity_set
 
-    rows = [SimpleNamespace(log_bf=math.log(b), posterior=0.0) for b in (1.0, 2.0, 4.0)]
+    def rows_of(bfs, dofs):
+        return [SimpleNamespace(name=n, log_bf=math.log(b), dof_grid=np.array(d), posterior=0.0)
+                for n, b, d in zip("abcdefg", bfs, dofs)]
+
+    rows = rows_of((1.0, 2.0, 4.0), ([1], [2, 2], [1]))
     p_none = _posteriors(rows, 0.5)
     assert p_none == pytest.approx(0.3, rel=1e-12)
     np.testing.assert_allclose([r.posterior for r in rows], [0.1, 0.2, 0.4], rtol=1e-12)
-    rows = [SimpleNamespace(name=n, posterior=0.5 * w) for n, w in
+    rows = rows_of((1.0, 1.0, 2.0, 1.0, 4.0), ([1], [0], [2, 2], [0, 0], [0, 1]))
+    assert _posteriors(rows, 0.5) == pytest.approx(0.3, rel=1e-12)
+    np.testing.assert_allclose([r.posterior for r in rows], [0.1, 0.0, 0.2, 0.0, 0.4],
+                               rtol=1e-12)
+    assert [r.name for r in ambiguity_set(rows)] == ["e", "c", "a"]  # never b or d
+    assert _posteriors(rows_of((1.0,), ([0],)), 0.5) == 1.0
+    rows = [SimpleNamespace(name=n, posterior=0.5 * w, dof_grid=np.ones(1)) for n, w in
             zip("abcd", (0.15, 0.5, 0.05, 0.3))]
     assert [r.name for r in ambiguity_set(rows)] == ["b", "d", "a"]
     assert [r.name for r in ambiguity_set(rows, mass=0.8)] == ["b", "d"]
@@ -1556,17 +1568,19 @@ def test_heldout_transfer_rule():
 
 def test_confounded_verdict_needs_a_significant_majority_top():
     """`confounded` names the structurally confounded top effect only when its own score test is
-    significant and it holds most of the effects' posterior; an invisible top (Bayes factor 1,
-    leading because every other effect fits worse than none) holding the 90 % set alone gives
-    `unexplained`, and a confounded top in a spread posterior leaves it to the ambiguity set."""
+    significant and it holds most of the effects' posterior; when every effect with a signature
+    fits worse than none (Bayes factor < 1; an effect without one has factor 1 and no posterior)
+    the verdict is `unexplained`, and a confounded top in a spread posterior leaves it to the
+    ambiguity set."""
     from types import SimpleNamespace
 
     from gyrojax.diagnose._diagnose import _verdict
     from gyrojax.diagnose._stats import ambiguity_set
 
-    def row(name, flag, q, post):
+    def row(name, flag, q, post, log_bf=1.0):
         return SimpleNamespace(sig=SimpleNamespace(name=name), flag=flag, q=q, p=q,
-                               posterior=post)
+                               posterior=post, log_bf=log_bf,
+                               dof_grid=np.array([0 if flag == "no signature" else 1]))
 
     def verdict(rows):
         top = max(rows, key=lambda r: r.posterior)
@@ -1574,9 +1588,11 @@ def test_confounded_verdict_needs_a_significant_majority_top():
                         (0.0, 0.1))
 
     conf = "structurally confounded"
-    invisible = [row("tilt", "no signature", 1.0, 0.50), row("ramp", "visible", 0.01, 0.02)]
+    invisible = [row("tilt", "no signature", 1.0, 0.0, 0.0),
+                 row("ramp", "visible", 0.01, 0.30, math.log(0.4))]
     v = verdict(invisible)
-    assert v["kind"] == "unexplained" and "tilt" in v["reason"]
+    assert v["kind"] == "unexplained" and "ramp's, is 0.4" in v["reason"]
+    assert v["posterior"] == {"ramp": 0.30}  # tilt is no candidate
     visible = [row("d_oo", conf, 0.001, 0.60), row("ramp", "visible", 0.01, 0.30)]
     v = verdict(visible)
     assert v["kind"] == "confounded" and v["effects"] == ["d_oo"]
@@ -1597,7 +1613,8 @@ def test_ambiguous_verdict_reports_each_members_heldout_gap_and_whether_it_separ
     from gyrojax.diagnose._stats import ambiguity_set
 
     rows = [SimpleNamespace(sig=SimpleNamespace(name=n), flag="visible", q=1e-9, p=1e-9,
-                            posterior=0.5) for n in ("misalignment", "scale_factor")]
+                            posterior=0.5, log_bf=20.0, dof_grid=np.ones(1))
+            for n in ("misalignment", "scale_factor")]
 
     def refit(name, train, after, closure):
         return {"effects": [name], "gap_train_after": train, "heldout_gap_before": 1.13,

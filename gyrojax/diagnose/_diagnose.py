@@ -36,6 +36,7 @@ by the record's data, so a diagnosis is reproducible.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 import zlib
 
@@ -980,10 +981,16 @@ def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band
         return {"kind": "unexplained", "effects": [], "heldout_gap_after": None, **base,
                 "cells": where[:10],
                 "reason": "the gap map is significant but no catalogued effect's score test is"}
+    # an effect without a signature cannot make a detected gap (its Bayes factor is 1 whatever
+    # the record) and holds no posterior; when every effect with one fits worse than none
+    # (Bayes factor < 1), as for an effect outside the catalogue, none is the cause
+    if top.log_bf < 0.0:
+        return {"kind": "unexplained", "effects": [], "heldout_gap_after": None, **base,
+                "posterior": {r.sig.name: r.posterior for r in amb},
+                "reason": f"every catalogued effect with a signature fits worse than none (the "
+                          f"largest Bayes factor, {top.sig.name}'s, is {math.exp(top.log_bf):.2g})"}
     # `confounded` names one effect as the likely cause, so its own score test must be
-    # significant (an effect without a visible part cannot make a detected gap: its Bayes factor
-    # is 1, and it leads the posterior only when every other effect fits worse than none, as
-    # for an effect outside the catalogue) and it must hold most of the posterior mass.
+    # significant and it must hold most of the posterior mass.
     share = top.posterior / (sum(r.posterior for r in rows) or 1.0)  # as the ambiguity set's
     top_confounded = top.flag in _CONFOUNDED_FLAGS
     if top_confounded and top in sig_rows and share >= 0.5:

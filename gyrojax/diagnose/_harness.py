@@ -81,14 +81,16 @@ def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
     quantile of the statistic under the linearised null, from ``n_draws`` draws of the residual
     in the span of the library's projected signatures (its only part the scores see; drawn there
     as :func:`~gyrojax.diagnose._stats._sup_null` does). The statistic is the Neyman-Pearson
-    statistic of the generator's alternative (equal odds between the catalogue's effects,
-    the diagnosis' design prior sized to expect exactly ``lambda``), so
+    statistic of the generator's alternative (equal odds between the catalogue's effects
+    with a signature, the diagnosis' design prior sized to expect exactly ``lambda``), so
     rejecting above the threshold is the most powerful level-``alpha`` test a diagnosis could
     run: the reference for spec §6 G2's detection power."""
     from ._stats import design_log_bf, screen_designs
 
     jn, sigs = _train_jacobians(record, rig, sigma, split, **problem_kw)
     _, designs = screen_designs(jn, sigs, n_boot=0)
+    # the effects with a signature: the others hold no posterior (_stats._posteriors)
+    designs = [des for des in designs if any(b.shape[1] for b in des.bases)]
     span = np.concatenate([jt for des in designs for jt in des.jt], axis=1)
     q, s, _ = np.linalg.svd(span, full_matrices=False)
     q = q[:, s > 1e-10 * s[0]]  # the tested bases lie in this span too

@@ -833,12 +833,16 @@ def oracle_choice(r, lam: float):
 
 
 def _oracle_log_bfs(r, lam: float) -> dict:
-    """Each effect's design-prior log Bayes factor at prior size ``lam`` from the run's recorded
-    curve (``log_bf_by_lambda``, powers of 2 from 1 to 1024: every suite's lambda is one); a
-    ``lam`` between two recorded sizes is interpolated linearly in ``log lambda``."""
+    """Each effect's design-prior log Bayes factor at prior size ``lam`` (the effects with a
+    signature) from the run's recorded curve (``log_bf_by_lambda``, powers of 2 from 1 to
+    1024: every suite's lambda is one); a ``lam`` between two recorded sizes is interpolated
+    linearly in ``log lambda``."""
     curves = r.get("log_bf_by_lambda") or {}
+    scores = r.get("scores") or {}
     out = {}
     for k, c in curves.items():
+        if k in scores and not any(scores[k][1]):
+            continue  # no signature: no posterior (as the diagnosis', _stats._posteriors)
         sizes = sorted(c, key=float)
         x = np.log([float(v) for v in sizes])
         if not x[0] - 1e-12 <= math.log(lam) <= x[-1] + 1e-12:
