@@ -319,6 +319,8 @@ def calibration_run(args, work):
     results = bench.run(work, design=design, baselines=False,
                         progress=lambda k, n: bar.update(1))
     bar.close()
+    with open(os.path.join(work, "results.json"), "w") as fh:  # for other priors, post hoc
+        json.dump(results, fh)
     s = bench.score(work, results)
     lams = sorted((k for k in s if k.startswith("lambda=")), key=lambda k: float(k[7:]))
     top1 = ", ".join(f"lambda {k.split('=')[1]} {_fmt(s[k]['top1'])}" for k in lams)

@@ -773,6 +773,15 @@ def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, ca
                                              "misalignment:mayx ~ misalignment:maxy")) > 0.999
     assert rep["verdict"]["kind"] == "attributed"
     assert rep["verdict"]["effects"] == ["g_sensitivity:gsxy"]
+    # the still stand's nine gyro scale factors and misalignments have no signature (the nominal
+    # model carries no Earth rate): part of "no gap", with no posterior, beside 31 candidates
+    unseen = [c for c in rep["candidates"] if not any(c["dof_grid"])]
+    assert sorted(c["name"] for c in unseen) == sorted(
+        [f"scale_factor:sg{a}" for a in "xyz"]
+        + [f"misalignment:mg{a}{b}" for a in "xyz" for b in "xyz" if a != b])
+    assert all(c["visibility"] == "no signature" and c["posterior"] == 0.0 for c in unseen)
+    assert rep["candidates"][0]["name"] == "g_sensitivity:gsxy"
+    assert rep["candidates"][0]["posterior"] > 0.9
     rf = next(r for r in rep["refits"] if r["effects"] == ["g_sensitivity:gsxy"])
     assert abs(rf["coefficients"]["gsxy"] - 15.0) < 3 * rf["std_errors"]["gsxy"]
     b2 = refit_all_baseline(per, rep["candidates"], np.asarray(rep["noise"]["std"]))
