@@ -174,10 +174,10 @@ def g6_run(args, work):
                          if e == hidden})
         body = g6_lines(sc, hidden)
         if hidden == "misalignment":  # its refit carries the directions no design sees
-            body[-1] = ("- misalignment's refit coefficients: not compared with the truth one by "
-                        "one; a common rotation of both triads (3 directions, reported as seen "
-                        "by no catalogued design: the poses absorb it) leaves each coefficient "
-                        "unidentified, only their combinations are.")
+            body[-1] += (" A common rotation of both triads (3 directions, reported as seen by "
+                         "no catalogued design: the poses absorb it) leaves each coefficient "
+                         "undetermined, so these are the refit's nine determined combinations "
+                         "(e.g. mgxy + mgyx, maxy + mgyx), the truth's accelerometer terms zero.")
         lines += [f"### {hidden} ({names}) hidden", "",
                   f"{args.g6_cases} sealed cases (seed {args.seed + 60 + k}; the 12-pose "
                   f"multi-position design, {design.dwell_s:g} s poses at {design.rate_hz:g} Hz, "

@@ -209,6 +209,17 @@ def test_mpu6050_poses_heldout_tells_scale_factor_from_misalignment():
     md = rep.markdown()
     assert "The held-out part tells them apart: refitted alone, scale_factor removes" in md
     assert "no signature, not estimated: sgx, sgy, sgz" in md  # the gyros see no scale here
+    # the poses absorb the accelerometers' common rotation (the antisymmetric part of their
+    # misalignment): the refit gives its three symmetric sums (axes' non-orthogonality) instead
+    mis = next(rf for rf in rep.refits if rf["effects"] == ["misalignment"])
+    assert [c["combination"] for c in mis["estimable"]] == ["maxy + mayx", "maxz + mazx",
+                                                            "mayz + mazy"]
+    for c in mis["estimable"]:
+        assert c["unit"] == "mrad" and 0 < c["std_error"] < np.inf
+        assert c["value"] == pytest.approx(sum(mis["coefficients"][k] * x
+                                               for k, x in c["terms"].items()))
+    assert all(mis["std_errors"][k] == np.inf for k in ("maxy", "mayx", "mgxy"))
+    assert "determined only in the combinations given: maxy, maxz, mayx, mayz, mazx, mazy" in md
     upstream = np.loadtxt(root / "mpu6050_unc" / "upstream_params_acc.csv")
     assert np.all(np.abs(upstream[:3]) < 1e-4)  # their misalignments: none to speak of
     k0 = units.G0 / MPU6050_LSB_PER_G

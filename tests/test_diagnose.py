@@ -562,30 +562,52 @@ def test_oracle_detection_threshold_by_residual_draws():
 def test_refit_standard_errors_are_the_joint_fit_covariance():
     """The refit's standard errors (projected columns, Schur complement) equal the effect block
     of the inverse normal matrix of the joint least squares of nominal and effect columns (a
-    second route), in display units; an effect the nominal columns absorb gets inf."""
+    second route), in display units; an effect the nominal columns absorb gets inf. An effect
+    absorbed only in part, ``e`` and ``f`` of display-unit signatures ``x + jn_0`` and ``-x``
+    (the nominal takes ``jn_0``, so only ``e - f`` shows) beside ``g`` of no signature, gets
+    ``inf`` on each and the one combination the rows determine, ``e - f``: its value from the
+    refit's coefficients and its standard error that of ``x``'s coefficient in the joint least
+    squares of the nominal columns and ``x`` alone."""
     from types import SimpleNamespace
 
-    from gyrojax.diagnose._diagnose import _refit_std_errors
+    from gyrojax.diagnose._diagnose import _refit_uncertainty
     from gyrojax.diagnose._stats import nominal_basis
 
     rng = np.random.default_rng(7)
     jn, jb = rng.standard_normal((400, 5)), rng.standard_normal((400, 3))
     u = nominal_basis(jn)
 
-    def row(cols, names, scale):
-        sig = SimpleNamespace(names=names, prior_scale=np.asarray(scale))
-        return SimpleNamespace(projected=cols - u @ (u.T @ cols), sig=sig)
+    def row(cols, names, scale, units=None):
+        sig = SimpleNamespace(names=names, prior_scale=np.asarray(scale),
+                              units=units or ("",) * len(names), jac=cols[None])
+        return SimpleNamespace(projected=cols - u @ (u.T @ cols), sig=sig, grid_index=0)
+
+    def joint_se(cols, k):
+        a = np.hstack([jn, cols])
+        return float(np.sqrt(np.linalg.inv(a.T @ a)[5 + k, 5 + k]))
 
     combo = [row(jb[:, :2], ("a", "b"), [2.0, 0.5]), row(jb[:, 2:], ("c",), [10.0])]
     cov = np.linalg.inv(np.hstack([jn, jb]).T @ np.hstack([jn, jb]))[5:, 5:]
     want = np.sqrt(np.diag(cov)) * [2.0, 0.5, 10.0]
-    got = _refit_std_errors(combo)
+    got, estimable = _refit_uncertainty(combo, dict(a=1.0, b=2.0, c=3.0))
     np.testing.assert_allclose([got[k] for k in "abc"], want, rtol=1e-10)
+    assert estimable == []
     absorbed = row(jn[:, :1], ("d",), [1.0])
-    assert _refit_std_errors([combo[1], absorbed]) == {"c": pytest.approx(
-        float(np.sqrt(np.linalg.inv(np.hstack([jn, jb[:, 2:]]).T
-                                    @ np.hstack([jn, jb[:, 2:]]))[5, 5]) * 10.0), rel=1e-10),
-        "d": math.inf}
+    got, estimable = _refit_uncertainty([combo[1], absorbed], dict(c=3.0, d=4.0))
+    assert got == {"c": pytest.approx(joint_se(jb[:, 2:], 0) * 10.0, rel=1e-10), "d": math.inf}
+    assert estimable == []  # d's one direction is absorbed whole: no combination is determined
+    x = jb[:, :1]
+    scale = np.array([2.0, 0.5, 3.0])
+    display = np.hstack([x + jn[:, :1], -x, np.zeros_like(x)])  # per display unit
+    part = row(display * scale, ("e", "f", "g"), scale, ("mrad", "mrad", "ppm"))
+    got, estimable = _refit_uncertainty([combo[1], part], dict(c=3.0, e=5.0, f=1.5, g=0.0))
+    assert got["c"] == pytest.approx(joint_se(np.hstack([jb[:, 2:], x]), 0) * 10.0, rel=1e-10)
+    assert got["e"] == got["f"] == got["g"] == math.inf
+    (comb,) = estimable
+    assert comb["combination"] == "e - f" and comb["unit"] == "mrad"
+    assert comb["terms"] == {"e": pytest.approx(1.0), "f": pytest.approx(-1.0)}
+    assert comb["value"] == pytest.approx(3.5, rel=1e-12)
+    assert comb["std_error"] == pytest.approx(joint_se(np.hstack([jb[:, 2:], x]), 1), rel=1e-8)
 
 
 def test_tail_functions_equal_scipy_distributions():

@@ -48,6 +48,14 @@ def format_combination(coeffs, names, *, tol: float = 1e-3, digits: int = 3) -> 
     return " ".join([first] + [f"{s} {t}" for s, t in terms[1:]])
 
 
+# pivot threshold of the readable bases, on orthonormal rows: directions found numerically (the
+# eigenvectors of a cluster of near-zero eigenvalues, whose span is good to ~1e-4 where the
+# cluster is 1e-8 of the largest) would otherwise take a pivot from their error and print as
+# combinations with huge coefficients, or twice; a genuine pivot this small would print as one
+# anyway
+RREF_TOL = 1e-3
+
+
 def _rref(m, tol=1e-9):
     m = np.array(m, float)
     rows, cols = m.shape
@@ -104,15 +112,8 @@ class ObservabilityReport:
         if null.shape[0] == 0:
             return []
         involved = np.where(np.max(np.abs(null), axis=0) > 1e-3 * np.max(np.abs(null)))[0]
-        sub = null[:, involved]
-        u, s, vt = np.linalg.svd(sub)
-        r = int(np.sum(s > 1e-9 * s[0]))
-        comp = vt[r:]
-        if comp.shape[0] == 0:
-            return []
-        rref, _ = _rref(comp)
         names = [self.names[i] for i in involved]
-        return [format_combination(row, names) for row in rref]
+        return [format_combination(row, names) for row in complement_basis(null[:, involved])]
 
     def summary(self) -> str:
         lines = [f"{len(self.names)} parameters, rank {self.rank} (exact tol {self.exact_tol:g}), "
@@ -137,11 +138,21 @@ class ObservabilityReport:
                 "identifiable_combinations": self.identifiable("weak")}
 
 
+def complement_basis(null) -> np.ndarray:
+    """The combinations ``c`` (rows, reduced row-echelon form) with ``c . x = 0`` for every row
+    ``x`` of ``null``: what a design with null space ``null`` determines among the parameters
+    that ``null`` involves (its columns). Both in the same units, e.g. ``mc1 - theta1 - eps2``."""
+    _, s, vt = np.linalg.svd(np.atleast_2d(null))
+    comp = vt[int(np.sum(s > 1e-9 * s[0])):]
+    return _rref(comp, RREF_TOL)[0] if comp.shape[0] else comp
+
+
 def _pretty_basis(null):
     """A null-space basis in reduced row-echelon form (readable, unique up to ordering)."""
     if null.shape[0] == 0:
         return null
-    rref, _ = _rref(null)
+    _, s, vt = np.linalg.svd(null, full_matrices=False)
+    rref, _ = _rref(vt[: int(np.sum(s > 1e-9 * s[0]))], RREF_TOL)
     return rref
 
 

@@ -42,13 +42,14 @@ import zlib
 
 import numpy as np
 
-from ..analysis.observability import _pretty_basis, format_combination
+from ..analysis.observability import _pretty_basis, complement_basis, format_combination
 from ..record import BenchRecord
 from ._report import GapReport, grid_located
 from ._stats import (
     LAMBDA_80,
     SEPARABLE,
     Screen,
+    _directions,
     _f_sf,
     _orth,
     _project,
@@ -466,8 +467,9 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         qq = bh_qvalues(np.array([x["p"] for x in post_cells]))
         remaining = [dict(x, q=float(q)) for x, q in zip(post_cells, qq) if q < alpha]
         resid_after[tuple(r.sig.name for r in combo)] = ea
+        std_errors, estimable = _refit_uncertainty(combo, coeffs)
         return dict(effects=[r.sig.name for r in combo], coefficients=coeffs,
-                    std_errors=_refit_std_errors(combo),
+                    std_errors=std_errors, estimable=estimable,
                     units={nm: u for r in combo for nm, u in zip(r.sig.names, r.sig.units)},
                     nominal_after=prob.display_nominal(p_refit),
                     onestep={r.sig.name: _onestep_display(r) for r in combo},
@@ -795,20 +797,54 @@ def _heldout_cell(g, band, m, noise_dof, kind) -> dict:
                 excess=float(m * (g - band[0])), p=_f_sf(ratio, m, noise_dof))
 
 
-def _refit_std_errors(combo) -> dict:
+def _refit_uncertainty(combo, coefficients: dict) -> tuple[dict, list]:
     """Standard errors (display units) of a refit's effect coefficients, linearised at the
     nominal fit with the nominal parameters fitted too: the effect block of the inverse
-    information, ``(J~^T J~)^-1`` of the projected columns, times the prior scales. A
-    coefficient the train rows cannot separate (information below 1e-12 of the largest) gets
-    ``inf``."""
+    information, ``(J~^T J~)^+`` of the projected columns, times the prior scales; and the
+    combinations the rows determine of the coefficients they do not.
+
+    The undetermined directions are the screening's (:func:`~._stats._directions` on the
+    combination's raw and projected signatures): those without a signature and those whose
+    visible fraction after the nominal projection is below ``VISIBLE_MIN`` (absorbed by the
+    nominal parameters, e.g. the IMU's common rotation of both triads, which the poses take;
+    what little of such a direction survives the projection is second-order physics or
+    round-off, so its variance, finite but huge, would make any error look small). A
+    coefficient such a direction involves gets ``inf``. The determined combinations of those
+    coefficients are the complement of the undetermined directions among them (reduced
+    row-echelon form, display units, the largest term's coefficient 1), each with its value from
+    ``coefficients``, standard error and unit (its largest term's), e.g. ``maxy + mayx`` where
+    the poses absorb ``maxy - mayx``."""
     jt = np.concatenate([r.projected for r in combo], axis=1)
+    j = np.concatenate([r.sig.jac[r.grid_index] for r in combo], axis=1)
     scale = np.concatenate([r.sig.prior_scale for r in combo])
     names = [n for r in combo for n in r.sig.names]
+    units = [u for r in combo for u in r.sig.units]
     w, v = np.linalg.eigh(jt.T @ jt)
     ok = w > 1e-12 * max(float(w.max()), 1e-300)
-    var = (v[:, ok] ** 2) @ (1.0 / w[ok])
-    var[np.any(np.abs(v[:, ~ok]) > 1e-6, axis=1)] = np.inf
-    return {n: float(np.sqrt(x) * ps) for n, x, ps in zip(names, var, scale)}
+    cov = (v[:, ok] / w[ok]) @ v[:, ok].T  # prior-scale units
+    var = np.diag(cov).copy()
+    _, _, _, null, absorbed = _directions(j, jt)
+    hidden = np.array(null + absorbed + [v[:, i] for i in np.flatnonzero(~ok)]).reshape(
+        -1, len(names)).T
+    if hidden.size:
+        hidden = _orth(hidden)[0]
+    involved = np.flatnonzero(np.any(np.abs(hidden) > 1e-6, axis=1))
+    var[involved] = np.inf
+    std_errors = {n: float(np.sqrt(x) * ps) for n, x, ps in zip(names, var, scale)}
+    estimable = []
+    for row in (complement_basis((hidden[involved] * scale[involved, None]).T)
+                if involved.size else ()):
+        c = np.zeros(len(names))
+        c[involved] = row / np.max(np.abs(row))
+        c[np.abs(c) < 1e-3] = 0.0  # as format_combination prints it
+        terms = {names[i]: float(c[i]) for i in np.flatnonzero(c)}
+        cp = c * scale
+        estimable.append({
+            "combination": format_combination(c, names), "terms": terms,
+            "value": float(sum(x * coefficients[k] for k, x in terms.items())),
+            "std_error": float(np.sqrt(max(cp @ cov @ cp, 0.0))),
+            "unit": units[int(np.argmax(np.abs(c)))]})
+    return std_errors, estimable
 
 
 def _onestep_display(r: Screen) -> dict:

@@ -10,6 +10,7 @@ standard error.
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
@@ -325,8 +326,8 @@ def closed_loop(case_dir, rig: str, hidden: str, rerun, truth_coefficients, *,
     predicted MDE over the prior scale (alone and with the closest rival fitted too), and on the
     advised design the verdict, its effects, the first effect (or top posterior) and the refit
     coefficients of the verdict's effects with their standard errors (display units) and, where
-    the verdict is the hidden effect alone, each coefficient's error in its standard errors
-    (``z_advised``)."""
+    the verdict is the hidden effect alone, the errors in standard errors of the coefficients
+    and combinations it determines (``z_advised``, :func:`refit_z`)."""
     from ._diagnose import diagnose
 
     paths = sorted(Path(case_dir).glob("case_*.nc"))
@@ -363,18 +364,31 @@ def closed_loop(case_dir, rig: str, hidden: str, rerun, truth_coefficients, *,
                     "verdict_advised": rep2.verdict["kind"], "top_advised": _first_effect(rep2),
                     "effects_advised": eff,
                     "coefficients_advised": {}, "std_errors_advised": {}}
-            for rf in rep2.refits:
-                if rf["effects"] == eff:
-                    row |= {"coefficients_advised": rf["coefficients"],
-                            "std_errors_advised": rf["std_errors"]}
+            rf = next((x for x in rep2.refits if x["effects"] == eff), None)
+            if rf is not None:
+                row |= {"coefficients_advised": rf["coefficients"],
+                        "std_errors_advised": rf["std_errors"]}
             if eff == [hidden] and row["coefficients_advised"]:
-                row["z_advised"] = {k: (row["coefficients_advised"][k] - v)
-                                    / row["std_errors_advised"][k]
-                                    for k, v in truth_coefficients(truth).items()}
+                row["z_advised"] = refit_z(rf, truth_coefficients(truth))
         out.append(row)
         if progress is not None:
             progress(i + 1, len(first))
     return out
+
+
+def refit_z(refit: dict, truth: dict) -> dict:
+    """A refit's errors against ``truth`` (display units, by coefficient name) in its reported
+    standard errors: each coefficient it determines, and each combination it determines of the
+    coefficients it does not (``refit["estimable"]``, keyed by its text) whose terms all have a
+    truth. A coefficient determined only in combination (infinite standard error) has no z of
+    its own: a 0 there would flatter the calibration."""
+    se, coef = refit["std_errors"], refit["coefficients"]
+    z = {k: (coef[k] - v) / se[k] for k, v in truth.items() if math.isfinite(se[k])}
+    for c in refit.get("estimable", []):
+        if c["terms"].keys() <= truth.keys():
+            z[c["combination"]] = (c["value"] - sum(x * truth[k] for k, x in c["terms"].items())
+                                   ) / c["std_error"]
+    return z
 
 
 def _resolves(advice_row) -> bool:

@@ -51,7 +51,10 @@ class GapReport:
     - `ranking`: one row per catalogued effect (score, p, q, posterior, one-step estimate,
       visible fraction and flag, no-signature directions, aliases by name, MDE / prior scale).
     - `ambiguity`: the 90 %-posterior set and the canonical correlations of effect pairs.
-    - `refits`: per refitted candidate: coefficients, the nominal parameters refitted with them
+    - `refits`: per refitted candidate: coefficients and standard errors (``inf`` where the
+      rows do not determine a coefficient: no signature, or absorbed in part by the nominal
+      parameters), the combinations of such coefficients the rows do determine (``estimable``:
+      text, terms, value, standard error, unit), the nominal parameters refitted with them
       (``nominal_after``, display units), held-out gap before/after, reduction, closure,
       gap-map cells still significant.
     - `design_advice`: per flagged effect and candidate design, MDE / prior scale alone and with
@@ -252,15 +255,25 @@ class GapReport:
             for rf in self.refits:
                 red = f"{rf['reduction']:.2f}" if rf["reduction"] is not None else "-"
                 se, un = rf.get("std_errors", {}), rf.get("units", {})
-                # a coefficient this bench gives no signature is not estimated (its standard
-                # error is infinite): named once, not printed as a value
-                blind = [k for k in rf["coefficients"]
-                         if k in no_sig and not math.isfinite(se.get(k, 0.0))]
-                est = ", ".join(f"{k} {v:.4g}" + (f" ± {se[k]:.2g}" if k in se else "")
-                                + (f" {un[k]}" if un.get(k) else "")
-                                for k, v in rf["coefficients"].items() if k not in blind)
+                # a coefficient the rows do not determine (infinite standard error) is named
+                # once, not printed as a value: without a signature on this bench, or absorbed
+                # in part by the nominal parameters, when only the combinations printed with
+                # the values are determined
+                undetermined = [k for k in rf["coefficients"]
+                                if not math.isfinite(se.get(k, 0.0))]
+                blind = [k for k in undetermined if k in no_sig]
+                partial = [k for k in undetermined if k not in no_sig]
+                est = ", ".join(
+                    [f"{k} {v:.4g}" + (f" ± {se[k]:.2g}" if k in se else "")
+                     + (f" {un[k]}" if un.get(k) else "")
+                     for k, v in rf["coefficients"].items() if k not in undetermined]
+                    + [f"{x['combination']} {x['value']:.4g} ± {x['std_error']:.2g}"
+                       + (f" {x['unit']}" if x["unit"] else "") for x in rf.get("estimable", [])])
                 if blind:
                     est += f"; no signature, not estimated: {', '.join(blind)}"
+                if partial:
+                    est += ("; absorbed in part by the nominal parameters, determined only in "
+                            f"the combinations given: {', '.join(partial)}")
                 lines.append(f"| {' + '.join(rf['effects'])} | {est} | "
                              f"{rf['heldout_gap_before']:.3g} | "
                              f"{rf['heldout_gap_after']:.3g} | {red} | {rf['closure']} | "
