@@ -256,9 +256,9 @@ class GapReport:
                 red = f"{rf['reduction']:.2f}" if rf["reduction"] is not None else "-"
                 se, un = rf.get("std_errors", {}), rf.get("units", {})
                 # a coefficient the rows do not determine (infinite standard error) is named
-                # once, not printed as a value: without a signature on this bench, or absorbed
-                # in part by the nominal parameters, when only the combinations printed with
-                # the values are determined
+                # once, not printed as a value: without a signature on this bench, or one whose
+                # other directions have none or are absorbed by the nominal parameters, when
+                # only the combinations printed with the values are determined
                 undetermined = [k for k in rf["coefficients"]
                                 if not math.isfinite(se.get(k, 0.0))]
                 blind = [k for k in undetermined if k in no_sig]
@@ -272,8 +272,9 @@ class GapReport:
                 if blind:
                     est += f"; no signature, not estimated: {', '.join(blind)}"
                 if partial:
-                    est += ("; absorbed in part by the nominal parameters, determined only in "
-                            f"the combinations given: {', '.join(partial)}")
+                    est += ("; determined only in the combinations given (their other "
+                            "directions have no signature or are absorbed by the nominal "
+                            f"parameters, as listed above): {', '.join(partial)}")
                 lines.append(f"| {' + '.join(rf['effects'])} | {est} | "
                              f"{rf['heldout_gap_before']:.3g} | "
                              f"{rf['heldout_gap_after']:.3g} | {red} | {rf['closure']} | "
