@@ -64,6 +64,42 @@ def test_score_tests_are_calibrated_and_aliases_exact():
     np.testing.assert_allclose(r.alias[:, 0], alias[:, 0], atol=1e-10)
 
 
+def test_hidden_directions_are_named_in_display_units():
+    """The screening finds an effect's hidden directions per unit prior scale; the report names
+    them as perturbations of the coefficients in display units, here checked against the null
+    spaces of the display-unit Jacobian (scipy), for coefficients of different prior scales."""
+    from scipy.linalg import null_space
+
+    from gyrojax.analysis.observability import _pretty_basis
+    from gyrojax.diagnose._diagnose import _named_directions
+
+    rng = np.random.default_rng(3)
+    m = 200
+    jn = rng.standard_normal((m, 2))
+    x, y = rng.standard_normal((m, 2)).T
+    # display units: a + 0.2 b has no signature at all (columns x and 0.2 x); c - 0.5 d's
+    # signature (y + jn_0) - y is the nominal's first column, absorbed
+    j_display = np.stack([x, 0.2 * x, y + jn[:, 0], -0.5 * y], axis=1)
+    scale = np.array([1.0, 10.0, 0.5, 4.0])
+    sig = Signature("e", "x", ("a", "b", "c", "d"), ("u1", "u2", "u3", "u4"), scale,
+                    (j_display * scale)[None])
+    (row,) = screen(rng.standard_normal(m), jn, [sig], n_boot=50)
+    named = _named_directions(row)
+    raw_null = null_space(j_display)
+    q, _ = np.linalg.qr(jn)
+    projected_null = null_space(j_display - q @ (q.T @ j_display))
+    # the absorbed directions: null after the projection, orthogonal to the raw null space
+    absorbed = null_space(np.concatenate([raw_null.T, null_space(projected_null.T).T]))
+    assert named["no_signature_directions"] == [
+        format_combination(v, sig.names) for v in _pretty_basis(raw_null.T)]
+    assert named["confounded_directions"] == [
+        format_combination(v, sig.names) for v in _pretty_basis(absorbed.T)]
+    # by hand: a + 0.2 b = 0 along (0.2, -1); c - 0.5 d = 0 along (0.5, 1). Per unit prior
+    # scale (divided by the scales) they would read "a - 0.5 b" and "c + 0.25 d"
+    assert named["no_signature_directions"] == ["0.2 a - b"]
+    assert named["confounded_directions"] == ["0.5 c + d"]
+
+
 def test_sup_pvalue_matches_brute_force_in_sample_space():
     """The grid effect's sup-score p-value, drawn in the small score space, against drawing the
     whole residual vector (the definition) on a strongly correlated 8-point grid."""

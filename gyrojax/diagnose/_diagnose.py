@@ -900,11 +900,21 @@ def _row_json(r: Screen, prob, excess, n, c, cells):
         "visible_fraction": r.visible_fraction, "identifiable": r.flag in
         ("visible", "weakly identifiable", "partly no signature"),
         "flag": r.flag,
-        "no_signature_directions": _named_subspace(r.null_directions, r.sig.names),
-        "confounded_directions": _named_subspace(r.confounded_directions, r.sig.names),
+        **_named_directions(r),
         "confounded_with": confounded_with, "aliases": aliases,
         "mde_over_prior": mde,
     }
+
+
+def _named_directions(r: Screen) -> dict:
+    """The screened effect's directions without a signature and those the nominal parameters
+    absorb, named in display units. The screening finds them per unit prior scale (its
+    columns are the Jacobian times the prior scales), so a direction ``b`` there perturbs the
+    coefficients by ``b * prior_scale``; the two agree only where an effect's coefficients share
+    one prior scale."""
+    return {key: _named_subspace([np.asarray(v) * r.sig.prior_scale for v in vectors], r.sig.names)
+            for key, vectors in (("no_signature_directions", r.null_directions),
+                                 ("confounded_directions", r.confounded_directions))}
 
 
 def _named_subspace(vectors, names) -> list[str]:
