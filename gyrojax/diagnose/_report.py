@@ -242,10 +242,13 @@ class GapReport:
             lines += [""] + [f"Note: {x}" for x in self.verdict["notes"]]
         nulls = [(r["name"], d) for r in self.ranking for d in r["no_signature_directions"]]
         if nulls:
-            lines += ["", "No signature on this bench: " + "; ".join(f"{d} ({n})" for n, d in nulls)]
+            lines += ["", "No signature on this bench (a change of the coefficients along these "
+                      "directions, in their units, leaves the record as it was): "
+                      + "; ".join(f"{d} ({n})" for n, d in nulls)]
         conf = [(r["name"], d) for r in self.ranking for d in r["confounded_directions"]]
         if conf:
-            lines += ["", "Absorbed by the nominal parameters (visible fraction < 1e-6): "
+            lines += ["", "Absorbed by the nominal parameters (a change along these directions "
+                      "is fitted away by them: visible fraction < 1e-6): "
                       + "; ".join(f"{d} ({n})" for n, d in conf)]
         if self.refits:
             lines += ["", "## How much (refit on train, gap on held-out)", "",
