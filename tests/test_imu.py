@@ -2,6 +2,7 @@
 likelihood fit against the simulated terms, the diagnosis on simulated records (null and a hidden
 scale-factor error), and loaders' errors on bad files."""
 
+import dataclasses
 import json
 
 import jax
@@ -545,6 +546,19 @@ def test_weak_quantization_decided_at_the_full_rate():
             assert v == pytest.approx(0.5, rel=0.1), ch
         else:
             assert v < 1e-3, ch
+    # the report's row: each unit after its own channels (gyro angle quantization in arcsec,
+    # the accelerometers' velocity quantization in m/s); a term that could not be tested says
+    # why instead of a p-value of 1
+    untested = {"name": "bias_instability", "testable": False, "p": 1.0, "channel": None,
+                "fitted": {}, "unit": {},
+                "statistic_kind": "not testable: the longest static piece is 51 s < 100 s"}
+    md = dataclasses.replace(rep, noise_effects=[q, untested]).markdown().splitlines()
+    row = next(x for x in md if x.startswith("| quantization |"))
+    gyro, accel = row.split(" | ")[-1].rstrip(" |").split("; ")
+    assert gyro.startswith("wx ") and gyro.endswith(" arcsec") and "ax" not in gyro
+    assert accel.startswith("ax ") and accel.endswith(" m/s")
+    assert "| bias_instability | - | - | - | not testable: the longest static piece is 51 s" in md[
+        md.index(row) + 1]
 
 
 def test_rate_table_runs_measure_scale_factor_and_misalignment_analytically():

@@ -213,10 +213,11 @@ class GapReport:
                       "| effect | p (Bonferroni over channels) | q | channel | fitted per channel |",
                       "|---|---|---|---|---|"]
             for x in self.noise_effects:
-                fit = ", ".join(f"{ch} {v:.3g}" for ch, v in x["fitted"].items())
-                unit = next(iter(x["unit"].values()), "")
+                if not x.get("testable", True):  # no p-value: say why instead
+                    lines.append(f"| {x['name']} | - | - | - | {x['statistic_kind']} |")
+                    continue
                 lines.append(f"| {x['name']} | {x['p']:.2g} | {x.get('q', float('nan')):.2g} | "
-                             f"{x['channel']} | {fit} ({unit}; gyro/accel units differ) |")
+                             f"{x['channel']} | {_values_by_unit(x['fitted'], x['unit'])} |")
         full = [x for x in self.where if x["axis"] == "tau" and x.get("rate") == "full"]
         if full:
             best = {}
@@ -322,6 +323,15 @@ def grid_interval(values, weights, mass: float = 0.9) -> tuple[float, float, flo
         if j < len(acc) and (j + 1, -acc[j]) < (best[0], -best[1]):
             best = (j + 1, float(acc[j]), i, i + j)
     return float(values[best[2]]), float(values[best[3]]), best[1]
+
+
+def _values_by_unit(values: dict, units: dict) -> str:
+    """``{channel: value}`` as text, the channels sharing a unit in one group followed by it,
+    e.g. ``wx 0.1, wy 0.2 arcsec; ax 0.3 m/s`` (gyro and accelerometer terms differ)."""
+    groups: dict = {}
+    for ch, v in values.items():
+        groups.setdefault(units.get(ch, ""), []).append(f"{ch} {v:.3g}")
+    return "; ".join(", ".join(g) + (f" {u}" if u else "") for u, g in groups.items())
 
 
 def grid_located(values, weights, points_per_step: int = 64):
