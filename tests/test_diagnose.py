@@ -1100,6 +1100,49 @@ def tilt_report():
     return diagnose(rec, design_advice=True)
 
 
+def test_design_advice_counts_the_directions_each_design_sees():
+    """An effect of two coefficients that the record sees in neither direction, one design in
+    the first only, another in the second only, and a third in both: the first two get an
+    infinite MDE with "sees 1 of 2", the third a finite one and the first rank; without the
+    third, the two partial designs rank above one that sees none."""
+    from types import SimpleNamespace
+
+    from gyrojax.diagnose._diagnose import _design_advice
+    from gyrojax.diagnose._report import _mde_text
+
+    rng = np.random.default_rng(5)
+    m = 80
+    jn = rng.standard_normal((m, 2))
+    x, y = rng.standard_normal((m, 2)).T
+    zero = np.zeros(m)
+    cols = {"first": np.stack([x, zero], 1), "second": np.stack([zero, y], 1),
+            "both": np.stack([x, y], 1), "none": np.stack([zero, zero], 1)}
+
+    def advice(designs):
+        sigs = {k: [Signature("e", "x", ("a", "b"), ("1", "1"), np.ones(2), v[None])]
+                for k, v in cols.items()}
+        prob = SimpleNamespace(designs=lambda: [(k, k, None) for k in designs],
+                               jacobians=lambda p, sigma, conditions, t: (jn, sigs[conditions]))
+        flagged = [SimpleNamespace(sig=sigs["none"][0], vis_index=0,
+                                   null_directions=[np.eye(2)[0], np.eye(2)[1]],
+                                   confounded_directions=[])]
+        return {a["design"]: a for a in _design_advice(prob, None, None, flagged)}, [
+            a["design"] for a in _design_advice(prob, None, None, flagged)]
+
+    rows, order = advice(["none", "first", "second", "both"])
+    assert [(rows[k]["seen_dims"], rows[k]["kept_dims"]) for k in order] == [
+        (2, 2), (1, 2), (1, 2), (0, 2)]
+    assert order[0] == "both" and math.isfinite(rows["both"]["mde_over_prior"])
+    assert _mde_text(rows["first"]) == "inf (sees 1 of 2 directions)"
+    assert _mde_text(rows["none"]) == "inf (sees none)"
+    # the finite MDE, by hand: the least visible direction of [x y] after the nominal
+    q, _ = np.linalg.qr(jn)
+    s = np.linalg.svd(np.stack([x, y], 1) - q @ (q.T @ np.stack([x, y], 1)), compute_uv=False)
+    assert rows["both"]["mde_over_prior"] == pytest.approx(np.sqrt(7.85) / s[-1], rel=1e-3)
+    _, order = advice(["none", "first", "second"])
+    assert order[-1] == "none"
+
+
 def test_null_record_no_gap(tmp_path):
     from gyrojax.plots import plot_gap_report
 

@@ -986,7 +986,13 @@ def _design_advice(prob, params0, sigma, flagged):
             corr = float(max((canonical_correlation(proj[s.name], proj[o]) for o in others),
                              default=0.0))
             mde = _mde(mine)
+            # how many of those directions this design sees: all but its own hidden ones (they
+            # hold the ones no design sees); short of all, its MDE is infinite, and the count
+            # says a second design would see the rest
+            _, null, conf = _visibility(raw[s.name], u)
             rows.append({"effect": s.name, "design": label, "mde_over_prior": mde,
+                         "seen_dims": int(basis.shape[0] - len(null) - len(conf)),
+                         "kept_dims": int(basis.shape[1]),
                          "mde_vs_closest_rival": max(
                              (_mde(_project(span[o], mine)) for o in others), default=mde),
                          "max_correlation_with_other_effects": corr,
@@ -996,11 +1002,13 @@ def _design_advice(prob, params0, sigma, flagged):
     # design that makes an effect visible but leaves it aliased with a rival (the platform's
     # D_oo on a 9 g + 0 g test, where D_oo and rectification both add a bias to the vibrated
     # run only) buys a detection without an attribution (G6's closed loop found this: ranked
-    # by the MDE alone, 0 of 2 re-simulated D_oo cases were attributed)
+    # by the MDE alone, 0 of 2 re-simulated D_oo cases were attributed); where no design sees
+    # all of an effect's directions (every MDE infinite), the one that sees the most first
     out = []
     for nm in sorted(names):
         out.extend(sorted([r for r in rows if r["effect"] == nm],
-                          key=lambda r: (r["mde_vs_closest_rival"], r["mde_over_prior"])))
+                          key=lambda r: (r["mde_vs_closest_rival"], r["mde_over_prior"],
+                                         -r["seen_dims"])))
     return out
 
 

@@ -295,7 +295,7 @@ class GapReport:
                       "| effect | design | MDE / prior | MDE / prior vs closest rival | "
                       "max corr. with other effects |", "|---|---|---|---|---|"]
             for a in shown:
-                lines.append(f"| {a['effect']} | {a['design']} | {a['mde_over_prior']:.3g} | "
+                lines.append(f"| {a['effect']} | {a['design']} | {_mde_text(a)} | "
                              f"{a['mde_vs_closest_rival']:.3g} | "
                              f"{a['max_correlation_with_other_effects']:.3f} |")
             unseen = {a["effect"]: a.get("unseen_dims", 0) for a in self.design_advice
@@ -305,6 +305,12 @@ class GapReport:
                     f"{n} of {e}'s directions" for e, n in unseen.items()) + " (no signature, "
                     "or absorbed by the nominal parameters on every design): the MDEs are over "
                     "the rest.")
+            if any(math.isinf(a["mde_over_prior"]) and 0 < a.get("seen_dims", 0)
+                   for a in self.design_advice):
+                lines.append("\nA design that sees only some of an effect's directions has an "
+                             "infinite MDE (the rest stay undetectable on it); the count says how "
+                             "many it sees. The directions counted are those the record or some "
+                             "design sees: between them, the tests see them all.")
             if len(shown) < len(self.design_advice):
                 lines.append(f"\n{len(self.design_advice) - len(shown)} more designs in the "
                              "JSON report (`design_advice`).")
@@ -323,6 +329,16 @@ def grid_interval(values, weights, mass: float = 0.9) -> tuple[float, float, flo
         if j < len(acc) and (j + 1, -acc[j]) < (best[0], -best[1]):
             best = (j + 1, float(acc[j]), i, i + j)
     return float(values[best[2]]), float(values[best[3]]), best[1]
+
+
+def _mde_text(a: dict) -> str:
+    """A design advice row's MDE; where infinite, how many of the effect's directions (those
+    some design sees) this design sees."""
+    mde = a["mde_over_prior"]
+    if not math.isinf(mde) or "seen_dims" not in a:
+        return f"{mde:.3g}"
+    seen = a["seen_dims"]
+    return f"inf (sees {seen} of {a['kept_dims']} directions)" if seen else "inf (sees none)"
 
 
 def _values_by_unit(values: dict, units: dict) -> str:
