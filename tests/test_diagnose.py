@@ -1108,7 +1108,7 @@ def test_design_advice_counts_the_directions_each_design_sees():
     from types import SimpleNamespace
 
     from gyrojax.diagnose._diagnose import _design_advice
-    from gyrojax.diagnose._report import _mde_text
+    from gyrojax.diagnose._report import _mde_text, _unit_suffix
 
     rng = np.random.default_rng(5)
     m = 80
@@ -1135,6 +1135,8 @@ def test_design_advice_counts_the_directions_each_design_sees():
     assert order[0] == "both" and math.isfinite(rows["both"]["mde_over_prior"])
     assert _mde_text(rows["first"]) == "inf (sees 1 of 2 directions)"
     assert _mde_text(rows["none"]) == "inf (sees none)"
+    # units after values: none for a dimensionless factor (the IMU's k_earth, unit "1")
+    assert [_unit_suffix(u) for u in ("1", "", None, "mrad")] == ["", "", "", " mrad"]
     # the finite MDE, by hand: the least visible direction of [x y] after the nominal
     q, _ = np.linalg.qr(jn)
     s = np.linalg.svd(np.stack([x, y], 1) - q @ (q.T @ np.stack([x, y], 1)), compute_uv=False)

@@ -269,10 +269,10 @@ class GapReport:
                 partial = [k for k in undetermined if k not in no_sig]
                 est = ", ".join(
                     [f"{k} {v:.4g}" + (f" ± {se[k]:.2g}" if k in se else "")
-                     + (f" {un[k]}" if un.get(k) else "")
+                     + _unit_suffix(un.get(k))
                      for k, v in rf["coefficients"].items() if k not in undetermined]
                     + [f"{x['combination']} {x['value']:.4g} ± {x['std_error']:.2g}"
-                       + (f" {x['unit']}" if x["unit"] else "") for x in rf.get("estimable", [])])
+                       + _unit_suffix(x["unit"]) for x in rf.get("estimable", [])])
                 if blind:
                     est += f"; no signature, not estimated: {', '.join(blind)}"
                 if partial:
@@ -329,6 +329,12 @@ def grid_interval(values, weights, mass: float = 0.9) -> tuple[float, float, flo
         if j < len(acc) and (j + 1, -acc[j]) < (best[0], -best[1]):
             best = (j + 1, float(acc[j]), i, i + j)
     return float(values[best[2]]), float(values[best[3]]), best[1]
+
+
+def _unit_suffix(unit: str | None) -> str:
+    """`` unit`` after a value; nothing for a dimensionless one (``"1"``, e.g. the IMU's Earth
+    rate factor)."""
+    return f" {unit}" if unit and unit != "1" else ""
 
 
 def _mde_text(a: dict) -> str:
