@@ -1748,6 +1748,42 @@ def test_ambiguous_verdict_reports_each_members_heldout_gap_and_whether_it_separ
     assert "heldout_gap_after_by_effect" not in v and "heldout_separates" not in v
 
 
+def test_unexplained_verdict_says_what_the_two_effect_refit_did():
+    """Both the top effect's refit and the pair's leave significant cells: the verdict stays
+    unexplained with the single effect and its held-out gap, and its reason says what the pair
+    did to the held-out gap (the Xsens record: 123 -> 40.5 with the scale factors, 0.48 with
+    misalignment too); a pair that predicts less, or no pair, adds nothing."""
+    from types import SimpleNamespace
+
+    from gyrojax.diagnose._diagnose import _verdict
+    from gyrojax.diagnose._stats import ambiguity_set
+
+    rows = [SimpleNamespace(sig=SimpleNamespace(name=n), flag="visible", q=1e-9, p=1e-9,
+                            posterior=w, log_bf=20.0, dof_grid=np.ones(1))
+            for n, w in (("scale_factor", 1.0), ("misalignment", 0.0))]
+    cell = {"axis": "time", "cell": "0.00-0.11 h", "channel": "ay"}
+
+    def refit(effects, after, closure, cells):
+        return {"effects": effects, "gap_train_after": 1.0, "heldout_gap_before": 123.0,
+                "heldout_gap_after": after, "closure": closure, "remaining_cells": [cell] * cells}
+
+    def verdict(pair_after, second="misalignment"):
+        refits = [refit(["scale_factor"], 40.5, False, 338),
+                  refit(["scale_factor", "misalignment"], pair_after, False, 225)]
+        return _verdict(True, rows, ambiguity_set(rows), refits, second, rows[0], 0.05, [],
+                        123.0, (0.0, 0.07))
+
+    v = verdict(0.48)
+    assert v["kind"] == "unexplained" and v["effects"] == ["scale_factor"]
+    assert v["heldout_gap_after"] == 40.5
+    assert v["reason"].endswith("; refitted with scale_factor + misalignment, the held-out gap "
+                                "goes 123 -> 0.48 (above its null band) and 225 cells stay "
+                                "significant")
+    assert "refitted with" not in verdict(50.0)["reason"]
+    assert "refitted with" not in verdict(0.48, second=None)["reason"]
+    assert "refitted with" not in verdict(None)["reason"]
+
+
 def test_slow_effect_against_a_random_walk_says_which_way_the_heldout_part_leans():
     """A drift named beside a random walk: a drift's refit on the train part predicts the
     held-out part when the drift is real; fitted to one realisation of a random walk it fits the
