@@ -1012,7 +1012,6 @@ def _design_advice(prob, params0, sigma, flagged):
     return out
 
 
-
 def _pair_also(pair, chosen, g_nom) -> str:
     """What the two-effect refit did where the verdict stays with one effect's (both leave
     significant cells): said when it predicts more of the held-out part, which the user would
