@@ -927,16 +927,20 @@ def _named_subspace(vectors, names) -> list[str]:
     return [format_combination(v, names) for v in _pretty_basis(np.array(vectors))]
 
 
-def _seen_somewhere(row, designs):
+def _hidden_directions(j, u) -> list:
+    """An effect's directions a design does not see (raw signature ``j``, nominal basis ``u``):
+    those without a signature and those the nominal parameters absorb."""
+    _, null, conf = _visibility(j, u)
+    return null + conf
+
+
+def _seen_somewhere(row, designs_hidden):
     """Orthonormal basis (coefficients x kept) of the screened effect's directions that the
     record's design (``row``'s no-signature and confounded directions) or at least one
-    candidate design (``(nominal basis, raw signature)`` pairs) sees: the complement of the
-    intersection of their hidden subspaces."""
+    candidate design (its :func:`_hidden_directions`, one list per design) sees: the complement
+    of the intersection of their hidden subspaces."""
     k = row.sig.jac.shape[2]
-    hidden = [row.null_directions + row.confounded_directions]
-    for u, j in designs:
-        _, null, conf = _visibility(j, u)
-        hidden.append(null + conf)
+    hidden = [row.null_directions + row.confounded_directions, *designs_hidden]
     if any(not h for h in hidden):
         return np.eye(k)
     acc = np.zeros((k, k))
@@ -969,13 +973,14 @@ def _design_advice(prob, params0, sigma, flagged):
         jn, sigs = prob.jacobians(params0, sigma, conditions=cond, t=t, **only)
         u = nominal_basis(jn)
         raw = {s.name: s.jac[min(grid.get(s.name, 0), s.jac.shape[0] - 1)] for s in sigs}
-        designs.append((label, sigs, u, raw, {k: _project(u, v) for k, v in raw.items()}))
+        designs.append((label, sigs, {k: _project(u, v) for k, v in raw.items()},
+                        {k: _hidden_directions(v, u) for k, v in raw.items() if k in names}))
     # an effect's directions that neither the record's design nor any candidate sees (no
     # signature, or absorbed by the nominal: e.g. the accelerometer triad's rotation, which the
     # poses absorb on any stand) are reported, and each design's MDE is over the rest
-    keep = {r.sig.name: _seen_somewhere(r, [(u, raw[r.sig.name]) for _, _, u, raw, _ in designs
-                                           if r.sig.name in raw]) for r in flagged}
-    for label, sigs, u, raw, proj in designs:
+    keep = {r.sig.name: _seen_somewhere(r, [h[r.sig.name] for *_, h in designs
+                                           if r.sig.name in h]) for r in flagged}
+    for label, sigs, proj, hidden in designs:
         span = {k: _orth(v)[0] for k, v in proj.items()}  # each rival's span, once per design
         for s in sigs:
             if s.name not in names:
@@ -986,12 +991,11 @@ def _design_advice(prob, params0, sigma, flagged):
             corr = float(max((canonical_correlation(proj[s.name], proj[o]) for o in others),
                              default=0.0))
             mde = _mde(mine)
-            # how many of those directions this design sees: all but its own hidden ones (they
-            # hold the ones no design sees); short of all, its MDE is infinite, and the count
-            # says a second design would see the rest
-            _, null, conf = _visibility(raw[s.name], u)
             rows.append({"effect": s.name, "design": label, "mde_over_prior": mde,
-                         "seen_dims": int(basis.shape[0] - len(null) - len(conf)),
+                         # how many of those directions this design sees: all but its own hidden
+                         # ones (they hold the ones no design sees); short of all, its MDE is
+                         # infinite, and the count says another design sees the rest
+                         "seen_dims": int(basis.shape[0] - len(hidden[s.name])),
                          "kept_dims": int(basis.shape[1]),
                          "mde_vs_closest_rival": max(
                              (_mde(_project(span[o], mine)) for o in others), default=mde),
