@@ -33,6 +33,7 @@ from _results import (  # noqa: E402
     machine_line,
     one_design_main,
     prior_section,
+    prior_title,
     publish,
     rescore,
     shell_note,
@@ -68,11 +69,9 @@ def suite(args, work, design):
     separable = sorted(e for e, v in sep.items() if v <= 0.9)
     s = rescore(bg, work, separable=separable, oracle_thresholds=oracle_detection_thresholds(
         load_record(paths[0]), "gyrotheodolite", [units.ARCSEC], ORACLE_LAMBDAS))
-    shell = args.prior == "shell"
-    lines = ["## Gap diagnosis, blind gyrotheodolite suite"
-             + (", the shell prior" if shell else "")
-             + " (`benchmarks/gap_blind_gyrotheodolite.py"
-             + (" --prior shell" if shell else "") + "`)",
+    title, option = prior_title(args.prior)
+    lines = ["## Gap diagnosis, blind gyrotheodolite suite" + title
+             + " (`benchmarks/gap_blind_gyrotheodolite.py" + option + "`)",
              "", machine_line(), "",
              f"Design: {json.dumps(dataclasses.asdict(design))}. {args.cases} sealed cases "
              f"(seed {args.seed}, 30 % nulls), generated in {t_gen:.0f} s, diagnosed in "
@@ -94,10 +93,11 @@ def suite(args, work, design):
     if args.g8_cases:
         lines.insert(-1, g8_line(bg, args, work, design, step="torque_step",
                                  decay_grid="8 values, 3-30 min", digits=0))
-    if shell:
-        from gyrojax.diagnose import diagnose
+    from gyrojax.diagnose import diagnose
 
-        rep = diagnose(load_record(paths[0]), rig="gyrotheodolite", design_advice=False)
+    rep = diagnose(load_record(paths[0]), rig="gyrotheodolite", design_advice=False,
+                   prior=args.prior)
+    if rep.prior == "shell":
         lines.insert(-1, shell_note(rep.ranking))
     publish(args.out, prior_section("gap_blind_gyrotheodolite", args.prior), lines)
 

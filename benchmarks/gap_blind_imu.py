@@ -39,6 +39,7 @@ from _results import (  # noqa: E402
     machine_line,
     null_run,
     prior_section,
+    prior_title,
     publish,
     shell_note,
     suite_lines,
@@ -107,7 +108,7 @@ def main(argv=None):
     others = {"--cases": args.cases, "--table-cases": args.table_cases,
               "--calibration-cases": args.calibration_cases, "--g8-cases": args.g8_cases,
               "--aux-cases": args.aux_cases, "--g6-cases": args.g6_cases}
-    if args.prior != "design" and any(others.values()):
+    if args.prior is not None and any(others.values()):
         ap.error(f"--prior {args.prior} runs the per-coefficient suite only (its own section); "
                  "set " + ", ".join(f"{k} 0" for k, v in others.items() if v)
                  + " or leave --prior out")
@@ -229,11 +230,11 @@ def per_coefficient(args, work):
     rep = diagnose(rec, rig="imu", per_coefficient=True, prior=args.prior)
     t_ref = time.perf_counter() - t1
     b2 = ", ".join(f"{lam} {_fmt(b['b2_top1'])}" for lam, b in s["by_lambda"].items())
-    shell = args.prior == "shell"
+    title, option = prior_title(args.prior)
     lines = ["## Gap diagnosis, IMU per coefficient: K = "
-             f"{s['cost']['n_effects']} effects" + (", the shell prior" if shell else "")
-             + " (`benchmarks/gap_blind_imu.py --per-coefficient-cases N"
-             + (" --prior shell" if shell else "") + "`)", "", machine_line(), "",
+             f"{s['cost']['n_effects']} effects" + title
+             + " (`benchmarks/gap_blind_imu.py --per-coefficient-cases N" + option + "`)", "",
+             machine_line(), "",
              f"The 12-pose multi design ({design.dwell_s:g} s poses at {design.rate_hz:g} Hz, "
              "last quarter held out) diagnosed with every coefficient of the catalogue's error "
              "model an effect of its own (`diagnose(..., per_coefficient=True)`, CLI "
@@ -254,7 +255,7 @@ def per_coefficient(args, work):
               f"{len(rep.ranking)} effects, design advice on): one record of the suite "
               f"diagnosed whole in {t_ref:.1f} s after compilation (G10: <= 60 s); verdict "
               f"{rep.verdict['kind']} {', '.join(rep.verdict.get('effects') or [])}".rstrip() + ".", ""]
-    if shell:
+    if rep.prior == "shell":
         lines.insert(-1, shell_note(rep.ranking))
     publish(args.out, prior_section("gap_blind_imu_per_coefficient", args.prior), lines)
 

@@ -52,6 +52,7 @@ from _results import (  # noqa: E402
     machine_line,
     null_run,
     prior_section,
+    prior_title,
     publish,
     shell_note,
     suite_lines,
@@ -87,7 +88,7 @@ def main(argv=None):
                          "gap_blind_platform_first_order)")
     add_prior_arg(ap, "gap_blind_platform_first_order")  # with --nominal-terms
     args = ap.parse_args(argv)
-    if args.prior != "design" and not args.nominal_terms:
+    if args.prior is not None and not args.nominal_terms:
         ap.error(f"--prior {args.prior} runs the first-order suite only (its own section); "
                  "add --nominal-terms f,i,o,s or leave --prior out")
     work = work_dir(args, "gyrojax-blind-platform-")
@@ -148,11 +149,10 @@ def many_effects(args, work, design):
     t_ref = time.perf_counter() - t1
     c = s["cost"]
     b2 = ", ".join(f"{lam} {_fmt(b['b2_top1'])}" for lam, b in s["by_lambda"].items())
-    shell = args.prior == "shell"
+    title, option = prior_title(args.prior)
     lines = ["## Gap diagnosis, platform D2 with a first-order nominal: K = "
-             f"{len(fams)} effects" + (", the shell prior" if shell else "")
-             + f" (`benchmarks/gap_blind_platform.py --nominal-terms {terms}"
-             + (" --prior shell" if shell else "") + "`)",
+             f"{len(fams)} effects" + title
+             + f" (`benchmarks/gap_blind_platform.py --nominal-terms {terms}" + option + "`)",
              "", machine_line(), "",
              f"Design D2 (Table 1 positions at 0, 9, 7 g) with the nominal model carrying the "
              f"terms {terms} for every gyro ({len(design.nominal_names())} coefficients, drawn "
@@ -178,7 +178,7 @@ def many_effects(args, work, design):
               f"record of the suite diagnosed whole in {t_ref:.1f} s after compilation (G10: "
               f"<= 60 s); verdict {rep.verdict['kind']} "
               f"{', '.join(rep.verdict.get('effects') or [])}".rstrip() + ".", ""]
-    if shell:
+    if rep.prior == "shell":
         lines[-1:-1] = [shell_note(rep.ranking)]
     publish(args.out, prior_section("gap_blind_platform_first_order", args.prior), lines)
 
@@ -331,6 +331,11 @@ def suite(args, work, design):
                   f"effects at lambda 256 and 1024 (seed {args.seed + 2}; generated in "
                   f"{t_gen7:.0f} s, diagnosed in {t_run7:.0f} + {t_shift7:.0f} s):", ""]
         lines += split_table(same7, shift7) + [""]
+    from gyrojax.diagnose import diagnose
+
+    rep = diagnose(load_record(full), rig="platform", design_advice=False)
+    if rep.prior == "shell":  # the rig's default since stop 75
+        lines[-1:-1] = [shell_note(rep.ranking)]
     publish(args.out, "gap_blind_platform", lines)
 
 

@@ -105,17 +105,18 @@ def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
 
 def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool = False,
               progress=None, split_for=None, baselines: bool = False,
-              diagnose_kw: dict | None = None, prior: str = "design") -> list:
+              diagnose_kw: dict | None = None, prior: str | None = None) -> list:
     """Diagnose every case blind. ``refit_all``: refit every catalogued effect alone as well
     (the scorer's oracle is then the hidden effect's own refit, spec §6 G7). ``split_for``:
     ``(record, split) -> split`` where a record's own design decides (a one-amplitude platform
     test has no design shift). ``baselines``: also run B2 refit-all + BIC on each record
     (:func:`~gyrojax.diagnose.bench.refit_all_baseline`: its answers, wall time and refit count,
     beside the screening's time). ``diagnose_kw``: more arguments of the diagnosis (e.g. the
-    platform's ``nominal_terms``). ``prior``: the diagnosis' Bayes-factor prior (and B2's)."""
+    platform's ``nominal_terms``). ``prior``: the diagnosis' Bayes-factor prior (and B2's;
+    ``None``: the rig's default)."""
     from ._diagnose import _problem, diagnose
 
-    diagnose_kw = dict(diagnose_kw or {}) | ({} if prior == "design" else {"prior": prior})
+    diagnose_kw = dict(diagnose_kw or {}) | ({} if prior is None else {"prior": prior})
 
     results = []
     paths = sorted(Path(case_dir).glob("case_*.nc"))
@@ -164,7 +165,7 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
                             nominal_terms=diagnose_kw.get("nominal_terms"),
                             per_coefficient=diagnose_kw.get("per_coefficient", False))
             results[-1] |= refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]),
-                                              prior=prior)
+                                              prior=rep.prior)
         if progress is not None:
             progress(k + 1, len(paths))
     return results

@@ -457,7 +457,7 @@ class _Sealer:
 
 def run(case_dir, *, design: Design | None = None, baselines: bool = True,
         refit_all: bool = True, progress=None, noise: dict | None = None,
-        prior: str = "design") -> list:
+        prior: str | None = None) -> list:
     """Diagnose every record in ``case_dir`` (never reading ``sealed/``); returns one result dict
     per case with the verdict, ranking summary, held-out gaps, timings and baseline answers
     (``refit_all=False`` skips the costly B2 and keeps B1; ``noise``: the diagnosis' noise
@@ -507,7 +507,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
             res["b1_detect"] = bool(min(lb) * len(lb) < 0.05)
         if baselines and refit_all:
             prob = ESGProblem(rec, holdout=design.holdout, **(noise or {}))
-            res |= refit_all_baseline(prob, ranking, np.asarray(rep.noise["std"]), prior=prior)
+            res |= refit_all_baseline(prob, ranking, np.asarray(rep.noise["std"]), prior=rep.prior)
         results.append(res)
         if progress is not None:
             progress(k + 1, len(paths))

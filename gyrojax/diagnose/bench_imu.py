@@ -381,7 +381,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: IMUDesign | None =
 
 
 def run(case_dir, *, design: IMUDesign | None = None, progress=None,
-        baselines: bool = False, prior: str = "design") -> list:
+        baselines: bool = False, prior: str | None = None) -> list:
     """Diagnose every record in ``case_dir`` (never reading ``sealed/``); ``baselines``: B2
     refit-all + BIC per record as well; ``prior``: the diagnosis' Bayes-factor prior (and
     B2's)."""

@@ -239,7 +239,7 @@ def _ool_shape(rng, family, s, shape):
 
 
 def run(case_dir, *, design: PlatformDesign | None = None, progress=None,
-        baselines: bool = False, refit_all: bool = True, prior: str = "design") -> list:
+        baselines: bool = False, refit_all: bool = True, prior: str | None = None) -> list:
     """Diagnose every record in ``case_dir`` (never reading ``sealed/``) with the design's
     split and nominal, refitting every catalogue effect as well (the scorer's oracle). Records
     on one amplitude (the structural cases) have no design shift and keep the same-design

@@ -198,7 +198,7 @@ def _ool_shape(rng, family, ts, n_train):
 
 
 def run(case_dir, *, design: SchulerDesign | None = None, progress=None,
-        prior: str = "design") -> list:
+        prior: str | None = None) -> list:
     """Diagnose every record in ``case_dir`` (never reading ``sealed/``); ``prior``: the
     diagnosis' Bayes-factor prior."""
     design = design or SchulerDesign()
