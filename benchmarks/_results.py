@@ -300,7 +300,7 @@ def shell_note(ranking) -> str:
 
 
 def blind_suite(harness, work, n_cases: int, *, seed: int, design, desc: str,
-                null_fraction: float = 0.3, reuse: bool = False, prior: str = "design",
+                null_fraction: float = 0.3, reuse: bool = False, prior: str | None = None,
                 **generate_kw):
     """Generate ``n_cases`` sealed cases of a rig's harness module (``generate``/``run``/
     ``score``) into ``work``, diagnose them with a progress bar, keep ``results.json`` and score.
@@ -342,7 +342,7 @@ def null_run(harness, work, n_nulls: int, *, seed: int, design, out: str, key: s
 
 
 def diagnose_suite(harness, work, design, desc: str, name: str = "results.json",
-                   prior: str = "design"):
+                   prior: str | None = None):
     """Diagnose the sealed cases in ``work`` under ``design`` (a progress bar) with the
     Bayes-factor ``prior``, keep the results as ``name``; returns ``(results, seconds)``."""
     import json
@@ -400,7 +400,7 @@ def onset_text(g8: dict, ts, n_train: int, digits: int = 1) -> str:
 
 
 def g8_suite(harness, work, n_cases: int, *, seed: int, design, families,
-             prior: str = "design"):
+             prior: str | None = None):
     """Spec §6 G8 on ``n_cases`` more sealed cases of ``families`` (no nulls, lambda 32/64) in
     ``work/g8``: generated, diagnosed (with the Bayes-factor ``prior``) and scored by
     ``harness.localisation_scores``. Returns ``(scores, seconds)``."""
@@ -420,7 +420,7 @@ def g8_line(harness, args, work, design, *, step: str, decay_grid: str, digits: 
     against the truth. ``decay_grid``: the transient's grid in words."""
     g8, secs = g8_suite(harness, work, args.g8_cases, seed=args.seed + 3, design=design,
                         families=(step, "drift_transient"),
-                        prior=getattr(args, "prior", "design"))
+                        prior=getattr(args, "prior", None))
     return (f"- Localisation (spec §6 G8: onsets within 5 % of the record in >= 0.90 at lambda "
             f">= 32; {args.g8_cases} more sealed cases, {step} and drift_transient at "
             f"lambda 32/64, seed {args.seed + 3}, generated and diagnosed in {secs:.0f} s): "

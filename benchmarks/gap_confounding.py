@@ -59,8 +59,9 @@ class _Run:
     def generate(self, *a, **kw):
         return self.harness.generate(*a, **kw)
 
-    def run(self, work, *, design, progress=None):
-        return self.harness.run(work, design=design, progress=progress, **self.run_kw)
+    def run(self, work, *, design, progress=None, prior=None):
+        return self.harness.run(work, design=design, progress=progress, prior=prior,
+                                **self.run_kw)
 
     def score(self, work, results, design):
         if self.harness in (bench_platform, bench_imu):

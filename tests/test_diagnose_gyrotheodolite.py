@@ -295,10 +295,10 @@ def test_a_large_torque_step_is_fitted_with_damped_steps(tmp_path):
     assert prob.notes == []
 
 
-@pytest.mark.parametrize("prior", ["design", "shell"])
+@pytest.mark.parametrize("prior", [None, "design", "shell"])
 def test_blind_harness_diagnoses_under_the_prior_it_is_given(tmp_path, monkeypatch, prior):
     """The blind suites' ``--prior`` reaches the diagnosis: ``run(prior=...)`` calls
-    ``diagnose`` with that prior (none given: the default's)."""
+    ``diagnose`` with that prior (none given: none passed, the rig's default)."""
     from gyrojax.diagnose import _diagnose
     from gyrojax.diagnose import bench_gyrotheodolite as bg
 
@@ -315,5 +315,5 @@ def test_blind_harness_diagnoses_under_the_prior_it_is_given(tmp_path, monkeypat
     monkeypatch.setattr(_diagnose, "diagnose", fake)
     with pytest.raises(Called):
         bg.run(tmp_path, prior=prior)
-    assert seen.get("prior", "design") == prior
+    assert seen.get("prior") == prior
     assert seen["rig"] == "gyrotheodolite"
