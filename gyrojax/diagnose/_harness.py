@@ -129,7 +129,7 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
         t_diag = time.perf_counter() - t0
         v = rep.verdict
         results.append({
-            "sha": _sha(path), "file": path.name, "verdict": v["kind"],
+            "sha": _sha(path), "file": path.name, "verdict": v["kind"], "prior": rep.prior,
             "effects": v.get("effects") or [], "noise_effects": v.get("noise_effects") or [],
             "ranking": [r["name"] for r in rep.ranking],
             "posterior": {r["name"]: r["posterior"] for r in rep.ranking},

@@ -478,7 +478,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
         ranking = rep.ranking
         res = {
             "sha": _sha(path), "file": path.name, "verdict": rep.verdict["kind"],
-            "effects": rep.verdict.get("effects") or [],
+            "prior": rep.prior, "effects": rep.verdict.get("effects") or [],
             "ranking": [r["name"] for r in ranking],
             "posterior": {r["name"]: r["posterior"] for r in ranking},
             "p": {r["name"]: r["p"] for r in ranking},
