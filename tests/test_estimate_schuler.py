@@ -264,9 +264,12 @@ def test_a_stall_counts_as_converged_only_within_a_hundredth_of_a_standard_error
     est = fit_schuler(RIG, ts, y, COND)
     assert bool(est.converged) and float(est.last_step_se) < 1.0
     # restarted at its own optimum with tol 0 the fit can only stop by a stall (or the limit):
-    # it stalls on a step of ~1e-5 standard errors, and stays put
+    # it stalls on a step of ~1e-5 standard errors, and stays put. How many such steps the
+    # solver's noise in the cost lets through before the stall depends on XLA's reduction
+    # order (a few on two threads, up to the limit of 20 on one core), so the count is not
+    # asserted: the stall, the step's size and the place it stays are
     gn = _gauss_newton(RIG, COND, ts, y, w, SIG, est.values / SIG, 20, 0.0)
-    assert bool(gn.stalled) and int(gn.iterations) < 20
+    assert bool(gn.stalled)
     assert float(gn.step_se) < 1e-3
     assert bool(gn.converged)
     assert float(jnp.max(jnp.abs(gn.theta - est.values) / est.stderr)) < 1e-3
