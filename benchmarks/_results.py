@@ -264,25 +264,23 @@ def reusable_cases(work, n_cases: int, seed: int, design) -> list | None:
 
 
 def add_prior_arg(ap, section: str):
-    """``--prior``: the diagnosis' Bayes-factor prior; a suite run under a prior other than the
-    rig's default (shell on the platform, design elsewhere) writes its own section (``section``
-    + ``_`` + the prior) beside the default's."""
-    ap.add_argument("--prior", choices=("design", "shell"), default=None,
-                    help="the diagnosis' Bayes-factor prior (default: the rig's; shell: the "
-                         "noncentrality log-uniform over 8..2^24; section "
-                         f"{section}_PRIOR)")
+    """``--prior``: the diagnosis' Bayes-factor prior; a suite run under the shell writes its
+    own section (``section`` + ``_shell``) beside the default's (the design prior's)."""
+    ap.add_argument("--prior", choices=("design", "shell"), default="design",
+                    help="the diagnosis' Bayes-factor prior (default: design; shell: the "
+                         f"noncentrality log-uniform over 8..2^24, section {section}_shell)")
 
 
 def prior_section(section: str, prior: str | None) -> str:
     """The RESULTS.md section of a suite run under ``prior`` (:func:`add_prior_arg`; ``None``:
-    the rig's default)."""
-    return section + ("" if prior is None else "_" + prior)
+    the diagnosis' default, the design prior)."""
+    return section + ("" if prior in (None, "design") else "_" + prior)
 
 
 def prior_title(prior: str | None) -> tuple[str, str]:
     """A section title's suffix and its command's option for a suite run under ``prior``
-    (``None``, the rig's default: neither)."""
-    return ("", "") if prior is None else (f", the {prior} prior", f" --prior {prior}")
+    (``None`` or the default ``"design"``: neither)."""
+    return ("", "") if prior in (None, "design") else (f", the {prior} prior", f" --prior {prior}")
 
 
 def shell_note(ranking) -> str:

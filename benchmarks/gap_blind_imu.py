@@ -108,7 +108,7 @@ def main(argv=None):
     others = {"--cases": args.cases, "--table-cases": args.table_cases,
               "--calibration-cases": args.calibration_cases, "--g8-cases": args.g8_cases,
               "--aux-cases": args.aux_cases, "--g6-cases": args.g6_cases}
-    if args.prior is not None and any(others.values()):
+    if args.prior != "design" and any(others.values()):
         ap.error(f"--prior {args.prior} runs the per-coefficient suite only (its own section); "
                  "set " + ", ".join(f"{k} 0" for k, v in others.items() if v)
                  + " or leave --prior out")

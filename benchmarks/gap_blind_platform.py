@@ -88,9 +88,9 @@ def main(argv=None):
                          "gap_blind_platform_first_order)")
     add_prior_arg(ap, "gap_blind_platform_first_order")  # with --nominal-terms
     args = ap.parse_args(argv)
-    if args.prior is not None and not args.nominal_terms:
-        ap.error(f"--prior {args.prior} runs the first-order suite only (its own section); "
-                 "add --nominal-terms f,i,o,s or leave --prior out")
+    if args.prior != "design" and (args.nulls > 0 or args.g6_cases > 0):
+        ap.error(f"--prior {args.prior} runs the suites only (their own sections; no posterior "
+                 "enters the null runs' false-alarm rate); set --nulls 0 --g6-cases 0")
     work = work_dir(args, "gyrojax-blind-platform-")
     design = bp.PlatformDesign()
     if args.nominal_terms:
@@ -226,15 +226,16 @@ def nulls(args, work, design):
                       else ")"))
 
 
-def both_splits(work, design, separable, desc, thresholds=None):
+def both_splits(work, design, separable, desc, thresholds=None, prior=None):
     """Score the cases in ``work`` (diagnosed with the same-design split) and diagnose them again
     with the design-shift split: ``(same, shift, t_shift_s)``. ``separable``: per split, the
     families separable on its train design; ``thresholds``: the Bayes oracle's detection
-    thresholds on the same-design split."""
+    thresholds on the same-design split; ``prior``: the diagnosis' Bayes-factor prior."""
     same = bp.score(work, json.loads(open(os.path.join(work, "results.json")).read()),
                     separable=separable["same-design"], oracle_thresholds=thresholds)
     res, t_shift = diagnose_suite(bp, work, dataclasses.replace(design, split="design-shift"),
-                                  desc + " (design shift)", name="results_design_shift.json")
+                                  desc + " (design shift)", name="results_design_shift.json",
+                                  prior=prior)
     return same, bp.score(work, res, separable=separable["design-shift"]), t_shift
 
 
@@ -278,7 +279,7 @@ def _pooled(s, key):
 
 def suite(args, work, design):
     paths, s, t_gen, t_run = blind_suite(bp, work, args.cases, seed=args.seed, design=design,
-                                         desc="platform")
+                                         desc="platform", prior=args.prior)
     full = next(p for p in paths if json.loads(load_record(p).conditions["schedule_json"])[
         "table_amplitudes_g"] == list(design.table_amplitudes_g))
     seps = {k: separability(load_record(full), "platform", np.full(3, units.ARCSEC), split=k)
@@ -288,8 +289,11 @@ def suite(args, work, design):
     per_split = {k: sorted(e for e, v in x.items() if v <= 0.9) for k, x in seps.items()}
     thresholds = oracle_detection_thresholds(load_record(full), "platform",
                                              np.full(3, units.ARCSEC), ORACLE_LAMBDAS)
-    same, shift, t_shift = both_splits(work, design, per_split, "platform", thresholds)
-    lines = ["## Gap diagnosis, blind platform suite D2 (`benchmarks/gap_blind_platform.py`)",
+    same, shift, t_shift = both_splits(work, design, per_split, "platform", thresholds,
+                                       prior=args.prior)
+    title, option = prior_title(args.prior)
+    lines = ["## Gap diagnosis, blind platform suite D2" + title
+             + " (`benchmarks/gap_blind_platform.py" + option + "`)",
              "", machine_line(), "",
              f"Design D2: {json.dumps(dataclasses.asdict(design))} (Table 1 positions). "
              f"{args.cases} sealed cases (seed {args.seed}, 30 % nulls), generated in "
@@ -325,18 +329,19 @@ def suite(args, work, design):
         _, _, t_gen7, t_run7 = blind_suite(bp, g7, args.g7_cases, seed=args.seed + 2,
                                            design=design, desc="platform G7",
                                            null_fraction=0.0, lambdas=(256.0, 1024.0),
-                                           families=bp.MEAN_FAMILIES)
-        same7, shift7, t_shift7 = both_splits(g7, design, per_split, "platform G7")
+                                           families=bp.MEAN_FAMILIES, prior=args.prior)
+        same7, shift7, t_shift7 = both_splits(g7, design, per_split, "platform G7",
+                                              prior=args.prior)
         lines += [f"At larger magnitudes: {args.g7_cases} sealed cases of the five catalogue "
                   f"effects at lambda 256 and 1024 (seed {args.seed + 2}; generated in "
                   f"{t_gen7:.0f} s, diagnosed in {t_run7:.0f} + {t_shift7:.0f} s):", ""]
         lines += split_table(same7, shift7) + [""]
     from gyrojax.diagnose import diagnose
 
-    rep = diagnose(load_record(full), rig="platform", design_advice=False)
-    if rep.prior == "shell":  # the rig's default since stop 75
+    rep = diagnose(load_record(full), rig="platform", design_advice=False, prior=args.prior)
+    if rep.prior == "shell":
         lines[-1:-1] = [shell_note(rep.ranking)]
-    publish(args.out, "gap_blind_platform", lines)
+    publish(args.out, prior_section("gap_blind_platform", args.prior), lines)
 
 
 if __name__ == "__main__":

@@ -1150,7 +1150,7 @@ def test_null_record_no_gap(tmp_path):
 
     rep = diagnose(_record(seed=5), design_advice=False)
     assert rep.kind == "no-gap", rep.markdown()
-    assert rep.prior == "design"  # the ESG's default (the platform's is the shell)
+    assert rep.prior == "design"  # the default prior
     assert 0.9 < rep.noise["std"][0] / units.ARCSEC < 1.1
     # the units check: asked for where the nominal fit misses the record by more than
     # UNITS_CHECK_RATIO times the noise (RMS: train gap 1599 is 40x), not on this record

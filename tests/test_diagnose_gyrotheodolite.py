@@ -298,7 +298,7 @@ def test_a_large_torque_step_is_fitted_with_damped_steps(tmp_path):
 @pytest.mark.parametrize("prior", [None, "design", "shell"])
 def test_blind_harness_diagnoses_under_the_prior_it_is_given(tmp_path, monkeypatch, prior):
     """The blind suites' ``--prior`` reaches the diagnosis: ``run(prior=...)`` calls
-    ``diagnose`` with that prior (none given: none passed, the rig's default)."""
+    ``diagnose`` with that prior (none given: none passed, the diagnosis' default)."""
     from gyrojax.diagnose import _diagnose
     from gyrojax.diagnose import bench_gyrotheodolite as bg
 

@@ -108,7 +108,7 @@ def test_first_order_nominal_screens_each_left_out_coefficient(tmp_path, capsys)
     lib = library("platform", nominal_terms=FIRST_ORDER_TERMS)
     assert len(lib) == 22 and "anisoelastic_oo" not in lib and lib["D_io_z"] == "g2"
     rep = diagnose(rec, rig="platform", nominal_terms=FIRST_ORDER_TERMS)
-    assert rep.prior == "shell"  # the platform's default (docs/notes.md, stop 75)
+    assert rep.prior == "design"  # the default (docs/notes.md, stop 75: not the shell)
     assert len(rep.nominal) == 12 and "D_ii_y" not in rep.nominal
     assert {r["name"] for r in rep.ranking} == set(lib)
     v = rep.verdict
@@ -129,18 +129,16 @@ def test_first_order_nominal_screens_each_left_out_coefficient(tmp_path, capsys)
         refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]), prior="scale")
     top = max(rep.ranking, key=lambda r: r["posterior"])
     assert top["name"] == "D_ii_y" and top["posterior"] > 0.9
-    # the design prior from the CLI (the default before stop 75): the same verdict, the
-    # prior named in the JSON and the report
-    out = tmp_path / "design.json"
+    # the shell prior (docs/notes.md, stop 71) from the CLI: the same verdict, the prior named
+    # in the JSON and the report
+    out = tmp_path / "shell.json"
     assert main(["diagnose", "--rig", "platform", str(path), "--nominal-terms", "f,i,o,s",
-                 "--prior", "design", "--json", str(out)]) == 0
+                 "--prior", "shell", "--json", str(out)]) == 0
     js = json.loads(out.read_text())
-    assert js["prior"] == "design" and js["verdict"]["effects"] == ["D_ii_y"], js["verdict"]
-    top_d = max(js["candidates"], key=lambda r: r["posterior"])
-    assert top_d["name"] == "D_ii_y" and top_d["posterior"] > 0.9
-    assert "posteriors under the design prior" in capsys.readouterr().out
-    with pytest.raises(ValueError, match="prior='flat'.*None"):
-        diagnose(rec, rig="platform", prior="flat")
+    assert js["prior"] == "shell" and js["verdict"]["effects"] == ["D_ii_y"], js["verdict"]
+    top_s = max(js["candidates"], key=lambda r: r["posterior"])
+    assert top_s["name"] == "D_ii_y" and top_s["posterior"] > 0.9
+    assert "posteriors under the shell prior" in capsys.readouterr().out
     for argv, field in ((["--nominal-terms", "f,i,x"], "'x'"),
                         (["--nominal-terms", "i,o,s"], "lack 'f'")):
         capsys.readouterr()
@@ -476,12 +474,11 @@ def test_catalogue_units_and_priors_are_the_rigs():
     assert len(seen) == 27 + 12  # every drift coefficient but D_f, and the other four effects
 
 
-def test_blind_scripts_diagnose_under_the_rigs_default_prior(tmp_path, monkeypatch):
+def test_blind_scripts_diagnose_under_the_prior_they_are_given(tmp_path, monkeypatch):
     """The blind scripts' shared runner (``benchmarks/_results.diagnose_suite``, as the suites
-    and ``gap_confounding.py`` call it) passes no prior unless asked, so the platform's cases
-    are diagnosed under the rig's default (the shell) and the results say so; asked, under
-    the one given (stop 75: the runner passed "design" by default, and the confounding
-    script's runner took no prior at all)."""
+    and ``gap_confounding.py`` call it) passes no prior unless asked, so the cases are
+    diagnosed under the diagnosis' default (design), and each result says so; asked, under the
+    one given (stop 75: the confounding script's runner took no prior at all and failed)."""
     import sys
 
     from gyrojax.diagnose import bench_platform as bp
@@ -495,7 +492,7 @@ def test_blind_scripts_diagnose_under_the_rigs_default_prior(tmp_path, monkeypat
     bp.generate(tmp_path, 1, seed=3, design=design, null_fraction=1.0)
     run = gap_confounding._Run(bp, refit_all=False)
     res, _ = _results.diagnose_suite(run, tmp_path, design, "default prior")
-    assert [r["prior"] for r in res] == ["shell"]
-    res, _ = _results.diagnose_suite(run, tmp_path, design, "design prior", prior="design")
     assert [r["prior"] for r in res] == ["design"]
+    res, _ = _results.diagnose_suite(run, tmp_path, design, "shell prior", prior="shell")
+    assert [r["prior"] for r in res] == ["shell"]
     sys.modules.pop("gap_confounding"), sys.modules.pop("_results")

@@ -113,7 +113,7 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
     (:func:`~gyrojax.diagnose.bench.refit_all_baseline`: its answers, wall time and refit count,
     beside the screening's time). ``diagnose_kw``: more arguments of the diagnosis (e.g. the
     platform's ``nominal_terms``). ``prior``: the diagnosis' Bayes-factor prior (and B2's;
-    ``None``: the rig's default)."""
+    ``None``: the diagnosis' default)."""
     from ._diagnose import _problem, diagnose
 
     diagnose_kw = dict(diagnose_kw or {}) | ({} if prior is None else {"prior": prior})

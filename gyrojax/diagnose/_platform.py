@@ -197,11 +197,6 @@ class PlatformProblem:
     """A platform test record reduced to block means of the centred angles."""
 
     rig_name = "platform"
-    # the posteriors' prior when diagnose() is given none: every effect of this rig is linear in
-    # its coefficients, and on the first-order nominal 18 of 22 have one coefficient each, where
-    # the shell's factor is exact; its posteriors are the calibrated ones on both platform
-    # suites (docs/notes.md, stop 75)
-    default_prior = "shell"
     SPLITS = {"same-design": "same design: the last part of every dwell held out",
               "design-shift": "design shift: the last vibration amplitude's run held out"}
 
