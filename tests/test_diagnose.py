@@ -1505,6 +1505,7 @@ def test_blind_harness_is_sealed_and_scores(tmp_path):
     shutil.move(sealed, hidden)  # the diagnosis runs with the manifest out of reach
     results = bench.run(tmp_path)
     shutil.move(hidden, sealed)
+    assert {r["prior"] for r in results} == {"design"}  # none given: the diagnosis' default
     for r in results:  # refit (Gauss-Newton on the exact model) against one-step screening
         for name, lbf in r["b2_lr_log_bf"].items():
             assert lbf == pytest.approx(r["log_bf"][name], rel=0.05, abs=0.5), (name, r["file"])
