@@ -93,11 +93,11 @@ def suite(args, work, design):
     if args.g8_cases:
         lines.insert(-1, g8_line(bg, args, work, design, step="torque_step",
                                  decay_grid="8 values, 3-30 min", digits=0))
-    from gyrojax.diagnose import diagnose
+    if args.prior == "shell":
+        from gyrojax.diagnose import diagnose
 
-    rep = diagnose(load_record(paths[0]), rig="gyrotheodolite", design_advice=False,
-                   prior=args.prior)
-    if rep.prior == "shell":
+        rep = diagnose(load_record(paths[0]), rig="gyrotheodolite", design_advice=False,
+                       prior="shell")
         lines.insert(-1, shell_note(rep.ranking))
     publish(args.out, prior_section("gap_blind_gyrotheodolite", args.prior), lines)
 
