@@ -375,9 +375,13 @@ def cmd_demo(args):
     print(f"# gyrojax demo: built-in record {path.name} ({rec.n_samples} samples, 24 h, "
           f"scheme {scheme}, latitude {lat} deg, 1 arcsec noise)")
     effects = ("base_misalignment",)
-    summary = {}
+    if args.plot:  # a bad figure name fails now, not after the fits
+        from .plots import figure_format
+
+        figure_format(args.plot)
+    summary, fits = {}, {}
     for method in ("regression", "gauss-newton", "kalman"):
-        rep = fit(rig, rec, cond, effects=effects, method=method)
+        rep = fits[method] = fit(rig, rec, cond, effects=effects, method=method)
         print(f"\n## {method}: residual RMS {rep.to_json()['residual_rms_arcsec']:.3f} arcsec")
         print(f"{'parameter':<10} {'estimate':>12} {'stderr':>10} {'truth':>12} {'error':>10}  unit")
         for n in rep.free:
@@ -408,12 +412,20 @@ def cmd_demo(args):
           f"held-out gap {v['heldout_gap_before']:.3g} -> "
           f"{'-' if after is None else f'{after:.3g}'} (0 = model and data agree)")
     if args.plot:
-        from .plots import plot_fit
+        from .plots import plot_fit, plot_gap_report
 
-        plot_fit(rig, rec, cond, fit(rig, rec, cond, effects=effects, method="gauss-newton"),
-                 args.plot)
+        plot_fit(rig, rec, cond, fits["gauss-newton"], args.plot)
         print(f"wrote {args.plot}")
+        gap_plot = _gap_figure_path(args.plot)
+        plot_gap_report(gap, gap_plot)
+        print(f"wrote {gap_plot} (the diagnosis: gap map, residuals before and after, ranking)")
     _emit_json(summary, args.json)
+
+
+def _gap_figure_path(path) -> Path:
+    """The demo's diagnosis figure beside its fit figure: ``demo.png`` -> ``demo_gap.png``."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}_gap{path.suffix}")
 
 
 def cmd_observer(args):
@@ -659,8 +671,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="fit and diagnose the built-in example record (the main job)")
     p.add_argument("--plot", metavar="FILE",
-                   help="save trajectory/residual figure (.png, .pdf or .svg)")
-    p.add_argument("--json", metavar="FILE", help="write the fits and observability report")
+                   help="save the fit's trajectory/residual figure (.png, .pdf or .svg) and "
+                        "the diagnosis' figure beside it (FILE_gap: gap map, residuals before "
+                        "and after, ranking)")
+    p.add_argument("--json", metavar="FILE", help="write the fits, observability and diagnosis")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("simulate", help="simulate a bench test to a record file")

@@ -120,12 +120,15 @@ def plot_gap_report(report, path=None):
     residual over its null prediction, 95 % EDF intervals) and the position / condition / aux cells
     (-log10 q)."""
     plt = _plt()
-    fig = plt.figure(figsize=(11, 10.5))
-    gs = fig.add_gridspec(4, 2, height_ratios=[1.1, 1.0, 1.0, 1.0])
-    ax_map = fig.add_subplot(gs[0, :])
     cells = [x for x in report.where if x["axis"] == "time"]
     chans = list(report.channels)
     levels = sorted({x["level"] for x in cells})
+    n_rows = len(levels) * len(chans)
+    # the map grows with its rows (dyadic levels x channels: 30 on a six-channel IMU record)
+    h_map = max(1.1, 0.09 * n_rows)
+    fig = plt.figure(figsize=(11, 2.56 * (h_map + 3.0)))
+    gs = fig.add_gridspec(4, 2, height_ratios=[h_map, 1.0, 1.0, 1.0])
+    ax_map = fig.add_subplot(gs[0, :])
     widths = [min(x["t1"] - x["t0"] for x in cells if x["level"] == lv) for lv in levels]
     cmap = plt.get_cmap("magma_r")
     for x in cells:
@@ -133,17 +136,11 @@ def plot_gap_report(report, path=None):
         val = min(-np.log10(max(x["q"], 1e-300)), 10.0)
         ax_map.barh(row, (x["t1"] - x["t0"]) / units.HOUR, left=x["t0"] / units.HOUR, height=0.9,
                     color=cmap(val / 10.0), edgecolor="k" if x["significant"] else "none", lw=0.6)
-    ax_map.set_yticks(range(len(widths) * len(chans)))
-    ax_map.set_yticklabels([f"{w / units.HOUR:.2g} h {c}" for w in widths for c in chans],
-                           fontsize=7)
-    ax_map.invert_yaxis()
+    _label_map_rows(ax_map, widths, chans)
     ax_map.set_xlabel("time [h]")
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, 10))
     fig.colorbar(sm, ax=ax_map, label="-log10 q (capped at 10)")
-    freq = [x for x in report.where if x["axis"] == "frequency" and x["significant"]]
-    ax_map.set_title(f"verdict: {report.kind} {', '.join(report.verdict.get('effects') or [])}"
-                     + (f"; significant lines: {', '.join(x['cell'] for x in freq)[:90]}"
-                        if freq else ""), fontsize=9)
+    ax_map.set_title(_map_title(report), fontsize=9)
     t_h = report.t / units.HOUR
     split = report.t[report.n_train - 1] / units.HOUR if report.n_heldout else None
     for k, (res, title) in enumerate([(report.residual_all, "nominal model"),
@@ -160,7 +157,7 @@ def plot_gap_report(report, path=None):
         ax.set_ylabel("residual / noise")
         ax.set_title(f"whitened residual, {title} (train | held-out)", fontsize=9)
         if res is not None:  # a legend without lines is a matplotlib warning, and empty
-            ax.legend(fontsize=7)
+            ax.legend(fontsize=6, ncol=min(len(chans), 6), loc="upper right", framealpha=0.7)
     ax_rank = fig.add_subplot(gs[1:3, 1])
     names = [r["name"] for r in report.ranking][::-1]
     post = [r["posterior"] for r in report.ranking][::-1]
@@ -181,6 +178,47 @@ def plot_gap_report(report, path=None):
     if path:
         _save(fig, path)
     return fig
+
+
+def _label_map_rows(ax, widths, chans):
+    """The gap map's rows: each channel on a row of its own (minor ticks), each dyadic level's
+    window length once beside its group (major ticks), a rule between the groups."""
+    n_ch = len(chans)
+    rows = range(len(widths) * n_ch)
+    ax.set_yticks(rows, minor=True)
+    ax.set_yticklabels([c for _ in widths for c in chans], minor=True)
+    # tick_params, not set_yticklabels(fontsize=): that styles only the tick objects that exist
+    ax.tick_params(axis="y", which="minor", labelsize=7 if len(rows) <= 16 else 5)
+    if n_ch == 1:  # one row per level: the length is the row's label
+        ax.set_yticks(rows)
+        ax.set_yticklabels([f"{w / units.HOUR:.2g} h" for w in widths])
+        ax.tick_params(axis="y", which="major", labelsize=7)
+        ax.tick_params(axis="y", which="minor", left=False, labelleft=False)
+    else:
+        ax.set_yticks([k * n_ch + (n_ch - 1) / 2 for k in range(len(widths))])
+        ax.set_yticklabels([f"{w / units.HOUR:.2g} h" for w in widths])
+        ax.tick_params(axis="y", which="major", length=0, labelsize=7,
+                       pad=4 + 4.2 * max(len(c) for c in chans))
+        for k in range(1, len(widths)):
+            ax.axhline(k * n_ch - 0.5, color="0.4", lw=0.6, zorder=3)
+    ax.set_ylim(len(rows) - 0.5, -0.5)  # the whole record first, shorter windows below
+    ax.set_ylabel("window length, channel", fontsize=8)
+
+
+def _map_title(report) -> str:
+    """The verdict and the significant frequency lines (each named once, with its count of
+    channels), wrapped to two lines at most."""
+    import textwrap
+
+    head = f"verdict: {report.kind} {', '.join(report.verdict.get('effects') or [])}".rstrip()
+    names = [x["cell"] for x in report.where if x["axis"] == "frequency" and x["significant"]]
+    if names:
+        counts = dict.fromkeys(names, 0)
+        for nm in names:
+            counts[nm] += 1
+        lines = ", ".join(nm if k == 1 else f"{nm} x{k}" for nm, k in counts.items())
+        head += f"; significant lines: {lines}"
+    return "\n".join(textwrap.wrap(head, 150, max_lines=2, placeholder=" ..."))
 
 
 def _plot_tau_band(ax, where, chans):

@@ -1161,8 +1161,38 @@ def test_null_record_no_gap(tmp_path):
     assert rep.refits == []
     # the figure of a report with no refit: its residual panel has no lines (a legend there was
     # a matplotlib warning, an error under this suite's filterwarnings)
-    plot_gap_report(rep, tmp_path / "gap.png")
+    fig = plot_gap_report(rep, tmp_path / "gap.png")
     assert (tmp_path / "gap.png").stat().st_size > 10_000
+    # the map's rows: every channel on each dyadic level (minor ticks), each level's window
+    # length once (major ticks), the whole record first
+    ax_map = fig.axes[0]
+    levels = sorted({x["level"] for x in rep.where if x["axis"] == "time"})
+    minor = [t.get_text() for t in ax_map.get_yticklabels(minor=True)]
+    assert minor == list(rep.channels) * len(levels)
+    major = [t.get_text() for t in ax_map.get_yticklabels()]
+    assert len(major) == len(levels) and major[0] == "18 h"  # 18 h train of a 24 h record
+    assert all(t.get_fontsize() == 7 for t in ax_map.get_yticklabels(minor=True))
+
+
+def test_gap_figure_title_names_each_line_once_and_the_demo_figure_path():
+    import types
+
+    from gyrojax.cli import _gap_figure_path
+    from gyrojax.plots import _map_title
+
+    where = [{"axis": "frequency", "cell": c, "significant": s} for c, s in
+             [("sidereal day (23.93 h)", True), ("sidereal day (23.93 h)", True),
+              ("half sidereal day (11.97 h)", True), ("largest line (9.01 h)", False)]]
+    rep = types.SimpleNamespace(kind="attributed", verdict={"effects": ["rotor_tilt"]},
+                                where=where)
+    assert _map_title(rep) == ("verdict: attributed rotor_tilt; significant lines: sidereal day "
+                               "(23.93 h) x2, half sidereal day (11.97 h)")
+    rep.where = where * 20  # a long list: two lines at most
+    rep.where += [{"axis": "frequency", "cell": f"largest line ({k} h)", "significant": True}
+                  for k in range(40)]
+    assert len(_map_title(rep).splitlines()) == 2 and _map_title(rep).endswith(" ...")
+    assert str(_gap_figure_path("out/demo.png")) == "out/demo_gap.png"
+    assert str(_gap_figure_path("fig.svg")) == "fig_gap.svg"
 
 
 def test_rotor_tilt_attributed_and_heldout_gap_closes(tilt_report):
