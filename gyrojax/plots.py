@@ -202,7 +202,7 @@ def _label_map_rows(ax, widths, chans):
         for k in range(1, len(widths)):
             ax.axhline(k * n_ch - 0.5, color="0.4", lw=0.6, zorder=3)
     ax.set_ylim(len(rows) - 0.5, -0.5)  # the whole record first, shorter windows below
-    ax.set_ylabel("window length, channel", fontsize=8)
+    ax.set_ylabel("window length" if n_ch == 1 else "window length, channel", fontsize=8)
 
 
 def _map_title(report) -> str:
