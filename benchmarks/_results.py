@@ -264,23 +264,29 @@ def reusable_cases(work, n_cases: int, seed: int, design) -> list | None:
 
 
 def add_prior_arg(ap, section: str):
-    """``--prior``: the diagnosis' Bayes-factor prior; a suite run under the shell writes its
-    own section (``section`` + ``_shell``) beside the default's (the design prior's)."""
-    ap.add_argument("--prior", choices=("design", "shell"), default="design",
-                    help="the diagnosis' Bayes-factor prior (default: design; shell: the "
-                         f"noncentrality log-uniform over 8..2^24, section {section}_shell)")
+    """``--prior``: the diagnosis' Bayes-factor prior (default: the diagnosis' own for the
+    suite's catalogue, :func:`gyrojax.diagnose.default_prior`); a suite run under the shell
+    writes its own section (``section`` + ``_shell``) beside the design prior's."""
+    ap.add_argument("--prior", choices=("design", "shell"), default=None,
+                    help="the diagnosis' Bayes-factor prior (default: the diagnosis' own: "
+                         "shell for a catalogue of single coefficients, design for effect "
+                         "families; design writes section " + section + ", shell "
+                         + section + "_shell)")
 
 
 def prior_section(section: str, prior: str | None) -> str:
     """The RESULTS.md section of a suite run under ``prior`` (:func:`add_prior_arg`; ``None``:
-    the diagnosis' default, the design prior)."""
+    the design prior): ``section`` for the design prior, ``section_<prior>`` for another."""
     return section + ("" if prior in (None, "design") else "_" + prior)
 
 
-def prior_title(prior: str | None) -> tuple[str, str]:
-    """A section title's suffix and its command's option for a suite run under ``prior``
-    (``None`` or the default ``"design"``: neither)."""
-    return ("", "") if prior in (None, "design") else (f", the {prior} prior", f" --prior {prior}")
+def prior_title(prior: str | None, default: str = "design") -> tuple[str, str]:
+    """A section title's suffix (the prior, where not the design prior) and its command's
+    option (``--prior``, where ``prior`` is not the suite's ``default``) for a suite run under
+    ``prior`` (``None``: the design prior)."""
+    prior = prior or "design"
+    return ("" if prior == "design" else f", the {prior} prior",
+            "" if prior == default else f" --prior {prior}")
 
 
 def shell_note(ranking) -> str:

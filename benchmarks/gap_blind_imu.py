@@ -10,8 +10,8 @@ and the out-of-library effects. Writes the section ``gap_blind_imu`` of RESULTS.
     python benchmarks/gap_blind_imu.py --cases 0 --nulls 1000 --null-suite static   # G1, one design
     python benchmarks/gap_blind_imu.py --cases 0 --calibration-cases 100   # G4 on the static design
     python benchmarks/gap_blind_imu.py --cases 0 --g6-cases 40   # G6: cw/ccw, temperature cycle
-    python benchmarks/gap_blind_imu.py --cases 0 --per-coefficient-cases 120   # G10, K = 40
-    python benchmarks/gap_blind_imu.py --cases 0 --per-coefficient-cases 160 --prior shell
+    python benchmarks/gap_blind_imu.py --cases 0 --per-coefficient-cases 160   # G10, K = 40
+    python benchmarks/gap_blind_imu.py --cases 0 --per-coefficient-cases 160 --prior design
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ def main(argv=None):
     others = {"--cases": args.cases, "--table-cases": args.table_cases,
               "--calibration-cases": args.calibration_cases, "--g8-cases": args.g8_cases,
               "--aux-cases": args.aux_cases, "--g6-cases": args.g6_cases}
-    if args.prior != "design" and any(others.values()):
+    if args.prior not in (None, "design") and any(others.values()):
         ap.error(f"--prior {args.prior} runs the per-coefficient suite only (its own section); "
                  "set " + ", ".join(f"{k} 0" for k, v in others.items() if v)
                  + " or leave --prior out")
@@ -206,9 +206,12 @@ def per_coefficient(args, work):
     import functools
     import types
 
-    from gyrojax.diagnose import diagnose
+    from gyrojax.diagnose import default_prior, diagnose
 
     design = PER_COEFFICIENT["multi, per coefficient"]
+    # a catalogue of single coefficients: the diagnosis' default prior is the shell
+    default = default_prior("imu", per_coefficient=True)
+    args.prior = args.prior or default
     fams = bench_imu.mean_families(design)
     n = args.per_coefficient_cases
     t0 = time.perf_counter()
@@ -230,7 +233,7 @@ def per_coefficient(args, work):
     rep = diagnose(rec, rig="imu", per_coefficient=True, prior=args.prior)
     t_ref = time.perf_counter() - t1
     b2 = ", ".join(f"{lam} {_fmt(b['b2_top1'])}" for lam, b in s["by_lambda"].items())
-    title, option = prior_title(args.prior)
+    title, option = prior_title(args.prior, default)
     lines = ["## Gap diagnosis, IMU per coefficient: K = "
              f"{s['cost']['n_effects']} effects" + title
              + " (`benchmarks/gap_blind_imu.py --per-coefficient-cases N" + option + "`)", "",

@@ -26,7 +26,9 @@ of N sealed nulls (spec §6 G1 asks for >= 1000 per design) as the section
 ``--nominal-terms f,i,o,s`` runs a separate suite on the first-order nominal model (bias and g
 terms, 12 coefficients): each of the 18 g^2 coefficients it leaves out is a catalogue effect of
 its own, so the diagnosis screens 22 effects (spec §6 G10's K >= 20), with B2 refit-all + BIC
-timed on every record beside the screening. Section ``gap_blind_platform_first_order``.
+timed on every record beside the screening. Its catalogue is one of single coefficients, so
+the diagnosis' default prior there is the shell (section ``gap_blind_platform_first_order_shell``;
+``--prior design``: ``gap_blind_platform_first_order``).
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ from _results import fmt_rate as _fmt  # noqa: E402
 
 from gyrojax import units  # noqa: E402
 from gyrojax.diagnose import bench_platform as bp  # noqa: E402
+from gyrojax.diagnose import default_prior  # noqa: E402
 from gyrojax.diagnose._harness import (  # noqa: E402
     closed_loop_scores,
     oracle_detection_thresholds,
@@ -88,7 +91,7 @@ def main(argv=None):
                          "gap_blind_platform_first_order)")
     add_prior_arg(ap, "gap_blind_platform_first_order")  # with --nominal-terms
     args = ap.parse_args(argv)
-    if args.prior != "design" and (args.nulls > 0 or args.g6_cases > 0):
+    if args.prior not in (None, "design") and (args.nulls > 0 or args.g6_cases > 0):
         ap.error(f"--prior {args.prior} runs the suites only (their own sections; no posterior "
                  "enters the null runs' false-alarm rate); set --nulls 0 --g6-cases 0")
     work = work_dir(args, "gyrojax-blind-platform-")
@@ -96,6 +99,8 @@ def main(argv=None):
     if args.nominal_terms:
         terms = tuple(t.strip() for t in args.nominal_terms.split(",") if t.strip())
         design = dataclasses.replace(design, nominal_terms=terms)
+        # a catalogue of single coefficients: the diagnosis' default prior is the shell
+        args.prior = args.prior or default_prior("platform", nominal_terms=terms)
         if args.cases > 0:
             many_effects(args, work, design)
         if args.nulls > 0:
@@ -149,7 +154,8 @@ def many_effects(args, work, design):
     t_ref = time.perf_counter() - t1
     c = s["cost"]
     b2 = ", ".join(f"{lam} {_fmt(b['b2_top1'])}" for lam, b in s["by_lambda"].items())
-    title, option = prior_title(args.prior)
+    title, option = prior_title(args.prior, default_prior("platform",
+                                                          nominal_terms=design.nominal_terms))
     lines = ["## Gap diagnosis, platform D2 with a first-order nominal: K = "
              f"{len(fams)} effects" + title
              + f" (`benchmarks/gap_blind_platform.py --nominal-terms {terms}" + option + "`)",

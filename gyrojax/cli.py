@@ -841,13 +841,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha", type=float, default=0.05,
                    help="significance level after Benjamini-Hochberg control (default 0.05)")
     p.add_argument("--prior", choices=("design", "shell", "shape", "zellner", "scale"),
-                   default="design",
-                   help="Bayes-factor prior of the posteriors (default design: Gaussian "
-                        "coefficients expecting noncentrality 32; shell: the noncentrality "
-                        "log-uniform over 8 to 2^24 and never near 0: better calibrated on "
-                        "separable one-coefficient effects, e.g. --nominal-terms f,i,o,s; "
-                        "over-commits where effects are near-collinear, e.g. "
-                        "--per-coefficient; see docs/notes.md, stop 71)")
+                   default=None,
+                   help="Bayes-factor prior of the posteriors (default: shell for a catalogue "
+                        "of single coefficients (--nominal-terms, --per-coefficient), design "
+                        "for effect families; design: Gaussian coefficients expecting "
+                        "noncentrality 32; shell: the noncentrality log-uniform over 8 to "
+                        "2^24 and never near 0, exact for one-coefficient effects; see "
+                        "docs/notes.md, stops 71 and 76)")
     p.add_argument("--null-draws", type=int, default=499,
                    help="residuals drawn from the linearised null to calibrate the BH level to "
                         "a false-alarm rate of exactly --alpha (default 499; 0: plain weighted "

@@ -787,6 +787,7 @@ def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, ca
     assert "g_sensitivity:gsxy" in text and "Cannot be told apart on this design" in text
     rep = json.loads(out.read_text())
     assert len(rep["candidates"]) == 40
+    assert rep["prior"] == "shell"  # a catalogue of single coefficients (docs/notes.md, stop 76)
     # an accelerometer misalignment's antisymmetric part is a common rotation, which the poses'
     # tilts absorb: maxy and mayx are seen only through their sum (canonical correlation 1)
     pair = {"misalignment:maxy", "misalignment:mayx"}
@@ -807,7 +808,8 @@ def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, ca
     assert rep["candidates"][0]["posterior"] > 0.9
     rf = next(r for r in rep["refits"] if r["effects"] == ["g_sensitivity:gsxy"])
     assert abs(rf["coefficients"]["gsxy"] - 15.0) < 3 * rf["std_errors"]["gsxy"]
-    b2 = refit_all_baseline(per, rep["candidates"], np.asarray(rep["noise"]["std"]))
+    b2 = refit_all_baseline(per, rep["candidates"], np.asarray(rep["noise"]["std"]),
+                            prior=rep["prior"])
     assert b2["n_refits"] == 70
     assert b2["b2_lr_choice"] == b2["b2_choice"] == "g_sensitivity:gsxy"
     assert main(["diagnose", str(path), "--rig", "esg", "--per-coefficient"]) == 2
