@@ -72,9 +72,15 @@ from ._stats import (
     visible,
 )
 
-__all__ = ["diagnose", "library", "RIGS"]
+__all__ = ["diagnose", "default_prior", "library", "RIGS"]
 
 RIGS = ("esg", "imu", "platform", "schuler", "gyrotheodolite")
+
+
+def _unknown_rig(rig) -> ValueError:
+    return ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: {', '.join(RIGS)}")
+
+
 LABEL_CHANNELS = ("position", "amplitude")  # segment labels, not measurements
 _CONFOUNDED_FLAGS = ("structurally confounded", "no signature")  # the nominal fit absorbs part or all
 
@@ -104,8 +110,7 @@ def library(rig: str, nominal_terms=None) -> dict:
     elif rig == "gyrotheodolite":
         from ._gyrotheodolite import GYROTHEODOLITE_LIBRARY as lib
     else:
-        raise ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: "
-                         f"{', '.join(RIGS)}")
+        raise _unknown_rig(rig)
     return {k: v[0] for k, v in lib.items()}
 
 
@@ -175,7 +180,7 @@ def _rig_problem(record, rig, holdout, noise_std, effects, order, split, noise_k
         _check_effects([effect_family_name(e) for e in effects or ()], IMU_LIBRARY, rig)
         return IMUProblem(record, holdout=holdout, noise_std=noise_std, effects=effects,
                           per_coefficient=per_coefficient)
-    raise ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: {', '.join(RIGS)}")
+    raise _unknown_rig(rig)
 
 
 def _check_record(record: BenchRecord, holdout: float):
@@ -286,8 +291,7 @@ def default_prior(rig: str = "esg", *, nominal_terms=None, per_coefficient: bool
     better (platform D2 0.228 / 0.042 against 0.230 / 0.061, IMU static ECE 0.082 against
     0.095, the gyrotheodolite's Brier 0.403 against 0.414)."""
     if rig not in RIGS:
-        raise ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: "
-                         f"{', '.join(RIGS)}")
+        raise _unknown_rig(rig)
     by_term = per_coefficient or (rig == "platform" and nominal_terms is not None)
     return "shell" if by_term else "design"
 
