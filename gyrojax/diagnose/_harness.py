@@ -116,7 +116,7 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
     ``None``: the diagnosis' default)."""
     from ._diagnose import _problem, diagnose
 
-    diagnose_kw = dict(diagnose_kw or {}) | ({} if prior is None else {"prior": prior})
+    diagnose_kw = dict(diagnose_kw or {}) | {"prior": prior}  # None: the diagnosis' default
 
     results = []
     paths = sorted(Path(case_dir).glob("case_*.nc"))

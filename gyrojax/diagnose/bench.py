@@ -472,8 +472,8 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
     for k, path in enumerate(paths):
         rec = load_record(path, channels=("alpha1", "alpha2"))
         t0 = time.perf_counter()
-        rep = diagnose(rec, holdout=design.holdout, design_advice=False,
-                       **({} if prior is None else {"prior": prior}), **(noise or {}))
+        rep = diagnose(rec, holdout=design.holdout, design_advice=False, prior=prior,
+                       **(noise or {}))
         t_diag = time.perf_counter() - t0
         ranking = rep.ranking
         res = {
