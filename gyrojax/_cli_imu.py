@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._cli_base import AbstractRigCommands, UsageError, emit_json, load, parse_sets
+
 ACCELEROMETERS = ("ax", "ay", "az")
 GYROS = ("wx", "wy", "wz")
 DEFAULT_ERRORS = {"bgx": 10.0, "bgy": -5.0, "bgz": 3.0, "bax": 5.0, "bay": -3.0, "baz": 2.0}
@@ -43,7 +45,7 @@ def orientations(means, *, within_deg: float = SAME_POSE_DEG) -> int:
     return len(heads)
 
 
-def simulate(args, parse_sets, emit_json, usage_error):
+def simulate(args):
     import jax
 
     from . import units
@@ -52,25 +54,25 @@ def simulate(args, parse_sets, emit_json, usage_error):
     from .record import MAX_SAMPLES
 
     if args.hours is not None:
-        raise usage_error(f"--hours {args.hours:g}: an IMU record lasts --poses x (--dwell + "
+        raise UsageError(f"--hours {args.hours:g}: an IMU record lasts --poses x (--dwell + "
                           f"{TURN_S:g} s of turn); set those instead")
     sample = 0.01 if args.sample is None else args.sample
     if args.poses < 1:
-        raise usage_error(f"--poses {args.poses} must be >= 1")
+        raise UsageError(f"--poses {args.poses} must be >= 1")
     for name, v, positive in (("--dwell", args.dwell, True), ("--sample", sample, True),
                               ("--arw", args.arw, False), ("--vrw", args.vrw, False)):
         if not (np.isfinite(v) and (v > 0 if positive else v >= 0)):
-            raise usage_error(f"{name} {v:g} must be {'> 0' if positive else '>= 0'}")
+            raise UsageError(f"{name} {v:g} must be {'> 0' if positive else '>= 0'}")
     rate_hz = 1.0 / sample
     shortest = min(args.dwell, TURN_S)
     if sample > shortest:
-        raise usage_error(f"--sample {sample:g} s is longer than "
+        raise UsageError(f"--sample {sample:g} s is longer than "
                           + (f"--dwell {args.dwell:g} s" if args.dwell < TURN_S
                              else f"the {TURN_S:g}-s turns between poses")
                           + f": sample at {shortest:g} s or faster")
     n = round(args.poses * (args.dwell + TURN_S) * rate_hz)
     if n > MAX_SAMPLES:
-        raise usage_error(f"--poses {args.poses} x (--dwell {args.dwell:g} + {TURN_S:g} s) at "
+        raise UsageError(f"--poses {args.poses} x (--dwell {args.dwell:g} + {TURN_S:g} s) at "
                           f"--sample {sample:g} s gives {n:.3g} samples; a simulated record holds "
                           f"at most {MAX_SAMPLES:,}: fewer or shorter poses, or sample slower")
     lat = float("nan") if args.latitude is None else args.latitude
@@ -111,7 +113,7 @@ def _mm(x) -> str:
     return "-" if x is None else f"{x * 1e3:.3f}"
 
 
-def fit(args, load_imu, emit_json, usage_error):
+def fit(args):
     from .estimate.multiposition import (
         ACCEL_NAMES,
         GYRO_NAMES,
@@ -124,20 +126,20 @@ def fit(args, load_imu, emit_json, usage_error):
     from .models.imu import IMUConditions, IMURig
 
     if args.method not in (None, "levenberg-marquardt"):
-        raise usage_error(f"--method {args.method!r}: the IMU's multi-position calibration is one "
+        raise UsageError(f"--method {args.method!r}: the IMU's multi-position calibration is one "
                           "Levenberg-Marquardt fit of |f| = g (and of the turns for the gyros); "
                           "omit --method")
     rec = load_imu(args)
     missing = [c for c in ACCELEROMETERS if c not in rec.channels]
     if missing:
-        raise usage_error(f"{args.record}: no {' '.join(missing)} channel; the multi-position "
+        raise UsageError(f"{args.record}: no {' '.join(missing)} channel; the multi-position "
                           "calibration needs all three accelerometers (ax ay az, m/s^2), and "
                           "wx wy wz (rad/s) for the gyros")
     gravity = IMUConditions.from_record(rec).gravity
     segs = detect_static(rec)
     if len(segs) < 2:
         t = np.asarray(rec.t, float)
-        raise usage_error(f"{args.record}: {len(segs)} static pose(s) found in {t[-1] - t[0]:.4g} "
+        raise UsageError(f"{args.record}: {len(segs)} static pose(s) found in {t[-1] - t[0]:.4g} "
                           f"s at {1 / np.median(np.diff(t)):.4g} Hz; the multi-position "
                           "calibration needs a record of still poses (>= 12, spread over the "
                           "sphere) joined by turns, with t in s (poses are found over 1-s "
@@ -145,7 +147,7 @@ def fit(args, load_imu, emit_json, usage_error):
     means, _ = segment_means(rec, segs)
     n_orient = orientations(means)
     if n_orient < 2:
-        raise usage_error(f"{args.record}: its {len(segs)} static intervals all lie within "
+        raise UsageError(f"{args.record}: its {len(segs)} static intervals all lie within "
                           f"{SAME_POSE_DEG:g} deg of one orientation (a still record, broken by "
                           "gaps or masked knocks), so no term of the calibration is determined; "
                           "the multi-position calibration needs still poses (>= 12, spread over "
@@ -212,3 +214,93 @@ def fit(args, load_imu, emit_json, usage_error):
                    "determined": gyro.determined, "turns": gyro.n_turns,
                    "turn_residual_median_deg": float(np.median(gyro.residual_deg))},
                "gyro_note": gyro_note}, args.json)
+
+
+def load_imu(args):
+    """An IMU record: a file (any subset of wx wy wz ax ay az) or ``dataset:NAME`` for one of
+    the real records (:data:`gyrojax.datasets.REAL_DATA_SETS`), with ``--latitude`` and
+    ``--table-run`` as its conditions."""
+    from .datasets import REAL_DATA_SETS, DataFileError
+    from .models.imu import IMUConditions
+
+    if args.latitude is not None:  # before reading the record
+        IMUConditions(float(args.latitude))  # ValueError (exit 2): outside [-90, 90]
+    runs = table_runs(args)  # checked before the record is read
+    if args.record.startswith("dataset:"):
+        name = args.record.split(":", 1)[1]
+        if name not in REAL_DATA_SETS:
+            raise UsageError(f"unknown data set {name!r}; known: {', '.join(REAL_DATA_SETS)}")
+        try:
+            record = REAL_DATA_SETS[name]()
+        except (DataFileError, FileNotFoundError) as exc:
+            raise UsageError(str(exc)) from None
+    else:
+        record = load(args, None)
+    if args.latitude is not None:
+        record = record.with_conditions(latitude_deg=float(args.latitude))
+    if runs:
+        record = record.with_conditions(table_rate_s=runs)
+    return record
+
+
+def table_runs(args) -> tuple:
+    """``--table-run T0:T1:RATE`` options as the flat triples of ``table_rate_s``."""
+    runs = []
+    for text in getattr(args, "table_run", None) or ():
+        try:
+            t0, t1, rate = (float(x) for x in text.split(":"))
+        except ValueError:
+            raise UsageError(f"--table-run {text!r}: give T0:T1:RATE (s, s, deg/s), e.g. "
+                             "--table-run 120:180:10") from None
+        runs += [t0, t1, rate]
+    return tuple(runs)
+
+
+class IMUCommands(AbstractRigCommands):
+    """The strapdown IMU's commands."""
+
+    name = "imu"
+    COMMANDS = ("simulate", "fit", "diagnose")
+    ELSEWHERE = "gyrojax simulate, fit (multi-position calibration) or diagnose --rig imu"
+
+    def add_arguments(self, command, group):
+        if command == "simulate":
+            group.add_argument("--poses", type=int, default=12,
+                               help="imu: still poses, the six axis-up ones first, then seeded "
+                                    "random tilts (default 12), joined by 2-s turns")
+            group.add_argument("--dwell", type=float, default=10.0,
+                               help="imu: seconds per pose (default 10)")
+            group.add_argument("--arw", type=float, default=0.3,
+                               help="imu: gyro angle random walk in deg/sqrt(h) (default 0.3)")
+            group.add_argument("--vrw", type=float, default=0.05,
+                               help="imu: accelerometer velocity random walk in m/s/sqrt(h) "
+                                    "(default 0.05)")
+        if command == "diagnose":
+            group.add_argument("--per-coefficient", action="store_true",
+                               help="imu: screen every coefficient of a many-coefficient "
+                                    "effect as an effect of its own (g_sensitivity:gsxy, "
+                                    "misalignment:mgxy, ...; K = 40 on six channels): which "
+                                    "term of the error model, not only which family")
+            group.add_argument("--table-run", action="append", metavar="T0:T1:RATE",
+                               help="imu: a constant-rate table run about the vertical, from "
+                                    "T0 to T1 s (from the record start) at RATE deg/s (ccw seen "
+                                    "from above > 0); repeat per run (default: the record's "
+                                    "table_rate_s, if any)")
+
+    def simulate(self, args):
+        simulate(args)
+
+    def fit(self, args):
+        fit(args)
+
+    def load(self, args):
+        return load_imu(args)
+
+    def diagnose_options(self, args):
+        return {"per_coefficient": True if args.per_coefficient else None}
+
+    def noise_std(self, args):
+        if args.noise_arcsec is not None:
+            raise UsageError("--noise-arcsec is for the esg rig; the imu rig estimates its noise "
+                             "model (AR prewhitening) from the record")
+        return None

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._cli_base import AbstractRigCommands, emit_json, load, parse_sets
 from .models.platform_schedule import (
     CHANNELS,
     dwell_times,
@@ -17,7 +18,7 @@ from .models.platform_schedule import (
 )
 
 
-def simulate(args, parse_sets, emit_json):
+def simulate(args):
     import jax
 
     from .io import record_path, save_record
@@ -35,7 +36,7 @@ def simulate(args, parse_sets, emit_json):
           f"{len(ts)} samples per dwell")
 
 
-def fit(args, load, emit_json):
+def fit(args):
     import equinox as eqx
     import jax.numpy as jnp
 
@@ -111,7 +112,7 @@ def fit(args, load, emit_json):
                "noise_std_arcsec": noise / units.ARCSEC} | fit_info, args.json)
 
 
-def observability(args, emit_json):
+def observability(args):
     from .analysis.observability import analyse_jacobian
     from .analysis.platform_design import (
         design_information,
@@ -142,3 +143,61 @@ def observability(args, emit_json):
               f"error {best.worst_se:.3g} ({best.worst}); positions (deg): {best_pos.tolist()}")
         out["proposed"] = {"positions_deg": best_pos.tolist(), **best.__dict__}
     emit_json(out, args.json)
+
+
+class PlatformCommands(AbstractRigCommands):
+    """The platform's commands."""
+
+    name = "platform"
+    COMMANDS = ("simulate", "fit", "observability", "diagnose")
+    ELSEWHERE = "gyrojax simulate, fit, observability or diagnose --rig platform"
+
+    def add_arguments(self, command, group):
+        if command in ("simulate", "fit", "observability", "diagnose"):
+            group.add_argument("--schedule", metavar="JSON",
+                               help="platform: test schedule file (positions_deg, "
+                                    "table_amplitudes_g, attenuation, frequency_hz, dwell_s, "
+                                    "sample_s, latitude_deg, mounting, phases_rad: the "
+                                    "vibration phase of each dwell, amplitude-major); default "
+                                    "Table 1 at 9 and 7 g; a simulated record carries its "
+                                    "schedule")
+        if command == "observability":
+            group.add_argument("--propose", action="store_true",
+                               help="platform: also search a better position set (Fisher "
+                                    "information)")
+        if command == "diagnose":
+            group.add_argument("--split", choices=("same-design", "design-shift"),
+                               help="platform: held-out plan (same-design = the end of every "
+                                    "dwell, the default; design-shift = the last vibration "
+                                    "amplitude's run, whole)")
+            group.add_argument("--nominal-terms", metavar="TERMS",
+                               help="platform: comma-separated drift-law terms the nominal "
+                                    "model carries for every gyro, from "
+                                    "f,i,o,s,ii,oo,ss,io,is,os (default all but oo, seed 001's "
+                                    "model; f,i,o,s = the first-order model); every "
+                                    "coefficient left out is screened as an effect of its own")
+
+    def simulate(self, args):
+        args.noise_arcsec = 1.0 if args.noise_arcsec is None else args.noise_arcsec
+        simulate(args)
+
+    def fit(self, args):
+        fit(args)
+
+    def observability(self, args):
+        observability(args)
+
+    def load(self, args):
+        from .models.platform_schedule import schedule_json
+
+        record = load(args, CHANNELS)
+        if args.schedule:
+            record = record.with_conditions(
+                schedule_json=schedule_json(load_schedule(args.schedule)))
+        return record
+
+    def diagnose_options(self, args):
+        terms = None
+        if args.nominal_terms is not None:
+            terms = tuple(t.strip() for t in args.nominal_terms.split(",") if t.strip())
+        return {"split": args.split, "nominal_terms": terms}

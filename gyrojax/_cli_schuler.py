@@ -9,20 +9,31 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._cli_base import (
+    AbstractRigCommands,
+    UsageError,
+    emit_json,
+    load,
+    misfit_note,
+    parse_sets,
+    with_latitude,
+)
 from .record import sample_noise, sample_times
 
 CHANNELS = ("V1", "V2", "rot1", "rot2", "rot3")
 
 
 def _conditions(args, record=None):
+    """``(conditions, latitude)``: the record's (``--latitude`` over its own), or the test's
+    defaults at ``--latitude``."""
     from .models.schuler import SchulerConditions
 
-    c = dict(record.conditions) if record is not None else {}
-    lat = args.latitude if getattr(args, "latitude", None) is not None else \
-        float(c.get("latitude_deg", 55.57))
-    return SchulerConditions.create(lat, g=c.get("g"), v10=float(c.get("v10", 200.0)),
-                                    v20=float(c.get("v20", -200.0)),
-                                    azimuth0_deg=float(c.get("azimuth0_deg", 0.0))), lat
+    if record is None:
+        lat = 55.57 if args.latitude is None else float(args.latitude)
+        return SchulerConditions.create(lat), lat
+    record = with_latitude(args, record)
+    return (SchulerConditions.from_record(record),
+            float(record.conditions.get("latitude_deg", 55.57)))
 
 
 def _noise(args):
@@ -42,7 +53,7 @@ def _duration(args, cond):
     return args.periods * float(cond.schuler_period)
 
 
-def simulate(args, parse_sets, emit_json):
+def simulate(args):
     import jax
 
     from .io import record_path, save_record
@@ -89,8 +100,7 @@ def _channels_text(x, first=0):
                      for i, v in enumerate(x, start=first))
 
 
-def fit(args, load, emit_json):
-    from .cli import misfit_note
+def fit(args):
     from .estimate.schuler import fit_schuler, schuler_filter
     from .models.schuler import SchulerRig, schuler_period
 
@@ -147,7 +157,7 @@ def fit(args, load, emit_json):
                "correlation": np.asarray(est.correlation()).tolist()}, args.json)
 
 
-def observability(args, emit_json):
+def observability(args):
     from .analysis.schuler import schuler_observability
     from .models.schuler import SchulerRig
 
@@ -167,3 +177,51 @@ def observability(args, emit_json):
                "crlb": {n: {"value": float(space[n].to_display(s)), "unit": space[n].display_unit}
                         for n, s in zip(rep.names, rep.crlb, strict=True)},
                "weak_pairs": [[a, b, c] for a, b, c in rep.weak_pairs()]}, args.json)
+
+
+class SchulerCommands(AbstractRigCommands):
+    """The Schuler test's commands."""
+
+    name = "schuler"
+    COMMANDS = ("simulate", "fit", "observability", "diagnose")
+    ELSEWHERE = "gyrojax simulate, fit, observability or diagnose --rig schuler"
+
+    def add_arguments(self, command, group):
+        if command in ("simulate", "observability"):
+            group.add_argument("--periods", type=float, default=1.0,
+                               help="schuler: test length in Schuler periods of 84.4 min "
+                                    "(default 1)")
+        if command in ("simulate", "fit", "observability"):
+            group.add_argument("--sigma-v", type=float, default=0.05,
+                               help="schuler: model-velocity noise in m/s (default 0.05)")
+            group.add_argument("--sigma-arcmin", type=float, default=1.0,
+                               help="schuler: gimbal-angle noise in arcmin per axis (default 1)")
+        if command == "simulate":
+            group.add_argument("--random-errors", action="store_true",
+                               help="schuler: draw the 12 errors from their priors (spec §10), "
+                                    "then apply --set")
+        if command == "observability":
+            group.add_argument("--channels", default="all", choices=["all", "velocity"],
+                               help="schuler: measurements used (all, or the classical test's "
+                                    "velocities)")
+
+    def simulate(self, args):
+        args.sample = 1.0 if args.sample is None else args.sample
+        simulate(args)
+
+    def fit(self, args):
+        args.method = args.method or "gauss-newton"
+        fit(args)
+
+    def observability(self, args):
+        args.sample = 1.0 if args.sample is None else args.sample
+        observability(args)
+
+    def load(self, args):
+        return with_latitude(args, load(args, CHANNELS))
+
+    def noise_std(self, args):
+        if args.noise_arcsec is not None:
+            raise UsageError("--noise-arcsec is for the esg rig; the schuler rig estimates the "
+                             "velocity and attitude noise from the record")
+        return None

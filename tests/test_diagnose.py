@@ -767,9 +767,9 @@ def test_calibrated_level_gives_alpha_on_fresh_nulls_by_the_per_residual_code():
     from gyrojax.diagnose._diagnose import (
         _bh_weights,
         _calibrated_level,
-        _null_sampler,
         _outside_pvalues,
     )
+    from gyrojax.diagnose._esg import ESGProblem
     from gyrojax.diagnose._stats import (
         _f_sf,
         gap_map_cells,
@@ -797,10 +797,11 @@ def test_calibrated_level_gives_alpha_on_fresh_nulls_by_the_per_residual_code():
     md = map_design(t, ("a", "b"), n_params=3, noise_dof=noise_dof, lines=lines, jn=jn)
     w = _bh_weights(md.n_cells, 2, 0.5)
     u = nominal_basis(jn)
-    draw = _null_sampler(object(), u, n, c, True)
+    blank = ESGProblem.__new__(ESGProblem)  # the interface's default sampler, no record needed
+    draw = blank.null_sampler(u, n, c, True)
     # the sampler's draws: off the nominal span (at a given noise level); at unit
     # first-difference level per channel (at an estimated one)
-    z = _null_sampler(object(), u, n, c, False)(np.random.default_rng(0), 4)
+    z = blank.null_sampler(u, n, c, False)(np.random.default_rng(0), 4)
     assert np.abs(z.reshape(4, n * c) @ u).max() < 1e-12
     z = draw(np.random.default_rng(0), 4)
     np.testing.assert_allclose(np.sqrt(np.mean(np.diff(z, axis=1) ** 2, axis=1) / 2), 1.0,
@@ -1070,7 +1071,7 @@ def test_pipeline_pieces_by_hand():
     a = rng.standard_normal((m, 1))
     ab = {"a": a, "b": a + 0.3 * rng.standard_normal((m, 1)), "c": rng.standard_normal((m, 1))}
     dsigs = [Signature(k, "x", (k,), ("1",), np.ones(1), v[None]) for k, v in ab.items()]
-    dprob = SimpleNamespace(designs=lambda: [("only", None, None)],
+    dprob = SimpleNamespace(design_grid_choice=False, designs=lambda: [("only", None, None)],
                             jacobians=lambda p, sigma, conditions, t: (jn_d, dsigs))
     flagged = [SimpleNamespace(sig=dsigs[0], vis_index=0, null_directions=[],
                                confounded_directions=[])]
@@ -1121,7 +1122,8 @@ def test_design_advice_counts_the_directions_each_design_sees():
     def advice(designs):
         sigs = {k: [Signature("e", "x", ("a", "b"), ("1", "1"), np.ones(2), v[None])]
                 for k, v in cols.items()}
-        prob = SimpleNamespace(designs=lambda: [(k, k, None) for k in designs],
+        prob = SimpleNamespace(design_grid_choice=False,
+                               designs=lambda: [(k, k, None) for k in designs],
                                jacobians=lambda p, sigma, conditions, t: (jn, sigs[conditions]))
         flagged = [SimpleNamespace(sig=sigs["none"][0], vis_index=0,
                                    null_directions=[np.eye(2)[0], np.eye(2)[1]],
@@ -1419,32 +1421,42 @@ def test_refit_drop_equals_the_screened_score():
         assert drop == pytest.approx(row["score"], rel=0.02), name
 
 
-def test_esg_gauss_newton_cuts_overshooting_steps_and_flags_a_stuck_fit():
-    """The ESG's masked Gauss-Newton started far from the nominal fit's optimum (a 6 h record;
-    the initial gimbal angles turned by +d and -d). At d = 45 deg and 120 deg some whole steps
-    raise the cost on the way and are cut; the fit reaches the optimum that the regression
-    start reaches (within 1e-5 of each parameter's scale), with no note. At d = 150 deg it
-    stalls: no fraction of a step that predicts a large drop lowers the cost. A note says it
-    did not converge (before stop 66 such a stall counted as converged)."""
-    from gyrojax.diagnose._esg import ESGProblem
+def test_esg_far_starts_converge_to_the_optimum_or_say_they_did_not():
+    """The ESG's nominal fit (optimistix, :func:`gyrojax.estimate.solve_least_squares`) started
+    far from its optimum on a 6 h record: the initial gimbal angles turned by +d and -d. Each
+    fit either reaches the optimum that the regression start reaches -- within 0.05 of each
+    parameter's standard error, an outcome independent of the path the solver takes on a given
+    CPU's rounding -- or carries a note that it did not converge. A start 1 deg off lies well
+    inside Gauss-Newton's basin: it must converge. (A fit out of steps says so:
+    ``tests/test_estimate_lstsq.py``.)"""
+    from gyrojax.diagnose import _esg
 
-    prob = ESGProblem(_record(seed=5).slice(0, 361), holdout=0.25)
+    prob = _esg.ESGProblem(_record(seed=5).slice(0, 361), holdout=0.25)
     one = np.full(len(prob.channels), units.ARCSEC)
     p0 = prob.fit_nominal()
     assert prob.notes == []
-    names, scales = prob.nominal_names, prob.nominal_scales
-    for d in (45.0, 120.0, 150.0):
+    names = prob.nominal_names
+    # the standard errors at the optimum, from the fit's own Jacobian and residual there
+    _, _, _, sol = prob._fit(p0, set(names), one, line_on=False, what="at the optimum")
+    free = prob._all_free()
+    cols = [free.index(k) for k in names]
+    jac = np.asarray(sol.jacobian)[:, cols]
+    dof = jac.shape[0] - len(names)
+    cov = np.linalg.inv(jac.T @ jac) * float(sol.cost) / dof
+    se = np.sqrt(np.diag(cov)) * prob.screen_rig.param_space.scales(names)  # internal units
+    converged = 0
+    for d in (1.0, 45.0, 120.0, 150.0):
         start = p0 | {"alpha10": p0["alpha10"] + np.deg2rad(d),
                       "alpha20": p0["alpha20"] - np.deg2rad(d)}
         prob.notes = []
-        p, _, _ = prob._gauss_newton(start, set(names), one, line_on=False, what=f"{d} deg off")
-        off = max(abs(float(p[k] - p0[k])) / s for k, s in zip(names, scales, strict=True))
-        if d < 150:
-            assert prob.notes == [] and off < 1e-5, (d, prob.notes, off)
+        p, *_ = prob._fit(start, set(names), one, line_on=False, what=f"{d} deg off")
+        off = max(abs(float(p[k] - p0[k])) / e for k, e in zip(names, se, strict=True))
+        if prob.notes:
+            assert d > 1.0 and len(prob.notes) == 1 and "did not converge" in prob.notes[0]
         else:
-            assert off > 100
-            assert len(prob.notes) == 1 and "did not converge" in prob.notes[0]
-            assert "every fraction tried of its last step raised the cost" in prob.notes[0]
+            assert off < 0.05, (d, off)
+            converged += 1
+    assert converged >= 1
 
 
 def test_esg_lines_onset_grid_and_designs_by_hand():
@@ -2187,8 +2199,8 @@ def test_esg_problem_weights_fit_and_noise_pieces_by_hand():
     step, from the Jacobians and the standardised residual, under 1e-2 of the noise); the
     first-difference level's degrees of freedom 2 (n - 1) / 3 against a Monte Carlo of white
     records; the flicker hint on an ambiguous or unexplained verdict of the white model only."""
-    from gyrojax.diagnose._diagnose import first_difference_level
     from gyrojax.diagnose._esg import ESGProblem
+    from gyrojax.diagnose._problem import first_difference_level
 
     prob = ESGProblem(_record(seed=5), holdout=0.25)
     n, c = prob.n_train, len(prob.channels)

@@ -95,7 +95,8 @@ def test_first_order_nominal_screens_each_left_out_coefficient(tmp_path, capsys)
     within 3 standard errors of the generating value, the held-out gap closed. B2 refit-all
     (the generic harness baseline) refits the same catalogue (one refit per effect, every grid
     value of the transient) and picks D_ii_y too. Bad nominal terms: a clear error, exit 2."""
-    from gyrojax.diagnose._diagnose import _problem, library
+    from gyrojax import rigs
+    from gyrojax.diagnose import library
     from gyrojax.diagnose._platform import FIRST_ORDER_TERMS
     from gyrojax.diagnose.bench import refit_all_baseline
 
@@ -120,7 +121,7 @@ def test_first_order_nominal_screens_each_left_out_coefficient(tmp_path, capsys)
     refit = next(rf for rf in rep.refits if rf["effects"] == ["D_ii_y"])
     se = refit["std_errors"]["D_ii_y"]
     assert abs(refit["coefficients"]["D_ii_y"] - TRUE_TABLE2["D_ii_y"]) < 3 * se, (refit, se)
-    prob = _problem(rec, "platform", 0.25, None, None, "exact", nominal_terms=FIRST_ORDER_TERMS)
+    prob = rigs.get("platform").problem_for(rec, holdout=0.25, nominal_terms=FIRST_ORDER_TERMS)
     b2 = refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]))
     assert b2["b2_choice"] == b2["b2_lr_choice"] == "D_ii_y"
     assert b2["n_refits"] == 21 + 8  # 21 one-shot effects, the transient at its 8 decay times
@@ -148,7 +149,7 @@ def test_first_order_nominal_screens_each_left_out_coefficient(tmp_path, capsys)
         capsys.readouterr()
         assert main(["diagnose", "--rig", "platform", str(path)] + argv) == 2
         assert field in capsys.readouterr().err
-    with pytest.raises(ValueError, match="only --rig platform"):
+    with pytest.raises(ValueError, match="nominal_terms are not for --rig esg"):
         library("esg", nominal_terms=FIRST_ORDER_TERMS)
 
 
@@ -268,7 +269,7 @@ def test_design_shift_split_sees_what_the_train_design_cannot(records, capsys):
     esg = Path(gyrojax.__file__).parent / "data" / "esg_equatorial_24h.csv"
     assert main(["diagnose", str(esg), "--rig", "esg", "--latitude", "55.75", "--scheme",
                  "equatorial", "--split", "design-shift"]) == 2
-    assert "has one held-out split" in capsys.readouterr().err
+    assert "split are not for --rig esg" in capsys.readouterr().err
     assert main(["diagnose", str(records["two"]), "--rig", "platform", "--split",
                  "design-shift"]) == 0
     assert "Verdict: confounded** (anisoelastic_oo)" in capsys.readouterr().out

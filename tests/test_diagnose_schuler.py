@@ -260,25 +260,3 @@ def test_a_refit_holds_the_screened_step_onset(tmp_path):
         others = [k for e, names in prob.effect_names.items() if e != "drift_step"
                   for k in names]
         assert len(others) > 10 and all(float(p[k]) == 0.0 for k in others)
-
-
-def test_a_fit_that_did_not_converge_is_noted_with_its_steps_and_its_last_step():
-    """The note names the fit, the steps it took, why it stopped and how long its last step was
-    in standard errors; a converged fit adds none."""
-    from types import SimpleNamespace
-
-    from gyrojax.diagnose._schuler import SchulerProblem
-
-    prob = SimpleNamespace(notes=[])
-    SchulerProblem._check_converged(prob, "the nominal fit", True, 3, 1e-5, stalled=True)
-    assert prob.notes == []
-    SchulerProblem._check_converged(prob, "the refit with drift_step", False, 6, 2.7e5,
-                                    stalled=True)
-    SchulerProblem._check_converged(prob, "the nominal fit", False, 10, 0.31, stalled=False)
-    assert prob.notes == [
-        "the refit with drift_step: Gauss-Newton did not converge: it stopped after 6 steps (no "
-        "fraction of its last step lowered the cost) with its last step 2.7e+05 standard errors "
-        "long; its figures are those of the point reached",
-        "the nominal fit: Gauss-Newton did not converge: it stopped after 10 steps (the step "
-        "limit) with its last step 0.31 standard errors long; its figures are those of the point "
-        "reached"]

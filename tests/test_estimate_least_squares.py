@@ -140,29 +140,27 @@ def test_weakly_observable_fit_is_converged_by_its_remaining_step():
 
 
 def test_stationary_rule_on_a_linear_problem():
-    """``stationary_converged`` on ``y = J p + e``: at the least-squares solution nothing is
-    left (0 standard errors); moved off it by ``d``, the step left is the Mahalanobis length
-    ``sqrt(d^T J^T J d) / sigma``, whatever the columns' scales (1e-6 to 1e3 here); the rule
-    takes the solver's verdict or a step under ``STATIONARY_SE``."""
-    import optimistix as optx
-
-    from gyrojax.estimate._linalg import scaled_lstsq
-    from gyrojax.estimate.least_squares import STATIONARY_SE, stationary_converged
+    """The convergence rule of every fit (``solve_least_squares``) on ``y = J p + e``, evaluated
+    at a point (a step budget of 1): at the least-squares solution nothing is left (0 standard
+    errors); moved off it by ``d``, the step left is the Mahalanobis length
+    ``sqrt(d^T J^T J d) / sigma`` (``sigma`` the residual's there), whatever the columns' scales
+    (1e-6 to 1e3 here); the point counts as converged when that step is under
+    ``STATIONARY_SE``."""
+    from gyrojax.estimate import STATIONARY_SE, solve_least_squares
 
     rng = np.random.default_rng(5)
     jac = rng.normal(size=(400, 4)) * np.array([1e-6, 1.0, 30.0, 1e3])
     y = jac @ np.array([2e5, -1.0, 0.1, 3e-3]) + 0.1 * rng.normal(size=400)
     p_hat = np.linalg.lstsq(jac, y, rcond=None)[0]
-    sigma2 = float(np.sum((jac @ p_hat - y) ** 2) / (400 - 4))
-    fail = optx.RESULTS.nonlinear_max_steps_reached
-    for d, expect in ((np.zeros(4), 0.0), (np.array([3e4, 0.0, 0.0, 0.0]), None),
-                      (np.array([0.0, 1e-4, -2e-5, 1e-7]), None),
-                      (np.array([0.0, 3e-6, -6e-7, 3e-9]), None)):  # 6.1, 0.12, 0.0036
+    for d in (np.zeros(4), np.array([3e4, 0.0, 0.0, 0.0]), np.array([0.0, 1e-4, -2e-5, 1e-7]),
+              np.array([0.0, 3e-6, -6e-7, 3e-9])):  # 0, 5.8, 0.12, 0.0036
         p = p_hat + d
-        minus_step = scaled_lstsq(jnp.asarray(jac), jnp.asarray(jac @ p - y))[0]
-        conv, se = stationary_converged(fail, jnp.asarray(jac), minus_step, sigma2)
-        truth = np.sqrt(d @ jac.T @ jac @ d / sigma2) if expect is None else expect
-        assert float(se) == pytest.approx(truth, rel=1e-8, abs=1e-9)
-        assert bool(conv) == (truth <= STATIONARY_SE)
-        assert bool(stationary_converged(optx.RESULTS.successful, jnp.asarray(jac), minus_step,
-                                         sigma2)[0])
+        sol = solve_least_squares(lambda x, a: a[0] @ x - a[1], jnp.asarray(p),
+                                  (jnp.asarray(jac), jnp.asarray(y)), budget=1)
+        sigma2 = float(np.sum((jac @ p - y) ** 2) / (400 - 4))
+        truth = np.sqrt(d @ jac.T @ jac @ d / sigma2)
+        assert float(sol.step_se) == pytest.approx(truth, rel=1e-6, abs=1e-9)
+        assert bool(sol.converged) == (truth <= STATIONARY_SE)
+        np.testing.assert_array_equal(np.asarray(sol.value), p)  # evaluated, not moved
+
+

@@ -176,8 +176,8 @@ def test_noise_model_bad_input_names_the_fix():
         diagnose(rec, flicker_b=5 * units.ARCSEC)
     # and a B that leaves the white level only 3 % of the first-difference variance (under
     # the 5 % floor: the white level, and the ratio with it, would be noise)
-    from gyrojax.diagnose._diagnose import first_difference_level
     from gyrojax.diagnose._esg import ESGProblem
+    from gyrojax.diagnose._problem import first_difference_level
 
     white = ESGProblem(rec, holdout=0.25)
     p = white.fit_nominal()
@@ -186,7 +186,7 @@ def test_noise_model_bad_input_names_the_fix():
     b = np.sqrt(0.97 * fd2 / share) / FLICKER_STD_PER_B
     with pytest.raises(ValueError, match="accounts for the residual's whole"):
         ESGProblem(rec, holdout=0.25, flicker_b=b).fit_nominal()
-    with pytest.raises(ValueError, match="only --rig esg offers a choice of noise"):
+    with pytest.raises(ValueError, match="noise_model are not for --rig platform"):
         diagnose(rec, rig="platform", noise_model="white+flicker")
 
 
@@ -215,8 +215,8 @@ def test_given_flicker_level_takes_its_own_share_off_the_first_differences():
     with 1 arcsec white noise and B = 0.2 arcsec the variance ratio is s^2 / (1 arcsec)^2 within
     the level's sampling error (10 %); the share itself checked against simulated flicker
     alone (5 %)."""
-    from gyrojax.diagnose._diagnose import first_difference_level
     from gyrojax.diagnose._esg import ESGProblem
+    from gyrojax.diagnose._problem import first_difference_level
 
     b = 0.2 * units.ARCSEC
     s2 = (FLICKER_STD_PER_B * b) ** 2

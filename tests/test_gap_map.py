@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from gyrojax.diagnose._diagnose import first_difference_level
+from gyrojax.diagnose._problem import first_difference_level
 from gyrojax.diagnose._stats import (
     allan_form,
     cross_correlation,

@@ -629,7 +629,7 @@ def test_table_runs_fit_the_horizontal_earth_rate_as_a_turning_nuisance():
     samples swing by its full size; the nominal fit's two terms per run recover its size
     within 3 % and the heading within 2 deg (about 4 and 5 standard errors at this ARW) from a
     noisy record."""
-    from gyrojax.diagnose._diagnose import _problem
+    from gyrojax import rigs
 
     p = SPACE.make(BIAS | {"sgz": 2e-3, "mgxz": 1e-3, "k_earth": 1.0})
     poses = [Pose((0.0, 0.0, 1.0), 60.0, 10.0), Pose((0.0, 0.0, 1.0), 60.0, -10.0)]
@@ -640,7 +640,7 @@ def test_table_runs_fit_the_horizontal_earth_rate_as_a_turning_nuisance():
     assert 0.9 * omega_h < swing < 1.1 * omega_h
     rec = simulate_imu(p, poses, heading_deg=30.0, arw=2e-6, vrw=1e-4,
                        key=jax.random.PRNGKey(5), **kw)
-    prob = _problem(rec, "imu", 0.0, None, None, "exact", None)
+    prob = rigs.get("imu").problem_for(rec, holdout=0.0)
     fit = prob.fit_nominal()
     for k in range(2):
         c, s = fit["_pose"][f"pose{k}_c"], fit["_pose"][f"pose{k}_s"]
@@ -734,10 +734,10 @@ def test_ar_noise_level_is_unbiased_after_the_full_model_fit():
     pushed through the same regressors, the dof-corrected innovation variance averages 1
     within 0.01 (s.e. ~0.0025 over 40 draws x 6 channels); the plain mean square, which the
     estimator used before, sits ~3 % low (an inflated score test on every effect)."""
-    from gyrojax.diagnose._diagnose import _problem
+    from gyrojax import rigs
     from gyrojax.diagnose._imu import ar_noise_model
 
-    prob = _problem(_record({}), "imu", 0.25, None, None, "exact", None)
+    prob = rigs.get("imu").problem_for(_record({}), holdout=0.25)
     params = prob.fit_nominal()
     n = prob.n_train
     cols = prob.full_model_columns(params)[:n]
@@ -762,12 +762,12 @@ def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, ca
     classes (spec §4.2 stage 3); B2 refit-all (every effect, the six warm-ups at each of
     their six decay times: 70 Levenberg-Marquardt refits) picks it too; other rigs refuse
     the option."""
-    from gyrojax.diagnose._diagnose import _problem
+    from gyrojax import rigs
     from gyrojax.diagnose.bench import refit_all_baseline
 
     rec = _record({"gsxy": SPACE["gsxy"].from_display(15.0)})
-    fam = _problem(rec, "imu", 0.25, None, None, "exact", None)
-    per = _problem(rec, "imu", 0.25, None, None, "exact", None, per_coefficient=True)
+    fam = rigs.get("imu").problem_for(rec, holdout=0.25)
+    per = rigs.get("imu").problem_for(rec, holdout=0.25, per_coefficient=True)
     p_fam, p_per = fam.fit_nominal(), per.fit_nominal()
     sigma = np.ones(len(fam.channels))
     s_fam = {s.name: s for s in fam.jacobians(p_fam, sigma)[1]}
@@ -814,8 +814,8 @@ def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, ca
     assert b2["b2_lr_choice"] == b2["b2_choice"] == "g_sensitivity:gsxy"
     assert main(["diagnose", str(path), "--rig", "esg", "--per-coefficient"]) == 2
     # single coefficients may be asked for by name, beside whole families
-    sub = _problem(rec, "imu", 0.25, None, ("g_sensitivity:gsxy", "time_drift", "earth_rate"),
-                   "exact", None, per_coefficient=True)
+    sub = rigs.get("imu").problem_for(rec, effects=("g_sensitivity:gsxy", "time_drift",
+                                                    "earth_rate"), per_coefficient=True)
     assert sub.effects == ("g_sensitivity:gsxy", "time_drift:dgx", "time_drift:dgy",
                            "time_drift:dgz", "time_drift:dax", "time_drift:day",
                            "time_drift:daz", "earth_rate")
@@ -823,11 +823,11 @@ def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, ca
                                 (("g_sensitivity:bogus",), True, "unknown coefficient"),
                                 (("earth_rate:k_earth",), True, "unknown coefficient")):
         with pytest.raises(ValueError, match=match):
-            _problem(rec, "imu", 0.25, None, effects, "exact", None, per_coefficient=per)
+            rigs.get("imu").problem_for(rec, holdout=0.25, effects=effects, per_coefficient=per)
     assert main(["diagnose", str(path), "--rig", "imu", "--latitude", "45",
                  "--effects", "g_sensitivity:gsxy"]) == 2
-    with pytest.raises(ValueError, match="per_coefficient with rig 'platform'"):
-        _problem(rec, "platform", 0.25, None, None, "exact", None, per_coefficient=True)
+    with pytest.raises(ValueError, match="per_coefficient are not for --rig platform"):
+        rigs.get("platform").problem_for(rec, holdout=0.25, per_coefficient=True)
 
 
 def test_noise_scale_segment_times_and_weighted_accelerometer_fit():
@@ -898,10 +898,10 @@ def test_imu_diagnosis_pieces_by_hand():
     every other first difference on its Gaussian law, Bonferroni over the channels."""
     from scipy.signal import lfilter
 
-    from gyrojax.diagnose._diagnose import _problem
+    from gyrojax import rigs
     from gyrojax.diagnose._imu import CYCLE_MIN_C, ar_noise_model
 
-    prob = _problem(_record({}), "imu", 0.25, None, None, "exact", None)
+    prob = rigs.get("imu").problem_for(_record({}), holdout=0.25)
     params = prob.fit_nominal()
     rng = np.random.default_rng(5)
     n_rows, n_ch = len(prob.t), len(prob.channels)
@@ -956,9 +956,9 @@ def test_imu_diagnosis_pieces_by_hand():
 
     rec = _record({})
     temp = temp_c(rec.t) + 0.01 * rng.standard_normal(len(rec.t))
-    hot = _problem(BenchRecord(rec.t, np.concatenate([np.asarray(rec.y), temp[:, None]], 1),
-                               rec.channels + ("temp",), rec.attrs), "imu", 0.25, None, None,
-                   "exact", None)
+    hot = rigs.get("imu").problem_for(BenchRecord(
+        rec.t, np.concatenate([np.asarray(rec.y), temp[:, None]], 1), rec.channels + ("temp",),
+        rec.attrs))
     n = hot.n_train
     assert abs(hot.thermal[0][:n].mean()) < 1e-12
     slope = 2.0 * 2 * np.pi / 200.0 * np.cos(2 * np.pi * hot.t / 200.0 + 0.3)

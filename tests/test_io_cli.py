@@ -228,7 +228,7 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     (["observability", "--scheme", "polar", "--latitude", "50", "--effects", "wobble"],
      "unknown effect 'wobble'"),
     (["diagnose", "r.nc", "--rig", "imu", "--flicker-arcsec", "0.1", "--json", "x.json"],
-     "--noise-model / --flicker-arcsec are for the esg rig"),
+     "--flicker-arcsec is for the esg rig"),
     (["diagnose", "r.nc", "--noise-model", "white", "--flicker-arcsec", "0.1", "--json",
       "x.json"], "drop --noise-model white"),
     (["diagnose", "r.nc", "--table-run", "0:60:10", "--json", "x.json"],

@@ -39,7 +39,7 @@ PAPER_TABLE3 = {"polar": (0.0069, 0.044), "equatorial": (0.0079, 0.0014),
 
 
 def _stack_conditions(schemes, latitude_deg):
-    conds = [ESGConditions.from_scheme(s, latitude_deg) for s in schemes]
+    conds = [ESGConditions.create(s, latitude_deg) for s in schemes]
     return jax.tree.map(lambda *x: jnp.stack(x), *conds)
 
 

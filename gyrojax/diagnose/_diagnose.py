@@ -42,6 +42,7 @@ import zlib
 
 import numpy as np
 
+from .. import rigs
 from ..analysis.observability import _pretty_basis, complement_basis, format_combination
 from ..record import BenchRecord
 from ._report import GapReport, grid_located
@@ -72,115 +73,21 @@ from ._stats import (
     visible,
 )
 
-__all__ = ["diagnose", "default_prior", "library", "RIGS"]
-
-RIGS = ("esg", "imu", "platform", "schuler", "gyrotheodolite")
-
-
-def _unknown_rig(rig) -> ValueError:
-    return ValueError(f"unknown rig {rig!r} for diagnose; rigs with a diagnosis: {', '.join(RIGS)}")
-
+__all__ = ["diagnose", "default_prior", "library"]
 
 LABEL_CHANNELS = ("position", "amplitude")  # segment labels, not measurements
 _CONFOUNDED_FLAGS = ("structurally confounded", "no signature")  # the nominal fit absorbs part or all
 
 
-def _check_effects(effects, library, rig):
-    bad = [e for e in (effects or ()) if e not in library]
-    if bad:
-        raise ValueError(f"unknown effect(s) {bad} for --rig {rig}; the catalogue is "
-                         f"{', '.join(library)}")
+def library(rig: str, **options) -> dict:
+    """The diagnosis catalogue of ``rig`` under its ``options`` (platform: ``nominal_terms``):
+    effect name -> family (the registry's :meth:`~gyrojax.rigs.RigEntry.catalogue`)."""
+    return rigs.get(rig).catalogue(**_given(options))
 
 
-def library(rig: str, nominal_terms=None) -> dict:
-    """The diagnosis catalogue of ``rig``: effect name -> family (platform: for the nominal
-    model of ``nominal_terms``, :func:`~gyrojax.diagnose._platform.platform_library`)."""
-    if nominal_terms is not None and rig != "platform":
-        raise ValueError(_NOMINAL_TERMS_RIG.format(rig=rig))
-    if rig == "esg":
-        from ._esg import ESG_LIBRARY as lib
-    elif rig == "imu":
-        from ._imu import IMU_LIBRARY as lib
-    elif rig == "platform":
-        from ._platform import platform_library
-
-        lib = platform_library(nominal_terms)
-    elif rig == "schuler":
-        from ._schuler import SCHULER_LIBRARY as lib
-    elif rig == "gyrotheodolite":
-        from ._gyrotheodolite import GYROTHEODOLITE_LIBRARY as lib
-    else:
-        raise _unknown_rig(rig)
-    return {k: v[0] for k, v in lib.items()}
-
-
-_NOMINAL_TERMS_RIG = ("nominal_terms with rig {rig!r}: only --rig platform offers a choice of "
-                      "nominal model (its drift-law terms); leave it out")
-
-
-def _problem(record, rig, holdout, noise_std, effects, order, split=None, noise_model=None,
-             flicker_b=None, nominal_terms=None, per_coefficient=False):
-    if nominal_terms is not None and rig != "platform":
-        raise ValueError(_NOMINAL_TERMS_RIG.format(rig=rig))
-    if per_coefficient and rig != "imu":
-        raise ValueError(f"per_coefficient with rig {rig!r}: only --rig imu splits its effects "
-                         "by coefficient (the platform's coefficients are chosen by "
-                         "--nominal-terms); leave it out")
-    if (noise_model is not None or flicker_b is not None) and rig != "esg":
-        raise ValueError(f"noise_model / flicker_b with rig {rig!r}: only --rig esg offers a "
-                         "choice of noise model; leave them out (the IMU fits AR prewhitening, "
-                         "the other rigs a white level)")
-    prob = _rig_problem(record, rig, holdout, noise_std, effects, order, split,
-                        {"noise_model": noise_model, "flicker_b": flicker_b}, nominal_terms,
-                        per_coefficient)
-    if split is not None and not hasattr(prob, "SPLITS"):
-        raise ValueError(f"split={split!r}: --rig {rig} has one held-out split "
-                         f"({getattr(prob, 'split_kind', 'the record end, time-ordered')}); "
-                         "leave --split out")
-    return prob
-
-
-def _rig_problem(record, rig, holdout, noise_std, effects, order, split, noise_kw=None,
-                 nominal_terms=None, per_coefficient=False):
-    if rig == "esg":
-        from ._esg import ESG_LIBRARY, ESGProblem
-
-        _check_effects(effects, ESG_LIBRARY, rig)
-        c = record.conditions
-        missing = [k for k in ("latitude_deg", "scheme") if k not in c]
-        if missing:
-            raise ValueError(f"record lacks the condition(s) {missing}; give --latitude DEG and "
-                             "--scheme NAME (or store them as NetCDF attributes)")
-        if order not in ("exact", "first"):
-            raise ValueError(f"order={order!r}; use 'exact' (model 5.1) or 'first' (model 3.1)")
-        return ESGProblem(record, holdout=holdout, noise_std=noise_std, effects=effects,
-                          order=order, **(noise_kw or {}))
-    if rig == "platform":
-        from ._platform import PlatformProblem, platform_library
-
-        _check_effects(effects, platform_library(nominal_terms), rig)
-        return PlatformProblem(record, holdout=holdout, noise_std=noise_std, effects=effects,
-                               nominal_terms=nominal_terms,
-                               **({"split": split} if split is not None else {}))
-    if rig == "schuler":
-        from ._schuler import SCHULER_LIBRARY, SchulerProblem
-
-        _check_effects(effects, SCHULER_LIBRARY, rig)
-        return SchulerProblem(record, holdout=holdout, noise_std=noise_std, effects=effects)
-    if rig == "gyrotheodolite":
-        from ._gyrotheodolite import GYROTHEODOLITE_LIBRARY, GyrotheodoliteProblem
-
-        _check_effects(effects, GYROTHEODOLITE_LIBRARY, rig)
-        return GyrotheodoliteProblem(record, holdout=holdout, noise_std=noise_std,
-                                     effects=effects)
-    if rig == "imu":
-        from ._imu import IMU_LIBRARY, IMUProblem
-
-        # single coefficients (family:parameter) are checked by the problem
-        _check_effects([effect_family_name(e) for e in effects or ()], IMU_LIBRARY, rig)
-        return IMUProblem(record, holdout=holdout, noise_std=noise_std, effects=effects,
-                          per_coefficient=per_coefficient)
-    raise _unknown_rig(rig)
+def _given(options: dict) -> dict:
+    """The rig options given: ``None`` means the rig's default."""
+    return {k: v for k, v in options.items() if v is not None}
 
 
 def _check_record(record: BenchRecord, holdout: float):
@@ -201,30 +108,6 @@ def _check_record(record: BenchRecord, holdout: float):
     if n_train < 60:
         raise ValueError(f"record too short to fit: {n_train} train samples (of {len(t)}); "
                          "need at least 60 - record longer or lower --holdout")
-
-
-def _noise_level(problem, resid):
-    """``(sigma, dof, source)`` of the train residual: the problem's own noise model where it
-    has one (e.g. the IMU's AR prewhitening), else :func:`_noise`."""
-    if hasattr(problem, "noise_level"):
-        return problem.noise_level(resid)
-    return _noise(problem, resid)
-
-
-def _noise(problem, resid):
-    """Per-channel noise level and its dof: given, or from first differences (von Neumann)."""
-    if problem.noise_std is not None:
-        s = np.broadcast_to(np.asarray(problem.noise_std, float), (resid.shape[1],)).copy()
-        return s, np.inf, "given"
-    return (first_difference_level(resid), 2 * (resid.shape[0] - 1) / 3,
-            "estimated from first differences of the residual")
-
-
-def first_difference_level(resid):
-    """Per-channel white-noise level of ``resid`` (``(..., n, c)``) from its first differences
-    (von Neumann): the estimator of the data and of the calibrated level's null draws."""
-    d = np.diff(resid, axis=-2)
-    return np.sqrt(np.mean(d * d, axis=-2) / 2)
 
 
 def _greedy_second(e, span, rows, first: Screen, alpha):
@@ -276,40 +159,35 @@ class _StageTimes(dict):
             self._progress(key.removesuffix("_s"), seconds)
 
 
-def default_prior(rig: str = "esg", *, nominal_terms=None, per_coefficient: bool = False) -> str:
-    """The Bayes-factor prior :func:`diagnose` uses when none is given.
-
-    ``"shell"`` for a catalogue of single coefficients -- "which term of the error model": the
-    platform with a chosen nominal (`nominal_terms`: each coefficient it leaves out is an
-    effect) and the IMU per coefficient (`per_coefficient`) -- where the shell's factor is
-    exact for most effects; ``"design"`` for a catalogue of effect families (every rig's
-    default catalogue). Measured on the blind suites of both kinds (Brier score of the top
-    posterior, a proper score; ECE; docs/notes.md, stop 76): the platform's K = 22 catalogue
-    0.142 / 0.049 under the shell against 0.158 / 0.074 under the design prior, the IMU's
-    K = 40 0.365 / 0.066 against 0.377 / 0.057 (both ECEs inside a calibrated forecaster's
-    spread at n=124, median 0.073); on the family catalogues the design prior reads as well or
-    better (platform D2 0.228 / 0.042 against 0.230 / 0.061, IMU static ECE 0.082 against
-    0.095, the gyrotheodolite's Brier 0.403 against 0.414)."""
-    if rig not in RIGS:
-        raise _unknown_rig(rig)
-    by_term = per_coefficient or (rig == "platform" and nominal_terms is not None)
-    return "shell" if by_term else "design"
+def default_prior(rig: str = "esg", **options) -> str:
+    """The Bayes-factor prior :func:`diagnose` uses when none is given: ``"shell"`` for a
+    catalogue of single coefficients -- "which term of the error model" (the platform with a
+    chosen ``nominal_terms``: each coefficient it leaves out is an effect; the IMU
+    ``per_coefficient``) -- where the shell's factor is exact for most effects; ``"design"`` for
+    a catalogue of effect families (every rig's default catalogue). The blind suites that chose
+    this rule: ``benchmarks/RESULTS.md`` (the shell and design sections of each suite)."""
+    entry = rigs.get(rig)
+    options = _given(options)
+    entry.check_options(options)
+    return "shell" if entry.problem_class.single_coefficients(**options) else "design"
 
 
 def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=None,
-             holdout: float = 0.25,
-             alpha: float = 0.05, noise_std=None, design_advice: bool = True,
-             max_refits: int = 3, prior: str | None = None, order: str = "exact",
-             library_share: float = 0.5, split: str | None = None,
-             refit_all: bool = False, null_draws: int = 499,
-             noise_model: str | None = None, flicker_b=None,
-             nominal_terms=None, per_coefficient: bool = False, progress=None) -> GapReport:
+             holdout: float = 0.25, alpha: float = 0.05, noise_std=None,
+             design_advice: bool = True, max_refits: int = 3, prior: str | None = None,
+             library_share: float = 0.5, refit_all: bool = False, null_draws: int = 499,
+             progress=None, **options) -> GapReport:
     """Diagnose the gap between the rig's nominal model and ``record``.
 
     **Arguments:**
     - `record`: a BenchRecord with the rig's channels and conditions (ESG: ``scheme``,
       ``latitude_deg``).
-    - `rig`: rig name (``"esg"``).
+    - `rig`: a registered rig's name (``"esg"``, :mod:`gyrojax.rigs`): its diagnosis problem
+      (:class:`~gyrojax.diagnose.AbstractGapProblem`) reads the record.
+    - `options`: the rig's own options, passed to its problem's constructor (``None``: the
+      default; an option another rig takes is an error naming the ones this rig takes):
+      ``order``, ``noise_model``, ``flicker_b`` (ESG), ``split``, ``nominal_terms`` (platform),
+      ``per_coefficient`` (IMU), as below.
     - `conditions`: test conditions added to (or overriding) the record's, e.g.
       ``{"scheme": "polar", "latitude_deg": 55.75}``.
     - `effects`: the library to screen (default: the rig's whole catalogue).
@@ -368,8 +246,9 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     if null_draws < 0 or (null_draws and np.floor(alpha * (null_draws + 1) + 1e-9) < 1):
         raise ValueError(f"null_draws={null_draws} with alpha={alpha}: give 0 (plain weighted "
                          f"BH) or at least {int(np.ceil(1 / alpha)) - 1} draws (default 499)")
+    options = _given(options)
     if prior is None:
-        prior = default_prior(rig, nominal_terms=nominal_terms, per_coefficient=per_coefficient)
+        prior = default_prior(rig, **options)
     if prior not in PRIORS:
         raise ValueError(f"prior={prior!r}; use one of {', '.join(map(repr, PRIORS))} "
                          "(or None: the catalogue's default, gyrojax.diagnose.default_prior)")
@@ -378,20 +257,18 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     if conditions:
         record = record.with_conditions(**dict(conditions))
     _check_record(record, holdout)
-    prob = _problem(record, rig, holdout, noise_std, effects, order, split, noise_model,
-                    flicker_b, nominal_terms, per_coefficient)
+    prob = rigs.get(rig).problem_for(record, holdout=holdout, noise_std=noise_std,
+                                     effects=effects, **options)
     n, c = prob.n_train, len(prob.channels)
     params0 = prob.fit_nominal()
     pred0 = prob.predict(params0)
     resid_all = prob.y - pred0
-    sigma, noise_dof, noise_src = _noise_level(prob, resid_all[:n])
+    sigma, noise_dof, noise_src = prob.noise_level(resid_all[:n])
 
     def standardize(resid):
-        if hasattr(prob, "standardize"):
-            return prob.standardize(resid, sigma)
-        return resid / sigma
+        return prob.standardize(resid, sigma)
 
-    ho_dof = getattr(prob, "heldout_dof", 0)
+    ho_dof = prob.heldout_dof
 
     def heldout_gap(ea):
         """Held-out G, corrected for terms fitted on the held-out rows (IMU poses)."""
@@ -413,30 +290,27 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     designs = screen_designs(jn, sigs)
     rows = screen(e, jn, sigs, prior=prior, designs=designs)
     timings["library_scores_s"] = time.perf_counter() - t0  # the score tests alone (G10)
-    nuisance = getattr(prob, "nuisance_dof", 0)  # train dof of terms outside the Jacobian
+    nuisance = prob.nuisance_dof  # train dof of terms outside the Jacobian
     # the test positions' offset signatures and the columns fitted outside the Jacobian
     map_kw = dict(noise_dof=noise_dof, lines=prob.lines,
-                  segments=prob.position_signatures(sigma)
-                  if hasattr(prob, "position_signatures") else None,
-                  nuisance=prob.nuisance_columns(sigma)
-                  if hasattr(prob, "nuisance_columns") else None,
-                  aux=prob.aux_signatures(sigma) if hasattr(prob, "aux_signatures") else None)
+                  segments=prob.position_signatures(sigma),
+                  nuisance=prob.nuisance_columns(sigma), aux=prob.aux_signatures(sigma))
     mdesign = map_design(prob.t[:n], prob.channels, n_params=jn.shape[1] + nuisance, jn=jn,
                          **map_kw)
     cells = gap_map_cells(e.reshape(n, c), prob.t[:n], prob.channels,
                           n_params=jn.shape[1] + nuisance, jn=jn, design=mdesign, **map_kw)
-    noise_rows = prob.noise_screen(params0) if hasattr(prob, "noise_screen") else []
+    noise_rows = prob.noise_screen(params0)
     n_ho = len(e_all) - n * c
-    extra = getattr(prob, "heldout_extra", 0.0)
+    extra = prob.heldout_extra
     band = _null_band(jn_all, n * c, n_ho, extra, noise_dof * c)
     g_nom = heldout_gap(e_all.reshape(-1, c)) if n_ho else float("nan")
-    if n_ho and getattr(prob, "design_shift", False):
+    if n_ho and prob.design_shift:
         cells.append(_heldout_cell(g_nom, band, n_ho - ho_dof, noise_dof * c, prob.split_kind))
     p_all = np.array([x["p"] for x in cells] + [r.p for r in rows] + [x["p"] for x in noise_rows])
     weights = _bh_weights(len(cells), len(rows) + len(noise_rows), library_share)
     q_all = bh_qvalues(p_all, weights)
     multiplicity = {"method": "weighted BH", "level": alpha, "null_draws": 0}
-    draw = _null_sampler(prob, designs[0], n, c, np.isfinite(noise_dof))
+    draw = prob.null_sampler(designs[0], n, c, bool(np.isfinite(noise_dof)))
     if null_draws and draw is not None:
         t_cal = time.perf_counter()
         outside = _outside_pvalues(cells, noise_rows, mdesign.n_cells)
@@ -459,9 +333,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         x["significant"] = rejected(x["p"], q, level)
     q_mean = q_all[: len(cells) + len(rows)]
     cells += lag_cells(e.reshape(n, c), prob.channels,  # reported, not decided on
-                       aux=getattr(prob, "aux_rows", None))
-    if hasattr(prob, "full_rate_tau_cells"):  # reported, not decided on
-        cells += prob.full_rate_tau_cells(params0)
+                       aux=prob.aux_rows)
+    cells += prob.full_rate_tau_cells(params0)  # reported, not decided on
     # excess energy of the whole-record windows (level 0), all channels
     excess = sum(max(0.0, x["excess"]) for x in cells if x["axis"] == "time" and x["level"] == 0)
     detected = bool(np.any(q_mean < level))
@@ -541,9 +414,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
             if (r.sig.name,) not in done and r.dof > 0 and r.flag not in _CONFOUNDED_FLAGS:
                 refits.append(dict(run_refit([r])[0], screened=False))
         timings["refit_all_s"] = time.perf_counter() - t0
-    if hasattr(prob, "verdict_notes"):  # e.g. the ESG's hint at its noise model
-        prob.notes += prob.verdict_notes(verdict)
-    if getattr(prob, "notes", None):
+    prob.notes += prob.verdict_notes(verdict)  # e.g. the ESG's hint at its noise model
+    if prob.notes:
         verdict["notes"] = list(prob.notes)
 
     advice = []
@@ -562,7 +434,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         nominal=prob.display_nominal(params0), nominal_units=dict(zip(prob.nominal_names,
                                                                        prob.nominal_units)),
         noise={"std": [float(s) for s in sigma], "source": noise_src, "dof": float(noise_dof),
-               **getattr(prob, "noise_fit", {})},
+               **prob.noise_fit},
         gap={"train": g_nom_train, "heldout": g_nom, "heldout_null_band": list(band),
              "rms_train": [float(x) for x in np.sqrt(np.mean(resid_all[:n] ** 2, axis=0))],
              "rms_heldout": [float(x) for x in np.sqrt(np.mean(resid_all[n:] ** 2, axis=0))]
@@ -578,7 +450,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         refits=refits, design_advice=advice, verdict=verdict, alpha=alpha, timings=timings,
         multiplicity=multiplicity, prior=prior,
         noise_effects=noise_rows,
-        **({"split": prob.split_kind} if hasattr(prob, "split_kind") else {}),
+        split=prob.split_kind,
         residual_all=resid_all / sigma, t=prob.t,
         residual_after=resid_after.get(tuple(verdict.get("effects") or ())))
 
@@ -606,31 +478,6 @@ def _bh_weights(n_map: int, n_library: int, library_share):
                          "multiplicity weight for the library's tests, or None for plain BH")
     return np.concatenate([np.full(n_map, (1 - library_share) / n_map),
                            np.full(n_library, library_share / n_library)])
-
-
-def _null_sampler(prob, u, n, c, estimated):
-    """``draw(rng, b) -> (b, n, c)`` whitened null residuals for the calibrated level, or
-    ``None`` where the simulation would not describe the problem.
-
-    A problem with nuisance terms outside the Jacobian or its own noise estimator supplies
-    ``null_residuals(rng, b, u)`` (the platform: offsets per dwell, second differences); the
-    generic one draws white noise per channel, takes it off the nominal span ``u`` and, when the
-    data's level was estimated, re-estimates it from first differences. On the IMU that is the
-    law of the AR-prewhitened residual to first order (exact when the fitted AR order is 0, the
-    white noise of the bench models; the nominal fit is unweighted by the AR filter)."""
-    if hasattr(prob, "null_residuals"):
-        return lambda rng, b: prob.null_residuals(rng, b, u)
-    if getattr(prob, "nuisance_dof", 0):
-        return None
-
-    def draw(rng, b):
-        z = rng.standard_normal((b, n * c))
-        z -= (z @ u) @ u.T
-        z = z.reshape(b, n, c)
-        if estimated:
-            z /= first_difference_level(z)[:, None, :]
-        return z
-    return draw
 
 
 def _outside_pvalues(cells, noise_rows, n_map):
@@ -904,7 +751,7 @@ def _row_json(r: Screen, prob, excess, n, c, cells):
         "name": r.sig.name, "family": r.sig.family, "kind": r.sig.kind,
         "params": list(r.sig.names), "units": list(r.sig.units),
         "prior_scale": [float(x) for x in r.sig.prior_scale],
-        "score": r.lm, "dof": r.dof, "p": r.p, "q": getattr(r, "q", None),
+        "score": r.lm, "dof": r.dof, "p": r.p, "q": r.q,
         # the score statistic and its dof at every grid value (one entry without a grid)
         "score_grid": [float(x) for x in r.lm_grid], "dof_grid": [int(x) for x in r.dof_grid],
         "log_bf": r.log_bf, "posterior": r.posterior,
@@ -998,7 +845,7 @@ def _design_advice(prob, params0, sigma, flagged):
     grid = {r.sig.name: r.vis_index for r in flagged}  # the grid value each flag was taken at
     names = set(grid)
     # problems that can evaluate one grid value per effect are told which (the flag's)
-    only = {"grid": grid} if getattr(prob, "design_grid_choice", False) else {}
+    only = {"grid": grid} if prob.design_grid_choice else {}
     designs = []
     for label, cond, t in prob.designs():
         jn, sigs = prob.jacobians(params0, sigma, conditions=cond, t=t, **only)
@@ -1069,7 +916,7 @@ def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band
     if not detected:
         return {"kind": "no-gap", "effects": [], "heldout_gap_after": None, **base,
                 "reason": f"no gap-map cell or library test significant at q < {alpha:.3g}"}
-    sig_rows = [r for r in rows if rejected(r.p, getattr(r, "q", 1.0), alpha)]
+    sig_rows = [r for r in rows if rejected(r.p, 1.0 if r.q is None else r.q, alpha)]
     shifted = [x for x in cells if x["axis"] == "heldout" and x.get("significant")]
     if not sig_rows and shifted and shift_hidden and not any(
             x.get("significant") for x in cells if x["axis"] != "heldout"):

@@ -1,13 +1,14 @@
 """The non-contact gyro rig as the diagnosis sees it: nominal fit, Jacobians, refits, designs.
 
 Everything runs on the rig with the base misalignment as a rotation vector ``dchi1..3`` (so the
-structural null direction ``dchi || u`` shows as "no signature", and a refit can reproduce what
-the screening tested). The nominal fit starts from the integral regression of the rig's default
+structural null direction ``dchi || u`` shows as "no signature", and a refit can reproduce what the
+screening tested). The nominal fit starts from the integral regression of the rig's default
 ``eps``-normal-to-``u`` form; the two forms agree exactly at null effects. The nominal fit and
-every refit are one compiled Gauss-Newton over the same superset of parameters, the ones not
-fitted masked. The nominal noise model is white per channel or, on request, white + flicker
-(``flicker_b`` given, or a REML level): then every row -- tests, refits, held-out gap -- is
-whitened by the flicker model's Kalman innovations (:mod:`gyrojax.analysis.flicker`).
+every refit are one compiled Levenberg-Marquardt fit (optimistix) over the same superset of
+parameters, the ones not fitted masked. The nominal noise model is white per channel or, on
+request, white + flicker (``flicker_b`` given, or a REML level): then every row -- tests, refits,
+held-out gap -- is whitened by the flicker model's Kalman innovations
+(:mod:`gyrojax.analysis.flicker`).
 """
 
 from __future__ import annotations
@@ -29,13 +30,13 @@ from ..analysis.flicker import (
     rho_to_b,
     whiten,
 )
-from ..estimate._linalg import scaled_lstsq
-from ..estimate.least_squares import trajectory_jacobian
+from ..estimate._lstsq import convergence_note, solve_least_squares
 from ..estimate.regression import integral_regression
 from ..models.esg import SCHEMES, ESGConditions, ESGRig, check_angle_units
 from ..record import BenchRecord
 from ..simulate import integrate
-from ._stats import Signature, onset_grid
+from ._problem import AbstractGapProblem, first_difference_level
+from ._stats import Signature, check_effects, onset_grid
 
 __all__ = ["ESGProblem", "ESG_LIBRARY", "NOISE_MODELS", "SIDEREAL_DAY"]
 
@@ -53,11 +54,7 @@ TRANSIENT_TIMES_H = tuple(float(x) for x in np.geomspace(0.25, 3.0, 8))
 _GRID_PARAM = {"drift_transient": "k_tr", "drift_step": "t_step"}  # effect -> its grid parameter
 _GRID_EFFECTS = tuple(_GRID_PARAM)
 
-_MAX_ITER = 20  # Gauss-Newton steps of the nominal fit and of each refit
-# a fit where no fraction of the step lowers the cost has converged if the step's predicted
-# drop is below this share of the cost (the ODE solver's noise in the cost; ordinary fits stop
-# there at ~1e-9), and is stuck (not converged) above it
-_STUCK_RATIO = 1e-6
+_MAX_ITER = 30  # optimistix steps (trust-region trials included) of the nominal fit and each refit
 # the nominal noise model of the gimbal angles: white, or white + flicker (GM sum) at a given
 # level or one estimated by REML on the full-model residual (:mod:`gyrojax.analysis.flicker`)
 NOISE_MODELS = ("white", "white+flicker")
@@ -96,18 +93,15 @@ def _predict(rig, params, conditions, ts):
 
 
 @eqx.filter_jit
-def _masked_gauss_newton(rig, p, conditions, ts, y, w, cols, free, mask, line_on, max_iter,
-                         rho, taus):
-    """Gauss-Newton on the whitened rows (per channel the flicker model's innovations at the
-    variance ratio ``rho``, GM correlation times ``taus``, then the weights ``w``; ``rho`` 0:
-    weighted least squares) over the rig parameters ``free`` (those with
-    ``mask`` 0 held: their Jacobian columns zeroed, so the minimum-norm step leaves them) and the
-    linear output coefficients ``beta`` of ``cols`` (rad per unit; held at 0 unless ``line_on``).
-    A step that raises the cost is halved (up to 8 times; if none lowers it, the fit stops
-    there: converged if the step's predicted drop is below ``_STUCK_RATIO`` of the cost, stuck
-    if not). Stops when the step's predicted cost drop is below 1e-10 of the cost
-    (``converged``), or after ``max_iter`` steps. Returns (parameters, ``beta``, converged,
-    the number of steps tried)."""
+def _masked_fit(rig, p, conditions, ts, y, w, cols, free, mask, line_on, rho, taus):
+    """Levenberg-Marquardt (:func:`~gyrojax.estimate.solve_least_squares`) on the whitened rows
+    (per channel the flicker model's innovations at the variance ratio ``rho``, GM correlation
+    times ``taus``, then the weights ``w``; ``rho`` 0: weighted least squares) over the rig
+    parameters ``free`` (those with ``mask`` 0 held: their Jacobian columns are zero, so the
+    damped step leaves them) and the linear output coefficients ``beta`` of ``cols`` (rad per
+    unit; held at 0 unless ``line_on``). The mask and ``line_on`` are arrays: one compiled
+    solver serves the nominal fit and every refit. Returns (parameters, ``beta``, the
+    :class:`~gyrojax.estimate.LeastSquaresSolution`)."""
     scales = rig.param_space.scales(free)
     n, c = ts.shape[0], rho.shape[0]
     dts = jnp.concatenate([jnp.array([jnp.inf]), jnp.diff(ts)])
@@ -122,68 +116,18 @@ def _masked_gauss_newton(rig, p, conditions, ts, y, w, cols, free, mask, line_on
         return x * w[:, None]
 
     ct = wh(cols) * line_on
-
-    def params_at(x):
-        return p | {k: p[k] + x[i] * scales[i] for i, k in enumerate(free)}
-
-    def resid(x, beta):
-        model = integrate(rig, params_at(x), conditions, ts, throw=False).reshape(-1)
-        return wh((y - model)[:, None])[:, 0] - ct @ beta
-
-    # The loop is rotated so that the residual and the Jacobian are each traced once (a second
-    # copy of the solver for the starting residual cost ~a tenth of the compile): each pass
-    # line-searches the step of the pass before (none on the first, whose "search" is the
-    # starting residual), then linearises at the point reached. Iterates, stop rule and
-    # iteration count are the plain loop's: Jacobian, step, search, stop if no step lowers the
-    # cost or the step's predicted drop is below 1e-10 of the cost.
     k = len(free)
 
-    def linearize(x, r, cost):
-        jac = trajectory_jacobian(rig, params_at(x), conditions, ts, free) * scales * mask
-        a = jnp.concatenate([wh(jac), ct], axis=1)
-        step, _, _ = scaled_lstsq(a, r)
-        return step, jnp.sum((a @ step) ** 2) / jnp.maximum(cost, 1.0)
+    def params_at(x):
+        return p | {name: p[name] + x[i] * scales[i] for i, name in enumerate(free)}
 
-    def body(carry):
-        x, beta, step, ratio, _, it, r, cost, _ = carry
-        small = ratio <= 1e-10
+    def resid(z, _):
+        model = integrate(rig, params_at(z[:k] * mask), conditions, ts, throw=False,
+                          adjoint=diffrax.ForwardMode()).reshape(-1)
+        return wh((y - model)[:, None])[:, 0] - ct @ z[k:]
 
-        def halve(c):
-            j, _, _ = c
-            t = 0.5 ** j
-            r_new = resid(x + t * step[:k], beta + t * step[k:])
-            return j + 1, r_new, r_new @ r_new
-
-        def worse(c):
-            j, _, cost_new = c
-            return (j < 9) & ~(cost_new <= cost)
-
-        # NaN: at least one evaluation, even against the first pass's infinite cost
-        j, r_new, cost_new = jax.lax.while_loop(worse, halve, (0, r, jnp.asarray(jnp.nan)))
-        first = it == 0
-        ok = cost_new <= cost  # else no step lowers the cost: stay, and stop
-        t = jnp.where(ok, 0.5 ** (j - 1), 0.0)
-        x, beta = x + t * step[:k], beta + t * step[k:]
-        r = jnp.where(ok | first, r_new, r)
-        cost = jnp.where(ok | first, cost_new, cost)
-        done = ~first & (~ok | small)
-        # stuck: no fraction of the step lowers the cost. At the optimum that is the ODE
-        # solver's noise in the cost (the step's predicted drop is at its level): converged.
-        # Far from it (a drop the noise cannot hide, or no finite cost) it is a failure.
-        conv = done & (ok | (ratio <= _STUCK_RATIO)) & jnp.isfinite(cost)
-        step, ratio = jax.lax.cond(~done & (it < max_iter), lambda: linearize(x, r, cost),
-                                   lambda: (jnp.zeros_like(step), ratio))
-        return x, beta, step, ratio, done, it + 1, r, cost, conv
-
-    def cond(carry):
-        return (~carry[4]) & (carry[5] <= max_iter)
-
-    m = cols.shape[1]
-    x, beta, _, _, _, it, _, _, conv = jax.lax.while_loop(
-        cond, body, (jnp.zeros(k), jnp.zeros(m), jnp.zeros(k + m), jnp.asarray(jnp.inf),
-                     jnp.asarray(False), jnp.asarray(0), jnp.zeros(n * c),
-                     jnp.asarray(jnp.inf), jnp.asarray(False)))
-    return params_at(x), beta, conv, it - 1
+    sol = solve_least_squares(resid, jnp.zeros(k + cols.shape[1]), max_steps=_MAX_ITER)
+    return params_at(sol.value[:k] * mask), sol.value[k:] * line_on, sol
 
 
 def _stack(jn, sigs):
@@ -191,14 +135,34 @@ def _stack(jn, sigs):
     return np.concatenate([jn] + [np.concatenate(list(s.jac), axis=1) for s in sigs], axis=1)
 
 
-class ESGProblem:
-    """One ESG record split into train / held-out, with the rig pieces the diagnosis needs."""
+class ESGProblem(AbstractGapProblem):
+    """One ESG record split into train / held-out, with the rig pieces the diagnosis needs.
 
-    rig_name = "esg"
+    **Options:** `order`: ``"exact"`` (model 5.1) or ``"first"`` (3.1); `noise_model`:
+    ``"white"`` or ``"white+flicker"``; `flicker_b`: the flicker's B (rad, one or per channel;
+    implies ``"white+flicker"``). The record's conditions must give ``scheme`` and
+    ``latitude_deg``."""
+
+    OPTIONS = {"order": "'exact' (model 5.1) or 'first' (the paper's 3.1)",
+               "noise_model": "'white' or 'white+flicker'",
+               "flicker_b": "the flicker's bias-instability coefficient B (rad)"}
+
+    @classmethod
+    def catalogue(cls, **options) -> dict:
+        """The catalogue: effect name -> family."""
+        return {k: v[0] for k, v in ESG_LIBRARY.items()}
 
     def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
                  effects=None, order: str = "exact", noise_model: str | None = None,
                  flicker_b=None):
+        c = record.conditions
+        missing = [k for k in ("latitude_deg", "scheme") if k not in c]
+        if missing:
+            raise ValueError(f"record lacks the condition(s) {missing}; give --latitude DEG and "
+                             "--scheme NAME (or store them as NetCDF attributes)")
+        if order not in ("exact", "first"):
+            raise ValueError(f"order={order!r}; use 'exact' (model 5.1) or 'first' (model 3.1)")
+        check_effects(effects, ESG_LIBRARY, "esg")
         noise_model = noise_model or ("white+flicker" if flicker_b is not None else "white")
         if noise_model not in NOISE_MODELS:
             raise ValueError(f"noise_model={noise_model!r}; the ESG's noise models are "
@@ -210,7 +174,7 @@ class ESGProblem:
                              "noise_model='white+flicker'")
         c = record.conditions
         self.scheme, self.latitude = str(c["scheme"]), float(c["latitude_deg"])
-        self.conditions = ESGConditions.from_scheme(self.scheme, self.latitude)
+        self.conditions = ESGConditions.create(self.scheme, self.latitude)
         self.fit_rig = ESGRig.for_scheme(self.scheme, self.latitude, order=order)
         self.screen_rig = ESGRig(base_param="rotvec", order=order)
         self.record = record
@@ -239,7 +203,7 @@ class ESGProblem:
             np.asarray(flicker_b, float), (len(self.channels),)).copy()
         self.sample_s = float(np.median(np.diff(self.t)))
         self._rho = np.zeros(len(self.channels))
-        self.noise_fit: dict = {"model": self.noise_model}
+        self._noise_fit: dict = {"model": self.noise_model}
 
     # -- nominal fit -----------------------------------------------------------------------
     def train_record(self) -> BenchRecord:
@@ -247,7 +211,7 @@ class ESGProblem:
 
     def fit_nominal(self) -> dict:
         """Nominal fit on the train split: the integral regression's drifts (window 2, Simpson, as
-        :func:`gyrojax.estimate.fit` starts from), then Gauss-Newton on the exact model with
+        :func:`gyrojax.estimate.fit` starts from), then Levenberg-Marquardt on the exact model with
         every effect at its null (the refits' compiled solver, the effects masked). Returns the
         screening rig's parameter dict."""
         rec = self.train_record()
@@ -257,7 +221,7 @@ class ESGProblem:
         p = self.screen_rig.param_space.make() | {"alpha10": jnp.asarray(y0[0]),
                                                   "alpha20": jnp.asarray(y0[1])} | reg.as_dict()
         # equal weights on the two angle channels, as fit() has (the scale sets the stop rule)
-        p, _, _ = self._gauss_newton(p, set(self.nominal_names),
+        p, *_ = self._fit(p, set(self.nominal_names),
                                      np.full(len(self.channels), units.ARCSEC), line_on=False,
                                      what="the nominal fit")
         if self.noise_model == "white+flicker":
@@ -266,7 +230,7 @@ class ESGProblem:
             else:
                 self._given_flicker(p)
             if np.any(self._rho > 0):  # the nominal fit again, on the flicker-whitened rows
-                p, _, _ = self._gauss_newton(p, set(self.nominal_names),
+                p, *_ = self._fit(p, set(self.nominal_names),
                                              np.full(len(self.channels), units.ARCSEC),
                                              line_on=False, what="the nominal fit (GLS)")
         return p
@@ -282,10 +246,8 @@ class ESGProblem:
         lr = np.zeros(c)
         for ch in range(c):
             self._rho[ch], lr[ch] = reml_rho(resid[:, ch], x[ch::c], self.t[:n], self.sample_s)
-        from ._diagnose import first_difference_level
-
         sigma_w = first_difference_level(self._whiten_unit(resid, self.t[:n]))  # as noise_level
-        self.noise_fit |= {
+        self._noise_fit |= {
             "flicker_B_arcsec": [float(b) for b in rho_to_b(self._rho, sigma_w) / units.ARCSEC],
             "flicker_lr": [float(v) for v in lr], "flicker_source": "REML"}
 
@@ -298,8 +260,6 @@ class ESGProblem:
         if self.noise_std is not None:
             white2 = np.broadcast_to(np.asarray(self.noise_std, float) ** 2, s2.shape)
         else:
-            from ._diagnose import first_difference_level
-
             fd2 = first_difference_level((self.y - self.predict(params))[:n]) ** 2
             share = np.sum(1 - np.exp(-self.sample_s / flicker_taus(self.sample_s)))
             white2 = fd2 - s2 * share
@@ -310,7 +270,7 @@ class ESGProblem:
                     f"{np.sqrt(fd2) / units.ARCSEC} arcsec: give a smaller B (from an Allan "
                     "deviation test of this instrument) or the white level too (noise_std)")
         self._rho = s2 / white2
-        self.noise_fit |= {"flicker_B_arcsec": [float(b) for b in self.flicker_b / units.ARCSEC],
+        self._noise_fit |= {"flicker_B_arcsec": [float(b) for b in self.flicker_b / units.ARCSEC],
                            "flicker_source": "given"}
 
     def _whiten_unit(self, x, t):
@@ -330,11 +290,13 @@ class ESGProblem:
         x = self._whiten_unit(np.asarray(jac).reshape(rows // c, c, k), t)
         return (x / np.asarray(sigma)[None, :, None]).reshape(rows, k)
 
+    @property
+    def noise_fit(self) -> dict:
+        return self._noise_fit
+
     def noise_level(self, resid):
         """White level per channel (after the flicker whitening, from first differences) and
         its source; a given ``noise_std`` is a white model."""
-        from ._diagnose import first_difference_level
-
         n = len(resid)
         if self.noise_std is not None:
             s = np.broadcast_to(np.asarray(self.noise_std, float), (resid.shape[1],)).copy()
@@ -468,14 +430,14 @@ class ESGProblem:
         train split; returns (full-record prediction, fitted effect coefficients in display
         units, fitted parameters).
 
-        Every refit (and the nominal fit) is one Gauss-Newton on the exact model over the same
+        Every refit (and the nominal fit) is one Levenberg-Marquardt fit on the exact model over the same
         superset of parameters (the nominal, every library rig effect in the screening's
         parametrisation, the diurnal-line output columns), those not chosen masked to zero
         columns: one compiled solver serves every candidate set. The screening's
         parametrisation is the one to refit in: a base misalignment as the rotation vector
         ``dchi1..3`` (the ``eps`` form has no component along ``u``, which the g-sensitive drifts
         make weakly visible, so its refit could not reproduce what the screening tested). Output
-        effects (lines) are linear and join the rig parameters in the same Gauss-Newton
+        effects (lines) are linear and join the rig parameters in the same fit
         (alternating the two fits converges slowly when a line is nearly a nominal signature, as
         the sidereal line is). The minimum-norm step leaves a direction the record cannot see
         (``dchi || u`` in the first-order model) at its start.
@@ -491,7 +453,7 @@ class ESGProblem:
             chosen |= {n for n in sp.effect_names(sig.name) if n not in _GRID_PARAM.values()}
             if sig.name in _GRID_PARAM:
                 p[_GRID_PARAM[sig.name]] = jnp.asarray(_grid_value(sig.name, sig.grid[g]))
-        p, beta, cols = self._gauss_newton(p, chosen, sigma, line_on=line_on,
+        p, beta, cols, _ = self._fit(p, chosen, sigma, line_on=line_on,
                                            what=f"the refit with {[s.name for s, _ in sig_choices]}")
         extra = (cols @ beta).reshape(self.y.shape) if line_on else None
         coeffs = {}
@@ -504,11 +466,13 @@ class ESGProblem:
                     coeffs[name] = float(sp[name].to_display(p[name])) if name in sp else None
         return self.predict(p, extra), coeffs, p
 
-    def _gauss_newton(self, p, chosen: set, sigma, *, line_on: bool, what: str):
-        """:func:`_masked_gauss_newton` on the train rows over the parameters ``chosen`` (the
+    def _fit(self, p, chosen: set, sigma, *, line_on: bool, what: str):
+        """:func:`_masked_fit` on the train rows over the parameters ``chosen`` (the
         others of the superset held at their values in ``p``) and, with ``line_on``, the diurnal
         line; returns (parameters, line coefficients, the line's full-record columns in rad per
-        display unit). A fit that does not converge is noted in :attr:`notes`."""
+        display unit, the :class:`~gyrojax.estimate.LeastSquaresSolution` in the fitted
+        coordinates: the superset's parameters per scale, then the line's). A fit that does not
+        converge is noted in :attr:`notes`."""
         free = self._all_free()
         unknown = chosen - set(free)
         if unknown:
@@ -521,19 +485,15 @@ class ESGProblem:
                 * np.tile(sig_arr, len(self.t))[:, None])
         mask = np.array([k in chosen for k in free], float)
         p = {k: jnp.asarray(v, dtype=float) for k, v in p.items()}  # traced, never static
-        p, beta, ok, steps = _masked_gauss_newton(
+        p, beta, sol = _masked_fit(
             self.screen_rig, p, self.conditions, jnp.asarray(self.t[:n]),
             jnp.asarray(self.y[:n].reshape(-1)), jnp.asarray(np.tile(1.0 / sig_arr, n)),
             jnp.asarray(cols[: n * c]), free, jnp.asarray(mask), jnp.asarray(float(line_on)),
-            jnp.asarray(_MAX_ITER), jnp.asarray(self._rho), jnp.asarray(flicker_taus(self.sample_s)))
-        if not bool(ok):
-            steps = int(steps)
-            why = ("" if steps >= _MAX_ITER else
-                   ": every fraction tried of its last step raised the cost, which that step "
-                   "predicted to fall well beyond the ODE solver's noise")
-            self.notes.append(f"{what}: Gauss-Newton did not converge in {steps} steps{why}; "
-                              "its figures are those of the last step")
-        return dict(p), np.asarray(beta), cols
+            jnp.asarray(self._rho), jnp.asarray(flicker_taus(self.sample_s)))
+        note = convergence_note(sol, what)
+        if note is not None:
+            self.notes.append(note)
+        return dict(p), np.asarray(beta), cols, sol
 
     # -- designs for the advisor -----------------------------------------------------------
     def designs(self):
@@ -542,7 +502,7 @@ class ESGProblem:
         record."""
         dt = (self.t[-1] - self.t[0]) / (len(self.t) - 1)
         hours = (self.t[-1] - self.t[0]) / 3600
-        other = [(s, ESGConditions.from_scheme(s, self.latitude)) for s in SCHEMES
+        other = [(s, ESGConditions.create(s, self.latitude)) for s in SCHEMES
                  if s != self.scheme]
         out = [(f"{s} scheme", c, self.t) for s, c in other]
         for k in (2, 4) if hours < 23.5 else (2,):

@@ -5,10 +5,10 @@ sampled over several north-seeking periods. Nominal model: the 4-state rig (1) o
 :class:`gyrojax.models.GyrotheodoliteRig` with the physical constants of spec §8 frozen and five
 test parameters free - the index offset (the azimuth the instrument measures), the release state
 ``alpha0``, ``alpha_dot0``, and the slow mode's stiffness and damping through ``kappa`` and
-``F_KC`` - fitted by Gauss-Newton through diffrax (``Kvaerno5``: the 8.7 Hz nutation mode makes
-the rig stiff for explicit solvers). Catalogue: the rig's effect groups, torques about the vertical
-(``tape_torque``, ``torque_ramp``, ``drift_transient`` with its decay time on a grid,
-``torque_step`` with its onset on a grid) and the pick-off scale ``pickoff_scale``.
+``F_KC`` - fitted by Levenberg-Marquardt (optimistix) through diffrax (``Kvaerno5``: the 8.7 Hz
+nutation mode makes the rig stiff for explicit solvers). Catalogue: the rig's effect groups,
+torques about the vertical (``tape_torque``, ``torque_ramp``, ``drift_transient`` with its decay
+time on a grid, ``torque_step`` with its onset on a grid) and the pick-off scale ``pickoff_scale``.
 
 Structure the diagnosis must find: a constant torque ``M`` about the vertical shifts the
 equilibrium by ``M / (H omega3 cos phi)``, exactly as the index offset does, and its release
@@ -27,10 +27,10 @@ from __future__ import annotations
 
 import diffrax
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..estimate import convergence_note, solve_least_squares
 from ..io import check_radians
 from ..models.gyrotheodolite import (
     ODE_OPTIONS,
@@ -40,7 +40,8 @@ from ..models.gyrotheodolite import (
 )
 from ..record import BenchRecord
 from ..simulate import integrate
-from ._stats import Signature, onset_grid
+from ._problem import AbstractGapProblem
+from ._stats import Signature, check_effects, onset_grid
 
 __all__ = ["GyrotheodoliteProblem", "GYROTHEODOLITE_LIBRARY", "north_seeking_period"]
 
@@ -67,26 +68,50 @@ def north_seeking_period(rig, params, conditions) -> float:
 
 
 @eqx.filter_jit
-def _model(rig, params, conditions, ts, names, scales):
-    """The pick-off over ``ts`` and its Jacobian in ``params[names] / scales`` (forward mode
-    through diffrax): one compilation serves the fits, the screening and the designs."""
-    def f(u):
-        p = params | {k: params[k] + u[i] * scales[i] for i, k in enumerate(names)}
-        y = integrate(rig, p, conditions, ts, adjoint=diffrax.ForwardMode(), throw=False,
-                      **ODE_OPTIONS)[:, 0]
-        return y, y
+def _fit_masked(rig, params, conditions, ts, y, w, names, scales, mask, budget):
+    """The pick-off over ``ts`` fitted to ``y`` (rows weighted by ``w``: 0 leaves a row out)
+    over ``params[names]`` (per ``scales``; ``mask`` 0: held) in at most ``budget`` optimistix
+    steps. One compilation (forward sensitivities through diffrax's Kvaerno5) serves the nominal
+    fit, every refit and -- ``budget`` 1, ``y`` 0, ``w`` 1 -- the model and its Jacobian for
+    the screening and the designs (:meth:`GyrotheodoliteProblem._eval`). Returns (parameters,
+    the :class:`~gyrojax.estimate.LeastSquaresSolution`)."""
+    args = (params, conditions, ts, y, w, scales, mask)
+    sol = solve_least_squares(_Residual(rig, names), jnp.zeros(len(names)), args,
+                              max_steps=_MAX_STEPS, budget=budget)
+    return _at(names, sol.value, *args), sol
 
-    jac, y = jax.jacfwd(f, has_aux=True)(jnp.zeros(len(names)))
-    return y, jac
+
+def _at(names, u, params, conditions, ts, y, w, scales, mask):
+    return params | {k: params[k] + u[i] * mask[i] * scales[i] for i, k in enumerate(names)}
 
 
-class GyrotheodoliteProblem:
+class _Residual(eqx.Module):
+    """The weighted pick-off residual of :func:`_fit_masked` (data in ``args``: one trace)."""
+
+    rig: GyrotheodoliteRig
+    names: tuple[str, ...] = eqx.field(static=True)
+
+    def __call__(self, u, args):
+        params, conditions, ts, y, w, scales, mask = args
+        p = _at(self.names, u, *args)
+        return (y - integrate(self.rig, p, conditions, ts, adjoint=diffrax.ForwardMode(),
+                              throw=False, **ODE_OPTIONS)[:, 0]) * w
+
+
+_MAX_STEPS = 40  # optimistix steps of the nominal fit and each refit
+
+
+class GyrotheodoliteProblem(AbstractGapProblem):
     """One north-seeking run split by time into train / held-out."""
 
-    rig_name = "gyrotheodolite"
+    @classmethod
+    def catalogue(cls, **options) -> dict:
+        """The catalogue: effect name -> family."""
+        return {k: v[0] for k, v in GYROTHEODOLITE_LIBRARY.items()}
 
     def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
-                 effects=None, order=None):
+                 effects=None):
+        check_effects(effects, GYROTHEODOLITE_LIBRARY, "gyrotheodolite")
         if tuple(record.channels) != ("alpha",):
             raise ValueError(f"channels {tuple(record.channels)}: the gyrotheodolite diagnosis "
                              "needs one channel 'alpha' (azimuth pick-off, rad)")
@@ -97,7 +122,7 @@ class GyrotheodoliteProblem:
         self.record = record
         self.rig = GyrotheodoliteRig()
         self.space = self.rig.param_space
-        self.conditions = GyrotheodoliteConditions.create(float(c.get("latitude_deg", 50.45)))
+        self.conditions = GyrotheodoliteConditions.from_record(record)
         self.t = np.asarray(record.t, float)
         self.y = np.asarray(record.y, float)
         # the sensing element's model is for small angles (it swings by degrees): a record in
@@ -143,71 +168,30 @@ class GyrotheodoliteProblem:
         ``ts`` (default the record's times)."""
         ts = jnp.asarray(self.t if ts is None else ts, dtype=float)
         params = {k: jnp.asarray(v, dtype=float) for k, v in params.items()}  # one trace
-        y, jac = _model(self.rig, params, self.conditions, ts, self.all_names,
-                        jnp.asarray(self.all_scales))
-        return np.asarray(y), np.asarray(jac)
+        ones = jnp.ones(len(self.all_names))
+        _, sol = _fit_masked(self.rig, params, self.conditions, ts, jnp.zeros(ts.shape),
+                             jnp.ones(ts.shape), self.all_names, jnp.asarray(self.all_scales),
+                             ones, jnp.asarray(1))
+        return -np.asarray(sol.residual), -np.asarray(sol.jacobian)
 
-    def _fit(self, names, start, *, what: str, max_iter: int = 20, tol: float = 1e-8,
-             rtol_cost: float = 1e-10):
-        """Gauss-Newton over ``names`` on the train rows (the held-out rows weigh nothing);
-        the Jacobian's other columns are dropped, so every fit reuses one compilation.
-
-        Converged when the step is below ``tol`` (in parameter scales) or when it would lower
-        the sum of squares by less than ``rtol_cost`` of it: near the optimum the adaptive ODE
-        solve's own step choices move the model by ~1e-7 scales, and a step criterion alone
-        then cycles between two such points (found on one of 1000 blind null records).
-
-        A step is taken whole unless it leaves the sum of squares rising along it faster than
-        half the rate at which it fell at the start (it went well past the minimum along the
-        step) or higher than at the start (beyond its ~1e-6 evaluation noise); then it is cut to
-        the root of the slope's secant (or halved), up to 8 times. A record with a large
-        unmodelled effect leaves a large residual, where whole steps overshoot and oscillate (a
-        3 nN m torque step, 150 arcsec, made the nominal fit alternate for 20 steps before
-        stop 65). A fit that does not converge, or finds no step that lowers the sum of
-        squares, stops at its last point and says so in :attr:`notes`."""
-        n = self.n_train
-        cols = [self.all_names.index(k) for k in names]
-        p = dict(start)
-
-        def move(t, step):
-            return p | {k: jnp.asarray(float(p[k]) + t * step[i] * self.all_scales[c])
-                        for i, (k, c) in enumerate(zip(names, cols, strict=True))}
-
-        pred, jac = self._eval(p)
-        for _ in range(max_iter):
-            r = self.y[:n, 0] - pred[:n]
-            cost = float(r @ r)
-            step, *_ = np.linalg.lstsq(jac[:n, cols], r, rcond=None)
-            decrement = float(np.sum((jac[:n, cols] @ step) ** 2))
-            if np.max(np.abs(step)) < tol or decrement <= rtol_cost * cost:
-                return move(1.0, step)
-            t = 1.0
-            for _ in range(9):
-                try:
-                    pred_t, jac_t = self._eval(trial := move(t, step))
-                except eqx.EquinoxRuntimeError:  # a trial the model's solver cannot reach
-                    t *= 0.5
-                    continue
-                r_t = self.y[:n, 0] - pred_t[:n]
-                # the slope of the sum of squares along the step at t (per unit t); -2 decrement
-                # at t = 0. The cost itself is noisy at ~1e-7 of itself (the adaptive solver's
-                # step choices), its slope is not: judge a step by the slope it leaves
-                slope = -2.0 * float(r_t @ (jac_t[:n, cols] @ step))
-                if float(r_t @ r_t) <= cost * (1 + 1e-6) and slope <= decrement:
-                    p, pred, jac = trial, pred_t, jac_t
-                    break
-                if slope > decrement:  # well past the minimum: to the slope's secant root
-                    t *= float(np.clip(2 * decrement / (2 * decrement + slope), 0.1, 0.67))
-                else:  # the sum of squares rose: half the step
-                    t *= 0.5
-            else:
-                self.notes.append(f"{what}: no step along Gauss-Newton's direction lowered the "
-                                  "sum of squares; its figures are those of the last point")
-                return p
-        self.notes.append(f"{what}: Gauss-Newton did not converge in {max_iter} steps; its "
-                          "figures are those of the last step (is the record a north-seeking "
-                          "run released near the meridian?)")
-        return p
+    def _fit(self, names, start, *, what: str) -> dict:
+        """Levenberg-Marquardt (optimistix, :func:`~gyrojax.estimate.solve_least_squares`) over
+        ``names`` on the train rows (the held-out rows weigh nothing), from ``start``: one
+        compiled fit over every coefficient (:attr:`all_names`), the others masked (held at
+        their start). A fit that does not
+        converge stops at its last accepted point and says so in :attr:`notes`."""
+        w = (np.arange(len(self.t)) < self.n_train).astype(float)  # the train rows
+        mask = np.array([float(k in names) for k in self.all_names])
+        start = {k: jnp.asarray(v, dtype=float) for k, v in start.items()}  # one trace
+        p, sol = _fit_masked(self.rig, start, self.conditions, jnp.asarray(self.t),
+                             jnp.asarray(self.y[:, 0]), jnp.asarray(w), self.all_names,
+                             jnp.asarray(self.all_scales), jnp.asarray(mask),
+                             jnp.asarray(_MAX_STEPS))
+        note = convergence_note(sol, what)
+        if note is not None:
+            self.notes.append(note + " (is the record a north-seeking run released near the "
+                              "meridian?)")
+        return dict(p)
 
     def fit_nominal(self) -> dict:
         # start: offset from the record's last tenth of the train part, release from sample 0
@@ -287,7 +271,7 @@ class GyrotheodoliteProblem:
 
     # -- refits ----------------------------------------------------------------------------
     def refit(self, params0: dict, sig_choices: list[tuple[Signature, int]], sigma):
-        """Gauss-Newton on the rig over the five test parameters plus the chosen effects' terms
+        """Levenberg-Marquardt on the rig over the five test parameters plus the chosen effects' terms
         (grid values fixed at the screened best), on the train split; returns (model over the
         whole record, effect coefficients in display units, params)."""
         sp = self.space

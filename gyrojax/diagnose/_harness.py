@@ -62,13 +62,14 @@ def separability(record, rig: str, sigma, split=None, **problem_kw) -> dict:
 def _train_jacobians(record, rig, sigma, split, **problem_kw):
     """The whitened nominal Jacobian and the catalogue's signatures on the train rows of
     ``split``, at the nominal fit of ``record`` (``sigma``: see :func:`separability`)."""
-    from ._diagnose import _noise_level, _problem, _train_slice
+    from .. import rigs
+    from ._diagnose import _given, _train_slice
 
-    prob = _problem(record, rig, 0.25, None, None, "exact", split, **problem_kw)
+    prob = rigs.get(rig).problem_for(record, **_given(dict(problem_kw, split=split)))
     params0 = prob.fit_nominal()
     if sigma is None:
         resid = (prob.y - prob.predict(params0))[: prob.n_train]
-        sigma = _noise_level(prob, resid)[0]
+        sigma = prob.noise_level(resid)[0]
     jn, sigs = prob.jacobians(params0, sigma)
     m = prob.n_train * len(prob.channels)
     return jn[:m], [_train_slice(s, m) for s in sigs]
@@ -114,7 +115,8 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
     beside the screening's time). ``diagnose_kw``: more arguments of the diagnosis (e.g. the
     platform's ``nominal_terms``). ``prior``: the diagnosis' Bayes-factor prior (and B2's;
     ``None``: the diagnosis' default)."""
-    from ._diagnose import _problem, diagnose
+    from .. import rigs
+    from ._diagnose import _given, diagnose
 
     diagnose_kw = dict(diagnose_kw or {}) | {"prior": prior}  # None: the diagnosis' default
 
@@ -161,9 +163,9 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
             **multiplicity_fields(rep),
         })
         if baselines:
-            prob = _problem(rec, rig, holdout, None, None, "exact", rec_split,
-                            nominal_terms=diagnose_kw.get("nominal_terms"),
-                            per_coefficient=diagnose_kw.get("per_coefficient", False))
+            options = {k: v for k, v in diagnose_kw.items() if k != "prior"}
+            prob = rigs.get(rig).problem_for(rec, holdout=holdout,
+                                             **_given(options | {"split": rec_split}))
             results[-1] |= refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]),
                                               prior=rep.prior)
         if progress is not None:

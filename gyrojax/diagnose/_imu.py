@@ -43,6 +43,7 @@ import numpy as np
 from .. import units
 from ..analysis.spectral import fit_noise_likelihood
 from ..datasets import masked
+from ..estimate import ScaledLevenbergMarquardt, convergence_note, solve_least_squares
 from ..estimate.multiposition import Segment, accel_units_problem, detect_static
 from ..models.imu import (
     IMU_CHANNELS,
@@ -55,8 +56,10 @@ from ..models.imu import (
     pose_frame,
 )
 from ..record import BenchRecord
+from ._problem import AbstractGapProblem
 from ._stats import (
     Signature,
+    check_effects,
     coefficient_effect,
     effect_family_name,
     full_rate_tau_cells,
@@ -101,14 +104,32 @@ def is_aux(channel: str) -> bool:
     return channel.lower().startswith(AUX_PREFIXES)
 
 
-class IMUProblem:
-    """One IMU record reduced to static block means, split by time into train / held-out."""
+class IMUProblem(AbstractGapProblem):
+    """One IMU record reduced to static block means, split by time into train / held-out.
 
-    rig_name = "imu"
+    **Options:** `per_coefficient`: every coefficient of a many-coefficient catalogue effect an
+    effect of its own (``g_sensitivity:gsxy``); `block_s`, `max_rows`: the block-mean length
+    (default: the record's statics in at most ``max_rows`` rows)."""
+
+    OPTIONS = {"per_coefficient": "screen every coefficient of the catalogue as an effect of "
+                                  "its own (family:parameter)",
+               "block_s": "block-mean length in s (default: at most max_rows rows)",
+               "max_rows": "the most block-mean rows (default 1500)"}
+
+    @classmethod
+    def catalogue(cls, **options) -> dict:
+        """The catalogue: effect name -> family."""
+        return {k: v[0] for k, v in IMU_LIBRARY.items()}
+
+    @classmethod
+    def single_coefficients(cls, *, per_coefficient: bool = False, **options) -> bool:
+        return bool(per_coefficient)
 
     def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
-                 effects=None, order=None, block_s: float | None = None, max_rows: int = 1500,
+                 effects=None, block_s: float | None = None, max_rows: int = 1500,
                  per_coefficient: bool = False):
+        # single coefficients (family:parameter) are checked below
+        check_effects([effect_family_name(e) for e in effects or ()], IMU_LIBRARY, "imu")
         bad = [c for c in record.channels if c not in IMU_CHANNELS and not is_aux(c)]
         if bad:
             raise ValueError(f"channels {bad} are neither IMU channels {IMU_CHANNELS} nor "
@@ -283,26 +304,39 @@ class IMUProblem:
         return (u0, e1, e2, omega, np.sinc(omega * self.block / self.rate_hz / (2 * np.pi)))
 
     # -- model -----------------------------------------------------------------------------
-    def _call(self, which, names, base, t, seg, vec=None, design=None, thermal=None):
-        """Model (``which=0``) or its Jacobian in the free parameters ``names`` (``which=1``) at
-        ``base`` with ``names`` set from ``vec`` (per-scale units; default zeros). One compiled
-        function per poses count, conditions and channels serves every name set: it takes the
-        whole mean-model vector, and the Jacobian is the tangents along ``names`` alone."""
-        names = tuple(names)
+    def _compiled(self, n_pose):
+        """The compiled model, its directional Jacobian and its fit for ``n_pose`` poses on
+        this record's conditions and channels (cached across problems; a candidate design's
+        poses count compiles the first two only)."""
+        key = (n_pose, self.cond, tuple(int(i) for i in self.ch_idx))
+        if key not in _COMPILED:
+            _COMPILED[key] = _build(*key)
+        return _COMPILED[key]
+
+    def _full(self, base, names, t, seg, vec=None, design=None, thermal=None):
+        """The whole mean-model vector (per-scale units) at ``base`` with ``names`` set from
+        ``vec`` (default zeros), the indices of ``names`` in it, and the compiled model's other
+        arguments."""
         geo = tuple(jnp.asarray(g) for g in (design or self._geo(self.u0, self.omega)))
         n_pose = len(geo[0])
-        allp = _ALL_SCALAR + tuple(f"pose{k}_{x}" for k in range(n_pose) for x in "abcs")
+        allp = _all_params(n_pose)
         pose = {} if design is not None else base.get("_pose", {})
         full = np.array([pose.get(n, 0.0) / _pose_scale(n) if n.startswith("pose")
                          else float(base[n]) / _SPACE[n].scale for n in allp])
         idx = [allp.index(n) for n in names]
         full[idx] = 0.0 if vec is None else np.asarray(vec, float)
-        key = (n_pose, self.cond, tuple(int(i) for i in self.ch_idx))
-        if key not in _COMPILED:
-            _COMPILED[key] = _build(allp, *key)
-        model, jvps = _COMPILED[key]
         args = (float(base["tau_w"]), jnp.asarray(t), jnp.asarray(seg), geo,
                 self._thermal_at(t) if thermal is None else thermal)
+        return full, idx, args
+
+    def _call(self, which, names, base, t, seg, vec=None, design=None, thermal=None):
+        """Model (``which=0``) or its Jacobian in the free parameters ``names`` (``which=1``) at
+        ``base`` with ``names`` set from ``vec`` (per-scale units; default zeros). One compiled
+        model per poses count, conditions and channels serves every name set: it takes the
+        whole mean-model vector, and the Jacobian is the tangents along ``names`` alone."""
+        names = tuple(names)
+        full, idx, args = self._full(base, names, t, seg, vec, design, thermal)
+        model, jvps, _ = self._compiled(len(args[3][0]))
         if which == 0:
             return np.asarray(model(jnp.asarray(full), *args))
         # one tangent per name, JVP_WIDTH at a time (the last chunk padded): one compilation
@@ -310,7 +344,7 @@ class IMUProblem:
         cols = []
         for a in range(0, max(len(idx), 1), JVP_WIDTH):
             chunk = idx[a: a + JVP_WIDTH]
-            dirs = np.zeros((JVP_WIDTH, len(allp)))
+            dirs = np.zeros((JVP_WIDTH, len(full)))
             dirs[np.arange(len(chunk)), chunk] = 1.0
             cols.append(np.asarray(jvps(jnp.asarray(full), jnp.asarray(dirs), *args))
                         [..., : len(chunk)])
@@ -336,43 +370,29 @@ class IMUProblem:
         return out if extra is None else out + extra
 
     # -- fits ------------------------------------------------------------------------------
-    def _gn(self, params, free, rows, iters: int = 30):
-        """Levenberg-Marquardt on ``free`` over ``rows`` (steps accepted only when the cost falls;
-        the damping keeps directions the rows barely determine, e.g. two antipodal poses and the
-        accelerometer biases, from wandering). The model is nearly linear, so a few steps do."""
+    def _gn(self, params, free, rows):
+        """Levenberg-Marquardt (optimistix, :func:`~gyrojax.estimate.solve_least_squares`) on
+        ``free`` over ``rows``: one compiled fit per poses count over the whole mean-model
+        vector, the other terms masked (held) and the other rows weighted 0. The model is
+        nearly linear, so a few steps do; a fit that does not converge says so in
+        :attr:`notes`."""
         names = tuple(free)
-        vec = np.asarray(self._vector(params, names))
-        w = 1.0 / self._scale_rows()
-        yr = self.y[rows]
-        t, seg = self.t, self.seg  # all rows, one compiled shape; the fit uses ``rows``
-
-        def resid(v):
-            return ((yr - self._call(0, names, params, t, seg, v)[rows]) * w).reshape(-1)
-
-        r = resid(vec)
-        cost = float(r @ r)
-        mu = None
-        for _ in range(iters):
-            j = (self._call(1, names, params, t, seg, vec)[rows] * w[None, :, None]).reshape(
-                -1, len(names))
-            jtj, g = j.T @ j, j.T @ r
-            if mu is None:
-                mu = 1e-6 * float(np.max(np.diag(jtj)))
-            for _ in range(12):
-                step = np.linalg.solve(jtj + mu * np.diag(np.maximum(np.diag(jtj), 1e-12)), g)
-                r_new = resid(vec + step)
-                c_new = float(r_new @ r_new)
-                if c_new <= cost:
-                    break
-                mu *= 10
-            else:
-                break
-            vec, r, done = vec + step, r_new, cost - c_new <= 1e-12 * max(cost, 1e-300)
-            cost = c_new
-            mu = max(mu / 10, 1e-12)
-            if done or np.max(np.abs(step)) < 1e-10:
-                break
-        return self._unpack(params, names, vec)
+        full, idx, model_args = self._full(params, names, self.t, self.seg,
+                                           self._vector(params, names))
+        where, valid = _padded(idx)
+        rw = np.zeros(len(self.t))
+        rw[rows] = 1.0
+        fit = self._compiled(len(self.segments))[2]
+        value, sol = fit(jnp.asarray(full), jnp.asarray(where), jnp.asarray(valid),
+                         jnp.asarray(rw), jnp.asarray(self.y),
+                         jnp.asarray(1.0 / self._scale_rows()), *model_args)
+        note = convergence_note(sol, "the IMU fit of " + (
+            "the nominal model" if set(names) <= set(self.nominal_names + self.pose_names)
+            else ", ".join(n for n in names if not n.startswith("pose")
+                           and n not in self.nominal_names)))
+        if note is not None:
+            self.notes.append(note)
+        return self._unpack(params, names, np.asarray(value)[: len(idx)])
 
     def _unpack(self, params, names, vec):
         out = dict(params)
@@ -727,7 +747,7 @@ class IMUProblem:
         (reported, not decided on). Its white reference has the full mean fit's columns removed,
         as the residual has (their slow columns lower the longest cells' white mean by up to
         ~20 %)."""
-        done = getattr(self, "_residuals", None)
+        done = self._residuals
         pieces = done[1] if done is not None and done[0] is params else \
             self._static_residuals(params)[0]
         return full_rate_tau_cells({c: self._long(p) for c, p in pieces.items()}, self.channels,
@@ -848,7 +868,16 @@ _ALL_SCALAR = tuple(n for n in _SPACE.names if _SPACE[n].effect in (None,) + MEA
                     and n != "tau_w")
 
 
-def _build(allp, n_pose, cond, ch_idx):
+def _all_params(n_pose):
+    """The compiled model's vector: every mean-model parameter, then each pose's four terms."""
+    return _ALL_SCALAR + tuple(f"pose{k}_{x}" for k in range(n_pose) for x in "abcs")
+
+
+_FIT_STEPS = 30  # optimistix steps of an IMU fit
+
+
+def _build(n_pose, cond, ch_idx):
+    allp = _all_params(n_pose)
     ch = np.asarray(ch_idx)
     base = {n: 0.0 for n in _SPACE.names}
 
@@ -869,10 +898,36 @@ def _build(allp, n_pose, cond, ch_idx):
         return jax.vmap(lambda d: jax.jvp(lambda v: f(v, *args), (vec,), (d,))[1],
                         out_axes=-1)(dirs)
 
-    return jax.jit(f), jax.jit(jvps)
+    def fit(full, where, valid, rw, y, w, *args):
+        """The entries ``where`` of ``full`` (those ``valid`` marks; the rest padding) fitted to
+        the rows ``rw`` marks of ``y`` (per-channel weights ``w``): (the fitted entries, the
+        solution)."""
+        def resid(v, data):
+            full, where, valid, rw, y, w, *rest = data
+            x = full.at[where].add(v * valid)
+            return ((y - f(x, *rest)) * w[None, :] * rw[:, None]).reshape(-1)
+
+        start = full[where] * valid
+        data = (full.at[where].multiply(1.0 - valid), where, valid, rw, y, w, *args)
+        sol = solve_least_squares(resid, start, data, max_steps=_FIT_STEPS,
+                                  solver=ScaledLevenbergMarquardt(gram=True))
+        return sol.value * valid, sol
+
+    return jax.jit(f), jax.jit(jvps), jax.jit(fit)
 
 
-JVP_WIDTH = 32  # tangents per directional Jacobian call (the last chunk padded to it)
+def _padded(idx):
+    """``(where, valid)``: the indices ``idx`` padded to a multiple of ``JVP_WIDTH`` (the
+    padding points at entry 0, weight 0): one compiled fit per width, and no Jacobian column of
+    a held term (one width for every fit of a record, 64 on 12 poses, measured 2x slower fits
+    for one compilation less)."""
+    width = JVP_WIDTH * max(1, -(-len(idx) // JVP_WIDTH))
+    where = np.zeros(width, int)
+    where[: len(idx)] = idx
+    return where, (np.arange(width) < len(idx)).astype(float)
+
+
+JVP_WIDTH = 32  # tangents per directional Jacobian call, and a fit's width a multiple of it
 
 
 CYCLE_MIN_C = 1.0  # deg C, the smallest amplitude of the advisor's temperature cycle

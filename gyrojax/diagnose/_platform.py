@@ -69,7 +69,8 @@ from ..models.platform_schedule import (
     split_record,
 )
 from ..record import BenchRecord
-from ._stats import Signature
+from ._problem import AbstractGapProblem
+from ._stats import Signature, check_effects
 
 __all__ = ["PlatformProblem", "PLATFORM_LIBRARY", "platform_library", "FIRST_ORDER_TERMS"]
 
@@ -193,15 +194,33 @@ def _blocks(n, k):
     return np.array_split(np.arange(n), k)
 
 
-class PlatformProblem:
-    """A platform test record reduced to block means of the centred angles."""
+class PlatformProblem(AbstractGapProblem):
+    """A platform test record reduced to block means of the centred angles.
 
-    rig_name = "platform"
+    **Options:** `split`: ``"same-design"`` or ``"design-shift"`` (the last vibration
+    amplitude's run held out whole); `nominal_terms`: the drift-law terms of the nominal model
+    (default all but ``oo``; each coefficient left out is screened as an effect of its own);
+    `blocks`: block means per dwell."""
+
+    OPTIONS = {"split": "'same-design' (default) or 'design-shift'",
+               "nominal_terms": "the drift-law terms of the nominal model, e.g. ('f', 'i', 'o', "
+                                "'s')",
+               "blocks": "block means per dwell (default 50)"}
     SPLITS = {"same-design": "same design: the last part of every dwell held out",
               "design-shift": "design shift: the last vibration amplitude's run held out"}
 
+    @classmethod
+    def catalogue(cls, *, nominal_terms=None, **options) -> dict:
+        """The catalogue for the nominal model of ``nominal_terms``: effect name -> family
+        (:func:`platform_library`)."""
+        return {k: v[0] for k, v in platform_library(nominal_terms).items()}
+
+    @classmethod
+    def single_coefficients(cls, *, nominal_terms=None, **options) -> bool:
+        return nominal_terms is not None
+
     def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
-                 effects=None, order=None, blocks: int = 50, split: str = "same-design",
+                 effects=None, blocks: int = 50, split: str = "same-design",
                  nominal_terms=None):
         if split not in self.SPLITS:
             raise ValueError(f"split={split!r} for --rig platform; use one of "
@@ -229,13 +248,10 @@ class PlatformProblem:
         self.terms = _check_terms(nominal_terms)
         self.library = platform_library(self.terms)
         self.effects = tuple(effects) if effects is not None else tuple(self.library)
-        unknown = [e for e in self.effects if e not in self.library]
-        if unknown:
-            raise ValueError(f"effects {unknown} are not in the platform catalogue for nominal "
-                             f"terms {','.join(self.terms)}; use some of "
-                             f"{', '.join(self.library)}")
+        check_effects(self.effects, self.library, "platform")
         self.channels = CHANNELS
         self.lines = {}
+        self.notes: list[str] = []
         self.rig = PlatformRig()
         space = self.rig.param_space
         self.nominal_names = nominal_coefficients(self.terms)
@@ -249,7 +265,7 @@ class PlatformProblem:
         span = n_dw * self.dwell_s
         self.taus = tuple(float(x) for x in np.geomspace(span / 40, span / 2, N_GRID))
         n_pos = len(s["positions_deg"])
-        self.split_kind = self.SPLITS[split]
+        self._split = split
         if split == "design-shift":
             if len(self.amps) < 2:
                 raise ValueError("split='design-shift' holds out the last vibration amplitude's "
@@ -431,6 +447,14 @@ class PlatformProblem:
         k_tr = self.n_blocks - self.k_ho
         d = np.diff(resid.reshape(resid.shape[0], -1, k_tr, 3), n=2, axis=2)
         return np.sqrt(np.mean(d * d, axis=(1, 2)) / 6)
+
+    @property
+    def split_kind(self) -> str:
+        return self.SPLITS[self._split]
+
+    def null_sampler(self, u, n, c, estimated):
+        """The dwell-offset-aware draws of :meth:`null_residuals`."""
+        return lambda rng, b: self.null_residuals(rng, b, u)
 
     def null_residuals(self, rng, b: int, u) -> np.ndarray:
         """``b`` whitened train residuals under the linearised null (the diagnosis' calibrated

@@ -24,9 +24,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import units
+from ..estimate import convergence_note
 from ..estimate.schuler import (
     THETA_NAMES,
-    _gauss_newton,
+    _fit_prior,
     check_rotation_units,
     fit_schuler,
     schuler_residuals,
@@ -34,7 +35,8 @@ from ..estimate.schuler import (
 from ..models.schuler import SchulerConditions, SchulerRig
 from ..record import BenchRecord
 from ..simulate import integrate
-from ._stats import Signature, onset_grid
+from ._problem import AbstractGapProblem
+from ._stats import Signature, check_effects, onset_grid
 
 __all__ = ["SchulerProblem", "SCHULER_LIBRARY"]
 
@@ -51,8 +53,8 @@ SCHULER_LIBRARY = {
 CHANNELS = ("V1", "V2", "rot1", "rot2", "rot3")
 TRANSIENT_TIMES_H = tuple(float(x) for x in np.geomspace(0.25, 3.0, 8))
 DEFAULT_NOISE = (0.05, 0.05, units.ARCMIN, units.ARCMIN, units.ARCMIN)  # spec §10
-_NOMINAL_MAX_ITER = 10  # fit_schuler's default
-_REFIT_MAX_ITER = 50  # damped Gauss-Newton: a 10 deg/h drift step takes ~40 steps from the nominal fit
+_NOMINAL_MAX_ITER = 20  # fit_schuler's default (optimistix steps per pass)
+_REFIT_MAX_ITER = 50  # optimistix steps of a refit (a 10 deg/h drift step starts far off)
 
 
 @eqx.filter_jit
@@ -71,13 +73,17 @@ def _residual(rig, cond, ts, y, params):
     return schuler_residuals(rig, cond, ts, y, params)
 
 
-class SchulerProblem:
+class SchulerProblem(AbstractGapProblem):
     """One Schuler-test record split by time into train / held-out."""
 
-    rig_name = "schuler"
+    @classmethod
+    def catalogue(cls, **options) -> dict:
+        """The catalogue: effect name -> family."""
+        return {k: v[0] for k, v in SCHULER_LIBRARY.items()}
 
     def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
-                 effects=None, order=None):
+                 effects=None):
+        check_effects(effects, SCHULER_LIBRARY, "schuler")
         if tuple(record.channels) != CHANNELS:
             raise ValueError(f"channels {tuple(record.channels)}: the Schuler diagnosis needs "
                              f"{CHANNELS} (model velocities in m/s, platform rotation since t0 "
@@ -85,10 +91,7 @@ class SchulerProblem:
         self.record = record
         self.rig = SchulerRig()
         self.space = self.rig.param_space
-        c = record.conditions
-        self.conditions = SchulerConditions.create(
-            float(c.get("latitude_deg", 55.57)), g=c.get("g"), v10=float(c.get("v10", 200.0)),
-            v20=float(c.get("v20", -200.0)), azimuth0_deg=float(c.get("azimuth0_deg", 0.0)))
+        self.conditions = SchulerConditions.from_record(record)
         self.t = np.asarray(record.t, float)
         self.y = np.asarray(record.y, float)
         check_rotation_units(self.y)
@@ -122,18 +125,12 @@ class SchulerProblem:
         s = self.fit_noise
         est = fit_schuler(self.rig, self.t[:n], self.y[:n], self.conditions, sigma_v=float(s[0]),
                           sigma_theta=float(np.mean(s[2:])), max_iter=_NOMINAL_MAX_ITER)
-        self._check_converged("the nominal fit", est.converged, int(est.iterations),
-                              float(est.last_step_se),
-                              stalled=int(est.iterations) < _NOMINAL_MAX_ITER)
+        self._note(est.note("the nominal fit"))
         return dict(zip(THETA_NAMES, est.values, strict=True))
 
-    def _check_converged(self, what, converged, steps, step_se, *, stalled):
-        if not bool(converged):
-            why = ("no fraction of its last step lowered the cost" if stalled
-                   else "the step limit")
-            self.notes.append(f"{what}: Gauss-Newton did not converge: it stopped after {steps} "
-                              f"steps ({why}) with its last step {step_se:.2g} standard errors "
-                              "long; its figures are those of the point reached")
+    def _note(self, note):
+        if note is not None:
+            self.notes.append(note)
 
     def predict(self, params: dict, extra=None) -> np.ndarray:
         """``y - residual`` over the whole record (the residual is the test's, spec §8)."""
@@ -207,12 +204,11 @@ class SchulerProblem:
         scale = jnp.asarray(sp.scales(names))
         u0 = jnp.asarray([float(params0.get(k, 0.0)) for k in names]) / scale
         n = self.n_train
-        gn = _gauss_newton(
+        gn = _fit_prior(
             self.rig, self.conditions, self.t[:n], self.y[:n], 1.0 / np.asarray(sigma, float),
             scale, u0, _REFIT_MAX_ITER, 1e-4, names, fixed, [float(k in chosen) for k in names])
-        self._check_converged("the refit with " + " + ".join(s.name for s, _ in sig_choices),
-                              gn.converged, int(gn.iterations), float(gn.step_se),
-                              stalled=bool(gn.stalled))
+        self._note(convergence_note(
+            gn.solution, "the refit with " + " + ".join(s.name for s, _ in sig_choices)))
         p = fixed | dict(zip(names, gn.theta, strict=True))
         coeffs = {k: float(sp[k].to_display(p[k])) for sig, _ in sig_choices for k in sig.names}
         return self.predict(p), coeffs, p

@@ -80,6 +80,14 @@ def effect_family_name(name: str) -> str:
     return name.split(":", 1)[0]
 
 
+def check_effects(effects, library, rig: str) -> None:
+    """A clear error for effect names outside the rig's catalogue ``library``."""
+    bad = [e for e in (effects or ()) if e not in library]
+    if bad:
+        raise ValueError(f"unknown effect(s) {bad} for --rig {rig}; the catalogue is "
+                         f"{', '.join(library)}")
+
+
 def onset_grid(t, n_train: int) -> np.ndarray:
     """A step's onset grid over the train span of a record sampled at ``t``: equally spaced
     interior values at most 5 % of the record apart (spec §6 G8 asks onsets within one such
@@ -409,6 +417,7 @@ class Screen:
     # the visible fraction over the grid (see :func:`screen`); ``grid_index`` without a grid
     vis_index: int = 0
     grid_weights: np.ndarray | None = None  # posterior over the grid values (grid effects only)
+    q: float | None = None  # weighted-BH q-value, set by the pipeline
 
 
 def _visibility(j, u):

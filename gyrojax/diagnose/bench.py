@@ -261,7 +261,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: Design | None = No
     design = design or Design()
     sealer = _Sealer(out_dir, seed)
     rng = sealer.rng
-    cond = ESGConditions.from_scheme(design.scheme, design.latitude_deg)
+    cond = ESGConditions.create(design.scheme, design.latitude_deg)
     fams = list(families or (LIBRARY_FAMILIES + OUT_OF_LIBRARY + ("two_effects",)))
     key = jax.random.key(seed)
     sp = _TRUTH_RIG.param_space
@@ -299,7 +299,7 @@ def _simulate_case(p, design, key, out_term=0.0):
     """A record of the truth rig ``p`` on ``design`` (its scheme, latitude, length and noise)."""
     from ..simulate import simulate
 
-    cond = ESGConditions.from_scheme(design.scheme, design.latitude_deg)
+    cond = ESGConditions.create(design.scheme, design.latitude_deg)
     rec = simulate(_TRUTH_RIG, p, cond, jnp.asarray(design.ts), key=key,
                    noise_std=design.noise_arcsec * units.ARCSEC,
                    attrs=dict(scheme=design.scheme, latitude_deg=design.latitude_deg))
@@ -530,7 +530,7 @@ def refit_all_baseline(prob, ranking, sigma, prior: str = "design") -> dict:
     n = prob.n_train
 
     def standardize(resid):
-        return prob.standardize(resid, sigma) if hasattr(prob, "standardize") else resid / sigma
+        return prob.standardize(resid, sigma)
 
     def chi2(pred):  # on the diagnosis' whitened rows
         return float(np.sum(standardize(prob.y[:n] - pred[:n]) ** 2))

@@ -407,13 +407,13 @@ def expected_position_z(record, truth) -> dict:
     AR whitening, nominal span projected out): ``J~_p' (I - P) d / |J~_p|`` with ``d`` the
     whitened step (the stepped accelerometer channel, every pose from ``truth["pose"]`` on).
     Empty when the record's static segments are not the design's poses one to one."""
-    from ._diagnose import _noise_level, _problem
+    from .. import rigs
     from ._stats import VISIBLE_MIN, _project, nominal_basis
 
-    prob = _problem(record, "imu", 0.25, None, None, "exact", None)
+    prob = rigs.get("imu").problem_for(record, holdout=0.25)
     params0 = prob.fit_nominal()
     n, c = prob.n_train, len(prob.channels)
-    sigma = _noise_level(prob, (prob.y - prob.predict(params0))[:n])[0]
+    sigma = prob.noise_level((prob.y - prob.predict(params0))[:n])[0]
     jn, _ = prob.jacobians(params0, sigma)
     u = nominal_basis(jn[: n * c])
     d = np.zeros((n, c))

@@ -4,6 +4,15 @@ Luenberger observers."""
 from ._fit import METHODS as METHODS
 from ._fit import FitReport as FitReport
 from ._fit import fit as fit
+from ._lstsq import STATIONARY_SE as STATIONARY_SE
+from ._lstsq import CappedTrustRegion as CappedTrustRegion
+from ._lstsq import LeastSquaresSolution as LeastSquaresSolution
+from ._lstsq import ScaledLevenbergMarquardt as ScaledLevenbergMarquardt
+from ._lstsq import StationaryStop as StationaryStop
+from ._lstsq import TrustRegionDescent as TrustRegionDescent
+from ._lstsq import convergence_note as convergence_note
+from ._lstsq import dense_jacobian as dense_jacobian
+from ._lstsq import solve_least_squares as solve_least_squares
 from .kalman import (
     ESGFilterResult as ESGFilterResult,
 )

@@ -1,4 +1,5 @@
-"""Output-error fits of a rig's trajectory: Gauss-Newton / Levenberg-Marquardt via optimistix.
+"""Output-error fits of a rig's trajectory: Gauss-Newton / Levenberg-Marquardt via optimistix
+(:func:`gyrojax.estimate.solve_least_squares`).
 
 The residual is ``integrate(rig, params) - record.y`` over all samples and channels; its Jacobian
 comes from forward sensitivities through diffrax (``diffrax.ForwardMode`` + ``jax.jacfwd``), so the
@@ -19,31 +20,11 @@ import optimistix as optx
 
 from ..record import BenchRecord
 from ..simulate import integrate
-from ._linalg import scaled_lstsq, value_and_jacfwd
+from ._linalg import scaled_lstsq
+from ._lstsq import ScaledLevenbergMarquardt, solve_least_squares
 from ._result import AbstractNamedEstimate
 
-__all__ = ["FitResult", "fit_trajectory", "trajectory_jacobian"]
-
-# A fit is converged when optimistix's test on the steps passes or when the Gauss-Newton step
-# still to take at the solution is shorter than this many of its own standard errors. Along a
-# weakly observable direction (the ESG equatorial scheme's m11 + 0.72 mc2 + 0.56 eps3, relative
-# singular value 3e-4) the adaptive ODE's error control, not the data, keeps moving the iterates
-# (the README tour's record: 2.4e-4 standard errors left after 100 steps, eps3 changing by
-# ~1e-3 arcsec per step against its 49 arcsec standard error): of no statistical meaning, yet
-# far above a step test at rtol 1e-6 of the parameters' values, which then never passes.
-STATIONARY_SE = 1e-2
-
-
-def stationary_converged(result, jac, minus_step, sigma2):
-    """``(converged, step_se)``: the step still to take at the solution, ``-minus_step`` (the
-    least-squares solution of ``jac @ p = res`` there), in standard errors (its Mahalanobis length
-    under the covariance ``sigma2 (J^T J)^+``: ``|J step|^2 / sigma2`` is the chi-square it would
-    gain), and the convergence rule of every optimistix Gauss-Newton fit in gyrojax: the solver's
-    own test passed (``result``) or that step is under ``STATIONARY_SE``."""
-    sigma2 = jnp.maximum(sigma2, jnp.finfo(jnp.result_type(float)).tiny)  # a noise-free fit
-    step_se = jnp.sqrt(jnp.sum((jac @ minus_step) ** 2) / sigma2)
-    return (result == optx.RESULTS.successful) | (step_se <= STATIONARY_SE), step_se
-
+__all__ = ["FitResult", "convergence_text", "fit_trajectory", "trajectory_jacobian"]
 
 def convergence_text(converged, num_steps, step_se) -> str:
     """One line for reports: ``converged: True (5 steps; the step left: 2.4e-04 standard
@@ -61,7 +42,8 @@ class FitResult(AbstractNamedEstimate):
     - `remaining_step_se`: the Gauss-Newton step left at the solution, in standard errors (its
       Mahalanobis length under `covariance`).
     - `result`: an ``optimistix.RESULTS`` code; `converged`: bool, optimistix's test passed or
-      `remaining_step_se` is under ``STATIONARY_SE`` (1e-2); `num_steps`.
+      `remaining_step_se` is under ``STATIONARY_SE`` (1e-2): the rule of every fit
+      (:func:`~gyrojax.estimate.solve_least_squares`); `num_steps`.
     """
 
     names: tuple[str, ...] = eqx.field(static=True)
@@ -117,22 +99,20 @@ def _fit(rig, free, solver_name, base, conditions, ts, y, rtol, atol, max_steps,
     if solver_name == "gauss-newton":
         solver = optx.GaussNewton(rtol=rtol, atol=atol)
     else:
-        solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(fn, solver, x0, options=dict(jac="fwd"), max_steps=max_steps,
-                             throw=False)
+        solver = ScaledLevenbergMarquardt(rtol=rtol, atol=atol)
+    # the step test on the parameters (rtol, atol) ends the fit, as asked; the convergence rule
+    # is every fit's (the test passed, or the step left under STATIONARY_SE standard errors)
+    sol = solve_least_squares(fn, x0, solver=solver, max_steps=max_steps, step_se_tol=0.0)
     x = sol.value
-    res, jac = value_and_jacfwd(lambda z: fn(z, None))(x)
-    gn_step, cov_unit, s = scaled_lstsq(jac, res)  # minus the Gauss-Newton step from x
+    _, cov_unit, s = scaled_lstsq(sol.jacobian, sol.residual)
     k = jnp.sum(s > 1e-12 * s[0])
-    dof = jnp.maximum(res.shape[0] - k, 1)
-    sigma2 = jnp.sum(res**2) / dof
-    converged, step_se = stationary_converged(sol.result, jac, gn_step, sigma2)
+    sigma2 = sol.cost / jnp.maximum(sol.residual.shape[0] - k, 1)
     sc = space.scales(free)
     cov = sigma2 * cov_unit * jnp.outer(sc, sc)
     values = x * sc
     return (space.unflatten(x, base, free), values, jnp.sqrt(jnp.diag(cov)), cov,
-            jnp.sqrt(jnp.mean(res**2)), jnp.sqrt(sigma2), sol.result, sol.stats["num_steps"],
-            step_se, converged)
+            jnp.sqrt(jnp.mean(sol.residual**2)), jnp.sqrt(sigma2), sol.result, sol.num_steps,
+            sol.step_se, sol.converged)
 
 
 def fit_trajectory(rig, record: BenchRecord, conditions, params0: Mapping, *,
@@ -147,7 +127,9 @@ def fit_trajectory(rig, record: BenchRecord, conditions, params0: Mapping, *,
     - `params0`: full parameter dict; the starting point of the free ones and the value of the
       frozen ones (e.g. a regression estimate).
     - `free`: names of the parameters to estimate.
-    - `method`: ``"gauss-newton"`` (``optimistix.GaussNewton``) or ``"levenberg-marquardt"``.
+    - `method`: ``"gauss-newton"`` (``optimistix.GaussNewton``) or ``"levenberg-marquardt"``
+      (:class:`~gyrojax.estimate.ScaledLevenbergMarquardt`), run by
+      :func:`~gyrojax.estimate.solve_least_squares`.
     - `rtol`, `atol`, `max_steps`: optimiser tolerances (on the scaled parameters) and budget.
     - `ode_solver`: the diffrax solver (default ``Dopri8``); ``ode_rtol``/``ode_atol``/
       ``ode_max_steps`` its controller's tolerances and budget.

@@ -26,13 +26,12 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from ..datasets import masked
 from ..models.imu import IMURig
 from ..record import BenchRecord
-from ._linalg import scaled_lstsq, value_and_jacfwd
-from .least_squares import stationary_converged
+from ._linalg import value_and_jacfwd
+from ._lstsq import ScaledLevenbergMarquardt, solve_least_squares
 
 __all__ = ["Segment", "detect_static", "calibrate_accelerometer", "calibrate_gyro",
            "AccelCalibration", "GyroCalibration", "leave_one_position_out", "time_ordered_split",
@@ -252,21 +251,19 @@ def _accel_fit(th0, means, w, gravity, free):
 
 
 def _lm_fit(resid, th0, args, free, rtol, max_steps):
-    """Levenberg-Marquardt (optimistix) over the terms ``free`` marks (1.0), the others held at
-    zero: ``(value, Jacobian in every term, residual, converged)`` at the solution. Converged by
-    the rule of every Gauss-Newton fit in gyrojax (the solver's test passed, or the free terms'
-    step left is under ``STATIONARY_SE`` standard errors: ``stationary_converged``)."""
+    """Levenberg-Marquardt (optimistix, :func:`~gyrojax.estimate.solve_least_squares`) over the
+    terms ``free`` marks (1.0), the others held at zero: ``(value, Jacobian in every term,
+    residual, converged)`` at the solution. Converged by the rule of every fit in gyrojax (the
+    solver's test passed, or the free terms' step left is under ``STATIONARY_SE`` standard
+    errors)."""
     def held(x, a):
         return resid(x * free, a)
 
-    sol = optx.least_squares(held, optx.LevenbergMarquardt(rtol=rtol, atol=1e-12), th0 * free,
-                             args, max_steps=max_steps, throw=False)
+    sol = solve_least_squares(held, th0 * free, args, max_steps=max_steps, step_se_tol=0.0,
+                              solver=ScaledLevenbergMarquardt(rtol=rtol, atol=1e-12))
     value = sol.value * free
     r, jac = value_and_jacfwd(lambda x: resid(x, args))(value)  # one pass: every term's columns
-    jac_free = jac * free  # the held fit's Jacobian
-    minus_step = scaled_lstsq(jac_free, r)[0]
-    sigma2 = jnp.sum(r**2) / max(r.shape[0] - jac.shape[1], 1)
-    return value, jac, r, stationary_converged(sol.result, jac_free, minus_step, sigma2)[0]
+    return value, jac, r, sol.converged
 
 
 def _free_terms(jac0, names) -> np.ndarray:

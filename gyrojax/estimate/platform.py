@@ -416,7 +416,7 @@ def _gn_solve(ts, angles, conds, x0, free, rtol, atol, max_steps, noise_var):
 
     from ..models.platform import PlatformRig
     from ..simulate import integrate
-    from .least_squares import stationary_converged
+    from ._lstsq import solve_least_squares
 
     rig = PlatformRig()
     base = rig.param_space.make()
@@ -432,16 +432,13 @@ def _gn_solve(ts, angles, conds, x0, free, rtol, atol, max_steps, noise_var):
                                             throw=False))(c0)[..., :3]
         return (pred - angles).reshape(-1)
 
-    sol = optx.least_squares(residual, optx.GaussNewton(rtol=rtol, atol=atol), x0,
-                             options=dict(jac="fwd"), max_steps=max_steps, throw=False)
-    x = sol.value
-    res, jac = value_and_jacfwd(lambda z: residual(z, None))(x)
-    minus_step, cov_unit, s = scaled_lstsq(jac, res)
+    sol = solve_least_squares(residual, x0, solver=optx.GaussNewton(rtol=rtol, atol=atol),
+                              max_steps=max_steps, step_se_tol=0.0)
+    _, cov_unit, _ = scaled_lstsq(sol.jacobian, sol.residual)
     # the noise given (> 0), or the residual's with the fit's dof
     sigma2 = jnp.where(noise_var > 0, noise_var,
-                       jnp.sum(res**2) / max(res.shape[0] - x.shape[0], 1))
-    converged, step_se = stationary_converged(sol.result, jac, minus_step, sigma2)
-    return x, cov_unit, sigma2, converged, sol.stats["num_steps"], step_se
+                       sol.cost / max(sol.residual.shape[0] - x0.shape[0], 1))
+    return sol.value, cov_unit, sigma2, sol.converged, sol.num_steps, sol.step_se
 
 
 def platform_gauss_newton(ts, records: Sequence, conditions: Sequence, *,

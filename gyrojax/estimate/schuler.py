@@ -13,9 +13,10 @@ dA0``), both with the prior $N(0, \\Sigma_\\theta)$ of §10:
   error model about the error-free reference, in square-root form under ``lax.scan``, with an RTS
   smoother. Biased for realistic scale errors (the linearisation misses the Schuler-frequency
   shift).
-- :func:`fit_schuler` — the iterated Gauss-Newton on the nonlinear model (§9.3): forward-mode
-  sensitivities through diffrax, prior-regularised least squares by QR, first on the first period
-  and then on the whole record. It reaches the Cramer-Rao bound.
+- :func:`fit_schuler` — the iterated Gauss-Newton on the nonlinear model (§9.3), as optimistix's
+  trust-region Levenberg-Marquardt: forward-mode sensitivities through diffrax, the prior as
+  extra residual rows, first on the first period and then on the whole record. It reaches the
+  Cramer-Rao bound.
 
 Both run under ``jax.vmap`` over records (Monte Carlo).
 """
@@ -40,10 +41,15 @@ from ..models.schuler import (
 )
 from ..rotations import matrix_to_rotvec, rotvec_to_matrix
 from ..simulate import integrate, trajectory
-from ._linalg import scaled_lstsq, value_and_jacfwd
+from ._linalg import scaled_lstsq
+from ._lstsq import (
+    LeastSquaresSolution,
+    ScaledLevenbergMarquardt,
+    convergence_note,
+    solve_least_squares,
+)
 from ._result import AbstractNamedEstimate
 from .kalman import rts_smoother, square_root_filter
-from .least_squares import STATIONARY_SE
 
 __all__ = ["attitude_residual", "schuler_residuals", "SchulerEstimate", "fit_schuler",
            "schuler_filter", "check_schuler_record", "check_rotation_units", "linearised_model",
@@ -73,15 +79,16 @@ class SchulerEstimate(AbstractNamedEstimate):
     """Estimates of the 12 unknowns (internal units, parameter axis last).
 
     - ``covariance`` (12, 12) posterior covariance (prior included); ``stderr`` its root diagonal.
-    - ``iterations``: Gauss-Newton iterations (0 for the filter); ``residual_rms`` (5,): RMS of
+    - ``iterations``: optimistix steps of the fit (0 for the filter); ``residual_rms`` (5,): RMS of
       the measured minus modelled channels at the estimate (:func:`schuler_residuals`: m/s,
       rad), for either method (the filter's standardized innovations are in its extras).
     - ``method``: ``"gauss-newton"`` or ``"kalman"``.
-    - ``converged``: Gauss-Newton's last step was under its ``tol`` or under ``STATIONARY_SE``
-      (1e-2) standard errors (False when it stopped at ``max_iter`` still moving, or stalled
-      short of the optimum); True for the filter, a single pass.
-    - ``last_step_se``: Gauss-Newton's last step computed, in standard errors (the root of its
-      predicted drop of the whitened cost); NaN for the filter.
+    - ``converged``: the fit reached a solution by the rule of every fit in gyrojax
+      (:mod:`gyrojax.estimate._lstsq`); True for the filter, a single pass.
+    - ``last_step_se``: the Gauss-Newton step left at the estimate, in standard errors; NaN for
+      the filter.
+    - ``solution``: the fit's :class:`~gyrojax.estimate.LeastSquaresSolution` (``None`` for the
+      filter); :meth:`note` reads it.
     """
 
     names: tuple[str, ...] = eqx.field(static=True)
@@ -93,6 +100,12 @@ class SchulerEstimate(AbstractNamedEstimate):
     method: str = eqx.field(static=True)
     converged: jax.Array | bool = True
     last_step_se: jax.Array | float = float("nan")
+    solution: LeastSquaresSolution | None = None
+
+    def note(self, what: str = "the fit") -> str | None:
+        """The line a report gives a fit that did not converge (``None`` if it did, or for the
+        filter): :func:`~gyrojax.estimate.convergence_note`."""
+        return None if self.solution is None else convergence_note(self.solution, what)
 
     def correlation(self):
         s = self.stderr
@@ -161,111 +174,76 @@ def check_schuler_record(ts, y, conditions: SchulerConditions, *, uniform: bool 
 
 
 # -- Gauss-Newton (§9.3) ---------------------------------------------------------------------
-class _GaussNewtonOutcome(NamedTuple):
+class _FitOutcome(NamedTuple):
     theta: jax.Array  # internal units
     covariance: jax.Array  # posterior (prior included)
-    iterations: jax.Array  # linearisations, the stalled one included
+    iterations: jax.Array  # optimistix steps (rejected trust-region trials included)
     residual_rms: jax.Array  # per channel
     converged: jax.Array
-    step_se: jax.Array  # the last step computed, in standard errors (inf: no finite cost)
-    stalled: jax.Array  # no fraction of the last step lowered the cost (it was not taken)
+    step_se: jax.Array  # the Gauss-Newton step left at the solution, in standard errors
+    solution: LeastSquaresSolution
 
 
-def _gauss_newton(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names=THETA_NAMES,
-                  fixed=None, mask=None):
-    """Prior-regularised Gauss-Newton over ``names`` (prior sd ``sig``, start ``u0`` in prior
-    units); ``fixed``: other parameters held at given values (an effect's decay time...);
-    ``mask`` (per name, default all 1): a name with 0 is held at its start (its Jacobian column
-    and prior row zeroed, so the minimum-norm step leaves it).
+def _fit_prior(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names=THETA_NAMES,
+               fixed=None, mask=None):
+    """Prior-regularised least squares over ``names`` (prior sd ``sig``, start ``u0`` in prior
+    units) by :func:`~gyrojax.estimate.solve_least_squares` (optimistix, trust-region
+    Levenberg-Marquardt); ``fixed``: other parameters held at given values (an effect's decay
+    time...); ``mask`` (per name, default all 1): a name with 0 is held at its start (its
+    Jacobian column and prior row zeroed, so the damped step leaves it).
 
-    ``weights`` broadcast to per-sample (N, 5), the mask and the loop limits passed as arrays
-    before the jit boundary, so every caller (a staged first pass, refits of different effect
-    sets over one superset ``names``, a different ``max_iter``) reuses one compiled solver.
+    ``weights`` broadcast to per-sample (N, 5) and the mask passed as arrays before the jit
+    boundary, so every caller (a staged first pass, refits of different effect sets over one
+    superset ``names``) reuses one compiled solver per ``max_iter``. ``tol``: optimistix's test
+    on successive iterates (prior standard deviations).
 
-    A step that raises the cost (residuals and prior) is halved, up to 8 times; if none lowers
-    it the fit stops there.
-
-    Returns a :class:`_GaussNewtonOutcome`. ``converged``: the last step's largest change was
-    under ``tol`` prior standard deviations, or that step (the last one computed; the one not
-    taken when the fit stalled) was under ``STATIONARY_SE`` standard errors, the rule of
-    gyrojax's optimistix fits. A fit can stall at the optimum: the adaptive ODE solver's noise
-    in the cost (~1e-8 of it) hides a step whose predicted drop of the whitened cost is ~1e-4
-    (a null record's refits stall at 4e-6 to 7e-3 standard errors). A fit that stalls on a
-    longer step, or stops at ``max_iter`` still moving, has not converged."""
+    Returns a :class:`_FitOutcome`; ``converged`` by the rule of every fit in gyrojax
+    (:mod:`gyrojax.estimate._lstsq`)."""
     y = jnp.asarray(y, dtype=float)
     weights = jnp.broadcast_to(jnp.asarray(weights, dtype=float), y.shape)
     mask = jnp.ones(len(names)) if mask is None else jnp.asarray(mask, dtype=float)
     fixed = {k: jnp.asarray(v, dtype=float) for k, v in (fixed or {}).items()}
-    return _gauss_newton_jit(rig, conditions, jnp.asarray(ts, dtype=float), y, weights,
-                             jnp.asarray(sig, dtype=float), jnp.asarray(u0, dtype=float),
-                             jnp.asarray(max_iter), jnp.asarray(tol, dtype=float), names,
-                             fixed, mask)
+    return _fit_prior_jit(rig, conditions, jnp.asarray(ts, dtype=float), y, weights,
+                          jnp.asarray(sig, dtype=float), jnp.asarray(u0, dtype=float),
+                          int(max_iter), float(tol), names, fixed, mask)
 
 
 @eqx.filter_jit
-def _gauss_newton_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names, fixed,
-                      mask):
-
-    def resid(u):
-        params = fixed | dict(zip(names, u * sig, strict=True))
-        # a trial step that leaves the solver's reach is a step that raises the cost
+def _fit_prior_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names, fixed, mask):
+    def resid(u, _):
+        params = fixed | dict(zip(names, u * mask * sig, strict=True))
+        # a trial step that leaves the solver's reach gives a non-finite cost: it is rejected
         r = schuler_residuals(rig, conditions, ts, y, params, adjoint=diffrax.ForwardMode(),
                               throw=False)
-        return (r * weights).ravel()
+        return jnp.concatenate([(r * weights).ravel(), u * mask])
 
-    k = sig.shape[0]
-
-    def cost(u, r):
-        return r @ r + jnp.sum((u * mask) ** 2)
-
-    def body(carry):
-        u, it, _, _, _, _ = carry
-        r, jac = value_and_jacfwd(resid)(u)
-        jac = jac * mask
-        a = jnp.concatenate([jac, jnp.diag(mask)], axis=0)
-        b = -jnp.concatenate([r, u * mask])
-        delta, cov, _ = scaled_lstsq(a, b)
-        c0 = cost(u, r)
-
-        # a step that raises the cost is halved (up to 8 times); if none lowers it, stay, and stop
-        def halve(c):
-            j, _ = c
-            v = u + 0.5**j * delta
-            return j + 1, cost(v, resid(v))
-
-        j, c1 = jax.lax.while_loop(lambda c: (c[0] < 9) & ~(c[1] <= c0), halve,
-                                   (0, jnp.asarray(jnp.inf)))
-        ok = c1 <= c0
-        t = jnp.where(ok, 0.5 ** (j - 1), 0.0)
-        # the whole step in standard errors: the root of its predicted drop of the whitened cost
-        step_se = jnp.where(jnp.isfinite(c0), jnp.sqrt(jnp.sum((a @ delta) ** 2)), jnp.inf)
-        return u + t * delta, it + 1, jnp.max(jnp.abs(delta)), ~ok, cov, step_se
-
-    def cond(carry):
-        _, it, change, stuck, _, _ = carry
-        return (it < max_iter) & (change > tol) & ~stuck
-
-    u, it, change, stalled, cov, step_se = jax.lax.while_loop(
-        cond, body, (u0, 0, jnp.inf, jnp.asarray(False), jnp.eye(k), jnp.asarray(jnp.inf)))
+    sol = solve_least_squares(resid, u0 * mask, max_steps=max_iter,
+                              solver=ScaledLevenbergMarquardt(atol=tol))
+    u = sol.value * mask
+    _, cov, _ = scaled_lstsq(sol.jacobian, sol.residual)
     params = fixed | dict(zip(names, u * sig, strict=True))
     r = schuler_residuals(rig, conditions, ts, y, params)
-    return _GaussNewtonOutcome(u * sig, cov * jnp.outer(sig, sig), it,
-                               jnp.sqrt(jnp.mean(r**2, axis=0)),
-                               (change <= tol) | (step_se <= STATIONARY_SE), step_se, stalled)
+    return _FitOutcome(u * sig, cov * jnp.outer(sig, sig), sol.num_steps,
+                       jnp.sqrt(jnp.mean(r**2, axis=0)), sol.converged, sol.step_se, sol)
 
 
 def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_v: float = 0.05,
                 sigma_theta: float = units.ARCMIN, prior_std: dict | None = None,
-                max_iter: int = 10, tol: float = 1e-3, staged: bool = True,
+                max_iter: int = 20, tol: float = 1e-3, staged: bool = True,
                 check: bool = True) -> SchulerEstimate:
-    """Iterated Gauss-Newton on the nonlinear model (spec §9.3).
+    """Iterated Gauss-Newton on the nonlinear model (spec §9.3), as optimistix's trust-region
+    Levenberg-Marquardt (:func:`~gyrojax.estimate.solve_least_squares`).
 
     **Arguments:** ``ts`` (N,) in s; ``y`` (N, 5): ``V1 V2`` (m/s) and ``rot1..3`` (rad);
     ``sigma_v`` (m/s) and ``sigma_theta`` (rad) the measurement noise; ``prior_std`` overrides the
-    prior standard deviations (internal units, by name); iterate until ``max |delta| < tol`` prior
-    standard deviations. With ``staged`` and a record longer than 1.2 periods the first period is
-    fitted first (the spec's safeguard against the Schuler-frequency ambiguity).
-    ``check=False`` skips the host-side validation (for ``jax.vmap`` over records).
+    prior standard deviations (internal units, by name); ``max_iter``: optimistix steps per pass;
+    ``tol``: its test on successive iterates (prior standard deviations); with ``staged`` and a
+    record longer than 1.2 periods the first period is fitted first (the spec's safeguard
+    against the Schuler-frequency ambiguity). ``check=False`` skips the host-side validation
+    (for ``jax.vmap`` over records).
+
+    **Returns:** a :class:`SchulerEstimate`; ``converged`` False (and ``note`` says why) when
+    the fit did not reach a solution.
     """
     if check:
         check_schuler_record(ts, y, conditions)
@@ -274,20 +252,21 @@ def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_
     sig = _prior_std(rig, prior_std)
     w = 1.0 / jnp.array([sigma_v, sigma_v, sigma_theta, sigma_theta, sigma_theta])
     # the staged first pass (the first period, later samples weighted 0) and the full fit share
-    # one compiled solver (``_gauss_newton`` passes weights and loop limits as arrays)
+    # one compiled solver (``_fit_prior`` passes the weights as arrays)
     w = jnp.broadcast_to(w, y.shape)
     u = jnp.zeros(len(THETA_NAMES))
     period = float(conditions.schuler_period)
     if staged and float(ts[-1] - ts[0]) > 1.2 * period:
         n1 = int(np.searchsorted(np.asarray(ts), float(ts[0]) + period)) + 1
         first = (jnp.arange(y.shape[0]) < n1)[:, None]
-        u = _gauss_newton(rig, conditions, ts, y, w * first, sig, u, max_iter, tol).theta / sig
-    gn = _gauss_newton(rig, conditions, ts, y, w, sig, u, max_iter, tol)
+        u = _fit_prior(rig, conditions, ts, y, w * first, sig, u, max_iter, tol).theta / sig
+    gn = _fit_prior(rig, conditions, ts, y, w, sig, u, max_iter, tol)
     return SchulerEstimate(names=THETA_NAMES, values=gn.theta,
                            stderr=jnp.sqrt(jnp.diagonal(gn.covariance)),
                            covariance=gn.covariance, iterations=gn.iterations,
                            residual_rms=gn.residual_rms, method="gauss-newton",
-                           converged=gn.converged, last_step_se=gn.step_se)
+                           converged=gn.converged, last_step_se=gn.step_se,
+                           solution=gn.solution)
 
 
 # -- linearised Kalman filter (§9.2) -------------------------------------------------------

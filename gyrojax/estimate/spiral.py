@@ -13,9 +13,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optimistix as optx
 
 from ..record import BenchRecord
+from ._lstsq import ScaledLevenbergMarquardt, solve_least_squares
 
 __all__ = ["spiral_parameters", "spiral_trajectory", "fit_spiral", "invert_spiral", "SpiralResult"]
 
@@ -78,11 +78,10 @@ def _fit_spiral(tau, y, latitude, mc1, mc2, rtol, atol, max_steps):
     def resid(x, args):
         return (spiral_trajectory(x, tau) - y).reshape(-1)
 
-    sol = optx.least_squares(resid, optx.LevenbergMarquardt(rtol=rtol, atol=atol), x0,
-                             max_steps=max_steps, throw=False)
-    res = resid(sol.value, None)
+    sol = solve_least_squares(resid, x0, solver=ScaledLevenbergMarquardt(rtol=rtol, atol=atol),
+                              max_steps=max_steps, step_se_tol=0.0)
     return SpiralResult(sol.value, invert_spiral(sol.value, latitude, mc1, mc2),
-                        jnp.sqrt(jnp.mean(res**2)), sol.result == optx.RESULTS.successful)
+                        jnp.sqrt(jnp.mean(sol.residual**2)), sol.converged)
 
 
 def fit_spiral(record: BenchRecord, latitude, *, mc1=0.0, mc2=0.0, time_scale=None,

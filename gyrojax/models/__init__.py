@@ -1,4 +1,4 @@
-"""Rig models, one module per instrument; ``RIGS`` maps ``--rig`` names to constructors."""
+"""Rig models, one module per instrument (the ``--rig`` names: :mod:`gyrojax.rigs`)."""
 
 from ._base import AbstractRig as AbstractRig
 from .esg import ESGConditions as ESGConditions
@@ -10,6 +10,3 @@ from .platform import PlatformConditions as PlatformConditions
 from .platform import PlatformRig as PlatformRig
 from .schuler import SchulerConditions as SchulerConditions
 from .schuler import SchulerRig as SchulerRig
-
-RIGS = {"esg": ESGRig, "gyrotheodolite": GyrotheodoliteRig, "schuler": SchulerRig,
-        "platform": PlatformRig, "imu": IMURig}

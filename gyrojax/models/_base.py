@@ -13,7 +13,9 @@ class AbstractRig(eqx.Module):
     """A bench-test rig: equations of motion and measurement of one instrument on its stand.
 
     A rig is configuration only (static fields); numbers live in the parameter dict (see
-    `gyrojax.params`) and in the rig's conditions module (latitude, mounting, schedule...).
+    `gyrojax.params`) and in the rig's conditions module (latitude, mounting, schedule...),
+    built on every rig by ``Conditions.create(...)`` from values and
+    ``Conditions.from_record(record)`` from a record's attributes.
 
     Time inside a rig may be normalized: ``internal_time = t_seconds * rig.time_scale``.
     """
@@ -58,7 +60,3 @@ class AbstractRig(eqx.Module):
         rise over a minute in a record of hours, which forward sensitivities at zero amplitude
         see and the step-size controller (primal error only) does not."""
         return None
-
-    @abc.abstractmethod
-    def conditions_from_record(self, record):
-        """The rig's conditions module read from a record's attributes."""

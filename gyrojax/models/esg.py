@@ -80,12 +80,27 @@ class ESGConditions(eqx.Module):
     chi: jax.Array
 
     @staticmethod
-    def from_scheme(scheme: str, latitude_deg: float) -> ESGConditions:
+    def create(scheme: str, latitude_deg: float) -> ESGConditions:
+        """The conditions of mounting ``scheme`` (polar, equatorial, horizontal, vertical) at
+        ``latitude_deg`` (deg North)."""
         lat = jnp.asarray(latitude_deg * units.DEG, dtype=float)
         if not (-90.0 < float(latitude_deg) < 90.0):
             raise ValueError(f"latitude {latitude_deg} deg is outside (-90, 90); give --latitude "
                              "in degrees North")
         return ESGConditions(lat, scheme_angles(scheme, lat))
+
+    # the paper's name for the same constructor
+    from_scheme = create
+
+    @staticmethod
+    def from_record(record) -> ESGConditions:
+        """The conditions a record's attributes give (``scheme``, ``latitude_deg``)."""
+        c = record.conditions
+        missing = [k for k in ("latitude_deg", "scheme") if k not in c]
+        if missing:
+            raise ValueError(f"record lacks the condition(s) {missing}; give --latitude DEG and "
+                             "--scheme NAME (or store them as NetCDF attributes)")
+        return ESGConditions.create(str(c["scheme"]), float(c["latitude_deg"]))
 
     def base_vectors(self):
         """Nominal ``u_zeta`` (unit Earth rate) and ``g_zeta`` (unit gravity) in base components."""
@@ -149,14 +164,6 @@ class ESGRig(AbstractRig):
     @property
     def time_scale(self) -> float:
         return U
-
-    def conditions_from_record(self, record) -> ESGConditions:
-        c = record.conditions
-        missing = [k for k in ("latitude_deg", "scheme") if k not in c]
-        if missing:
-            raise ValueError(f"record lacks the condition(s) {missing}; give --latitude DEG and "
-                             "--scheme NAME (or store them as NetCDF attributes)")
-        return ESGConditions.from_scheme(str(c["scheme"]), float(c["latitude_deg"]))
 
     # -- physics ---------------------------------------------------------------------------
     def _eps_vector(self, params, u_zeta):

@@ -120,6 +120,14 @@ class GyrotheodoliteConditions(eqx.Module):
     psi0: jax.Array
 
     @staticmethod
+    def from_record(record) -> GyrotheodoliteConditions:
+        """The conditions a record's attributes give (``latitude_deg``, ``n_m``, ``omega``)."""
+        c = record.conditions
+        return GyrotheodoliteConditions.create(float(c.get("latitude_deg", 50.45)),
+                                               n_m=float(c.get("n_m", 0.0)),
+                                               omega=float(c.get("omega", 0.0)))
+
+    @staticmethod
     def create(latitude_deg: float = 50.45, *, n_m: float = 0.0, omega: float = 0.0,
                eps_v: float = 0.0, psi0: float = 0.0) -> GyrotheodoliteConditions:
         if not -90.0 < float(latitude_deg) < 90.0:
@@ -183,12 +191,6 @@ class GyrotheodoliteRig(AbstractRig):
                 raise ValueError(f"kappa={v} must be > -1: k_alpha = H omega3 cos(phi)(1 + kappa) "
                                  "must stay positive")
         return params
-
-    def conditions_from_record(self, record) -> GyrotheodoliteConditions:
-        c = record.conditions
-        return GyrotheodoliteConditions.create(float(c.get("latitude_deg", 50.45)),
-                                               n_m=float(c.get("n_m", 0.0)),
-                                               omega=float(c.get("omega", 0.0)))
 
     def initial_state(self, params, conditions):
         """Released at ``(alpha0, alpha_dot0)`` with the tilt at zero (the clamped position)."""

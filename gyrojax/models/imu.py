@@ -141,7 +141,19 @@ class IMUConditions(eqx.Module):
         return 0.0 if np.isnan(lat) else float(units.EARTH_RATE * np.sin(np.radians(lat)))
 
     @staticmethod
+    def create(latitude_deg: float = float("nan"), *, gravity: float | None = None,
+               rate_hz: float = 100.0) -> IMUConditions:
+        """The conditions at ``latitude_deg`` (NaN: unknown), gravity (default: the normal
+        gravity there, or g0), sampling rate ``rate_hz``."""
+        if gravity is None:
+            gravity = (units.G0 if np.isnan(latitude_deg)
+                       else float(normal_gravity(np.radians(latitude_deg))))
+        return IMUConditions(float(latitude_deg), float(gravity), float(rate_hz))
+
+    @staticmethod
     def from_record(record: BenchRecord) -> IMUConditions:
+        """The conditions a record's attributes give (``latitude_deg``, ``gravity_mps2``,
+        ``rate_hz``; the rate from the sample times where absent)."""
         c = record.conditions
         lat = float(c.get("latitude_deg", float("nan")))
         if "gravity_mps2" in c:

@@ -187,6 +187,21 @@ class PlatformConditions(eqx.Module):
     t0: jax.Array
 
     @staticmethod
+    def from_record(record) -> PlatformConditions:
+        """The conditions of one dwell a record's attributes give (its gimbal position
+        ``alpha0_deg beta0_deg gamma0_deg``, ``latitude_deg``, ...); a whole test's record carries
+        its schedule instead (:func:`~gyrojax.models.platform_schedule.schedule_conditions`)."""
+        c = record.conditions
+        missing = [k for k in ("alpha0_deg", "beta0_deg", "gamma0_deg") if k not in c]
+        if missing:
+            raise ValueError(f"record lacks the condition(s) {missing}: the dwell's gimbal "
+                             "position (deg)")
+        return PlatformConditions.create(
+            [c["alpha0_deg"], c["beta0_deg"], c["gamma0_deg"]],
+            latitude_deg=float(c.get("latitude_deg", 45.75)), a0=float(c.get("a0_g", 0.0)),
+            frequency_hz=float(c.get("frequency_hz", 15.0)), t0=float(c.get("t0_s", 0.0)))
+
+    @staticmethod
     def create(angles0_deg, *, latitude_deg: float = 45.75, a0: float = 0.0,
                frequency_hz: float = 15.0, phase: float = 0.0, kappa=None,
                mounting=DEFAULT_MOUNTING, t0: float = 0.0) -> PlatformConditions:
@@ -236,17 +251,6 @@ class PlatformRig(AbstractRig):
     @property
     def time_scale(self) -> float:
         return 1.0
-
-    def conditions_from_record(self, record):
-        c = record.conditions
-        missing = [k for k in ("alpha0_deg", "beta0_deg", "gamma0_deg") if k not in c]
-        if missing:
-            raise ValueError(f"record lacks the condition(s) {missing}: the dwell's gimbal "
-                             "position (deg)")
-        return PlatformConditions.create(
-            [c["alpha0_deg"], c["beta0_deg"], c["gamma0_deg"]],
-            latitude_deg=float(c.get("latitude_deg", 45.75)), a0=float(c.get("a0_g", 0.0)),
-            frequency_hz=float(c.get("frequency_hz", 15.0)), t0=float(c.get("t0_s", 0.0)))
 
     def coefficients(self, params):
         return jnp.stack([params[n] for n in COEFF_NAMES])

@@ -109,6 +109,16 @@ class SchulerConditions(eqx.Module):
     a0: jax.Array
 
     @staticmethod
+    def from_record(record) -> SchulerConditions:
+        """The conditions a record's attributes give (``latitude_deg``, ``g``, ``v10``, ``v20``,
+        ``azimuth0_deg``; the test's defaults where absent)."""
+        c = record.conditions
+        return SchulerConditions.create(float(c.get("latitude_deg", 55.57)),
+                                        g=c.get("g"), v10=float(c.get("v10", 200.0)),
+                                        v20=float(c.get("v20", -200.0)),
+                                        azimuth0_deg=float(c.get("azimuth0_deg", 0.0)))
+
+    @staticmethod
     def create(latitude_deg: float = 55.57, *, g: float | None = None, v10: float = 200.0,
                v20: float = -200.0, azimuth0_deg: float = 0.0) -> SchulerConditions:
         """Spec §2 defaults: 55.57 deg, normal gravity (9.815557 m/s^2), V' = (200, -200) m/s."""
@@ -150,13 +160,6 @@ class SchulerRig(AbstractRig):
     @property
     def time_scale(self) -> float:
         return 1.0
-
-    def conditions_from_record(self, record) -> SchulerConditions:
-        c = record.conditions
-        return SchulerConditions.create(float(c.get("latitude_deg", 55.57)),
-                                        g=c.get("g"), v10=float(c.get("v10", 200.0)),
-                                        v20=float(c.get("v20", -200.0)),
-                                        azimuth0_deg=float(c.get("azimuth0_deg", 0.0)))
 
     def initial_state(self, params, conditions):
         """$X(t_0) = (\\alpha_{10}, \\alpha_{20}, A'(t_0) - \\Delta A_0, V_1'(t_0), V_2'(t_0),
