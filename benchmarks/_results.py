@@ -97,7 +97,7 @@ def far_text(s) -> str:
 
 def calibration_line(pooled, by_lambda: dict) -> str:
     """One line on the posteriors' calibration (spec §6 G4: ECE <= 0.05) from
-    :func:`gyrojax.diagnose.bench.calibration` results, pooled and per lambda."""
+    :func:`gyrojax.validation._scoring.calibration` results, pooled and per lambda."""
     if pooled is None:
         return "- Posterior calibration: no posteriors."
     per = ", ".join(f"lambda {k} {c['ece']:.2f} (calibrated {c['ece_calibrated_median']:.2f}, "
@@ -113,7 +113,7 @@ def calibration_line(pooled, by_lambda: dict) -> str:
 
 def suite_lines(s: dict, ool_label: str) -> list[str]:
     """The per-lambda table and the summary lines of one suite scored by
-    :func:`gyrojax.diagnose._harness.score_cases`."""
+    :func:`gyrojax.validation._harness.score_cases`."""
     lines = ["| lambda | power | Bayes-oracle power | top-1 | top-1, separable families | "
              "Bayes-oracle top-1, separable | Bayes-oracle top-1 | top-1 / oracle | named | "
              "mean set size |",
@@ -163,7 +163,7 @@ def g10_text(s, refits: str) -> str:
 
 
 def g9_text(s) -> str:
-    """Spec §6 G9 from a score's ``ool_*`` entries (:func:`gyrojax.diagnose.bench.ool_scores`):
+    """Spec §6 G9 from a score's ``ool_*`` entries (:func:`gyrojax.validation._scoring.ool_scores`):
     the strong cases, the confident misattributions and how far outside the catalogue's span
     the confidently misattributed cases reached."""
     worst = s.get("ool_confident_remainder_max")
@@ -436,7 +436,7 @@ def g8_line(harness, args, work, design, *, step: str, decay_grid: str, digits: 
 
 
 def g6_lines(s: dict, hidden: str) -> list[str]:
-    """The closed-loop bullets of spec §6 G6 from :func:`gyrojax.diagnose._harness.
+    """The closed-loop bullets of spec §6 G6 from :func:`gyrojax.validation._harness.
     closed_loop_scores` (``hidden``: how the text names the hidden effect)."""
     by = "; ".join(f"{e} {fmt_rate(r)}" for e, r in s["resolved_by_effect"].items())
     return [f"- {hidden} flagged (not visible on the record's own design): "

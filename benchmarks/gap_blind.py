@@ -43,19 +43,19 @@ from _results import fmt_rate as _fmt  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from gyrojax import units  # noqa: E402
-from gyrojax.diagnose import bench  # noqa: E402
-from gyrojax.diagnose._harness import (  # noqa: E402
+from gyrojax.io import load_record  # noqa: E402
+from gyrojax.validation import esg as bench  # noqa: E402
+from gyrojax.validation._harness import (  # noqa: E402
     closed_loop_scores,
     oracle_detection_thresholds,
     separability,
 )
-from gyrojax.io import load_record  # noqa: E402
 
 G8_FAMILIES = ("drift_step", "drift_transient", "diurnal_line")
 
 
 def g8_text(s) -> str:
-    """Spec §6 G8 from a score's ``g8_*`` entries (:func:`gyrojax.diagnose.bench.
+    """Spec §6 G8 from a score's ``g8_*`` entries (:func:`gyrojax.validation._scoring.
     localisation_scores`)."""
     return (f"drift_step onset within 5 % of the record (1.2 h, one window of the map's finest "
             f"level) of the truth: located {_fmt(s.get('g8_step_onset_located'))}, at the "

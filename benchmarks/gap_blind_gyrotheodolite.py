@@ -42,12 +42,12 @@ from _results import (  # noqa: E402
 from _results import fmt_rate as _fmt  # noqa: E402
 
 from gyrojax import units  # noqa: E402
-from gyrojax.diagnose import bench_gyrotheodolite as bg  # noqa: E402
-from gyrojax.diagnose._harness import (  # noqa: E402
+from gyrojax.io import load_record  # noqa: E402
+from gyrojax.validation import gyrotheodolite as bg  # noqa: E402
+from gyrojax.validation._harness import (  # noqa: E402
     oracle_detection_thresholds,
     separability,
 )
-from gyrojax.io import load_record  # noqa: E402
 
 
 def main(argv=None):

@@ -48,13 +48,14 @@ from _results import (  # noqa: E402
 from _results import fmt_rate as _fmt  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from gyrojax.diagnose import bench_imu  # noqa: E402
-from gyrojax.diagnose._harness import (  # noqa: E402
+from gyrojax.io import load_record  # noqa: E402
+from gyrojax.validation import imu as bench_imu  # noqa: E402
+from gyrojax.validation._harness import (  # noqa: E402
     closed_loop_scores,
     oracle_detection_thresholds,
     separability,
 )
-from gyrojax.io import load_record  # noqa: E402
+from gyrojax.validation._scoring import rate, sha256_file  # noqa: E402
 
 SUITES = {
     "multi, same-design": bench_imu.IMUDesign(),
@@ -287,21 +288,20 @@ def static_calibration(args, work):
 
 def _diagnose_blind(d, design, label):
     """Diagnose every case of ``d`` blind: ``{sha: report}`` and the seconds it took."""
+
     from gyrojax.diagnose import diagnose
-    from gyrojax.diagnose.bench import _sha
 
     paths = sorted(Path(d).glob("case_*.nc"))
     t0 = time.perf_counter()
-    reps = {_sha(p): diagnose(load_record(p), rig="imu", holdout=design.holdout,
+    reps = {sha256_file(p): diagnose(load_record(p), rig="imu", holdout=design.holdout,
                               design_advice=False) for p in tqdm(paths, desc=label, unit="case")}
     return reps, time.perf_counter() - t0
 
 
 def _share(flags):
-    """``_rate`` of a list of booleans."""
-    from gyrojax.diagnose.bench import _rate
+    """``rate`` of a list of booleans."""
 
-    return _rate([(None, f) for f in flags], lambda _, f: f)
+    return rate([(None, f) for f in flags], lambda _, f: f)
 
 
 def localisation(args, work):

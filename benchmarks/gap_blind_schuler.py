@@ -37,12 +37,12 @@ from _results import (  # noqa: E402
     suite_lines,
 )
 
-from gyrojax.diagnose import bench_schuler  # noqa: E402
-from gyrojax.diagnose._harness import (  # noqa: E402
+from gyrojax.io import load_record  # noqa: E402
+from gyrojax.validation import schuler as bench_schuler  # noqa: E402
+from gyrojax.validation._harness import (  # noqa: E402
     oracle_detection_thresholds,
     separability,
 )
-from gyrojax.io import load_record  # noqa: E402
 
 
 def main(argv=None):

@@ -38,13 +38,12 @@ from _results import (  # noqa: E402
     work_dir,
 )
 
-from gyrojax.diagnose import (  # noqa: E402
-    bench,
-    bench_gyrotheodolite,
-    bench_imu,
-    bench_platform,
-    bench_schuler,
-)
+from gyrojax.validation import _scoring  # noqa: E402
+from gyrojax.validation import esg as bench  # noqa: E402
+from gyrojax.validation import gyrotheodolite as bench_gyrotheodolite  # noqa: E402
+from gyrojax.validation import imu as bench_imu  # noqa: E402
+from gyrojax.validation import platform as bench_platform  # noqa: E402
+from gyrojax.validation import schuler as bench_schuler  # noqa: E402
 
 FIRST_ORDER = ("f", "i", "o", "s")
 
@@ -123,8 +122,8 @@ def truth_table(work, results) -> dict:
         if "visibility" not in t:
             continue
         row = out.setdefault(t["family"], [0, 0, 0, [], []])
-        truth = t["visibility"] in bench.CONFOUNDED_FLAGS
-        flagged = r["flags"].get(t["family"]) in bench.CONFOUNDED_FLAGS
+        truth = t["visibility"] in _scoring.CONFOUNDED_FLAGS
+        flagged = r["flags"].get(t["family"]) in _scoring.CONFOUNDED_FLAGS
         row[0] += 1
         row[1] += truth
         row[2] += flagged

@@ -90,21 +90,41 @@ def main(argv=None):
                                   "(benchmarks/RESULTS.md); default: print only")
     ap.add_argument("--before", help="a --json file of the same benchmark on another commit: "
                                      "the table gives both and their ratio")
+    ap.add_argument("--rigs", default=",".join(RECORDS),
+                    help="comma-separated rigs to time (default all)")
+    ap.add_argument("--merge", nargs="*", default=[],
+                    help="--json files of earlier runs of this commit: each figure is the "
+                         "smallest over them and this run (runs interleaved with the other "
+                         "commit's take the machine's drift out of the ratio)")
     a = ap.parse_args(argv)
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for rig in RECORDS:
+        for rig in a.rigs.split(","):
             path = _simulate(rig, tmp)
             out[rig] = _time_diagnose(rig, path, a.repeat)
             print(rig, out[rig], flush=True)
             if rig == "schuler":
                 out["fit_schuler"] = _time_fit_schuler(path, a.repeat)
                 print("fit_schuler", out["fit_schuler"], flush=True)
+    for path in a.merge:
+        out = _smallest(out, json.load(open(path)))
     if a.json:
         with open(a.json, "w") as fh:
             json.dump(out, fh, indent=1)
     if a.out:
         _publish(a, out)
+
+
+def _smallest(a: dict, b: dict) -> dict:
+    """Per workload and stage, the smaller timing of two runs (the other fields of ``a``)."""
+    out = {}
+    for k in set(a) | set(b):
+        x, y = a.get(k), b.get(k)
+        if x is None or y is None:
+            out[k] = x if y is None else y
+            continue
+        out[k] = {f: (min(v, y[f]) if f.endswith("_s") and f in y else v) for f, v in x.items()}
+    return out
 
 
 def _publish(a, out):
@@ -113,9 +133,12 @@ def _publish(a, out):
 
     before = json.load(open(a.before)) if a.before else None
     lines = ["## Nonlinear fits through optimistix (`benchmarks/nonlinear_fits.py`)", "",
-             machine_line() + f" Best of {a.repeat} warm calls; first call (compilation "
-             "included) apart. Diagnosis without design advice; one record per rig from "
-             "`gyrojax simulate` (the script's RECORDS).", ""]
+             machine_line() + f" Best of {a.repeat} warm calls per process; first call "
+             "(compilation included) apart. Diagnosis without design advice; one record per "
+             "rig from `gyrojax simulate` (the script's RECORDS). Before and after ran "
+             "interleaved (a process of each in turn, rig by rig; each figure the smallest over "
+             "the rounds), which takes this machine's drift (up to 2x within minutes) out of the "
+             "ratio.", ""]
     head = "| workload | stage | " + ("before s | " if before else "") + f"{a.label} s |" + (
         " after / before |" if before else "")
     lines += [head, "|" + "---|" * (head.count("|") - 1)]

@@ -58,8 +58,8 @@ def _rebuild(space, truth, base, a=1.0):
 
 @pytest.mark.slow  # ~60 s: six 24-h records and their Jacobians
 def test_esg_cases_have_the_stated_noncentrality(tmp_path):
-    from gyrojax.diagnose import bench
     from gyrojax.models.esg import ESGConditions, ESGRig
+    from gyrojax.validation import esg as bench
 
     rig = ESGRig(base_param="rotvec")
     sp = rig.param_space
@@ -110,9 +110,9 @@ def test_schuler_cases_have_the_stated_noncentrality(tmp_path):
     import diffrax
     import jax
 
-    from gyrojax.diagnose import bench_schuler as bs
     from gyrojax.estimate.schuler import THETA_NAMES, schuler_residuals
     from gyrojax.models.schuler import SchulerRig
+    from gyrojax.validation import schuler as bs
 
     rig = SchulerRig()
     sp = rig.param_space
@@ -153,8 +153,8 @@ def test_schuler_cases_have_the_stated_noncentrality(tmp_path):
 
 @pytest.mark.slow  # ~50 s: three north-seeking runs and their Jacobians
 def test_gyrotheodolite_cases_have_the_stated_noncentrality(tmp_path):
-    from gyrojax.diagnose import bench_gyrotheodolite as bg
     from gyrojax.models.gyrotheodolite import ODE_OPTIONS, TEST_PARAMS, GyrotheodoliteRig
+    from gyrojax.validation import gyrotheodolite as bg
 
     rig = GyrotheodoliteRig()
     sp = rig.param_space
@@ -191,9 +191,9 @@ def test_platform_cases_have_the_stated_noncentrality(tmp_path):
     the nominal columns by central differences of the noise-free simulation."""
     import jax
 
-    from gyrojax.diagnose import bench_platform as bp
     from gyrojax.models.platform import PlatformRig
     from gyrojax.models.platform_schedule import simulate_schedule
+    from gyrojax.validation import platform as bp
 
     sp = PlatformRig().param_space
     design = bp.PlatformDesign()
@@ -288,7 +288,7 @@ def test_imu_cases_have_the_stated_noncentrality(tmp_path, kind):
     (spec D4) the gyro triad's scale factors and misalignments are driven too. The model is
     linear in the coefficients but for the transient's decay time (sealed), so the first-order
     energy is exact up to the tilts' differencing."""
-    from gyrojax.diagnose import bench_imu as bi
+    from gyrojax.validation import imu as bi
 
     design = bi.IMUDesign(kind=kind)
     fams = bi.MEAN_FAMILIES if kind == "multi" else ("scale_factor", "misalignment")
@@ -315,8 +315,8 @@ def test_imu_additive_cases_have_the_stated_noncentrality(tmp_path):
     reads them; for the thermal bias that is the case's lambda (the out-of-library terms'
     ``lambda`` is a generator scale: 567 and 1964 here for 64). The record is the truth plus the
     term plus white noise."""
-    from gyrojax.diagnose import bench_imu as bi
     from gyrojax.models.imu import IMU_CHANNELS
+    from gyrojax.validation import imu as bi
 
     design = bi.IMUDesign()
     fams = ("pose_step", "thermal_cycle", "thermal_bias")
@@ -359,7 +359,7 @@ def test_imu_quantization_case_has_the_stated_noncentrality(tmp_path):
     ``N Q^4 / (tau0^4 sigma^4)`` (to first order in ``Q^2``); the manifest's ``Q`` must give the
     case's lambda so, and the record's own lag-1 autocorrelation must be the model's (within 4
     standard errors, 0.0067 of the 0.026: a ``Q`` 20 % off fails, 5 % does not)."""
-    from gyrojax.diagnose import bench_imu as bi
+    from gyrojax.validation import imu as bi
 
     design = bi.IMUDesign(kind="static")
     bi.generate(tmp_path, 1, seed=21, null_fraction=0.0, lambdas=(64.0,), design=design,

@@ -103,14 +103,14 @@ def test_hidden_directions_are_named_in_display_units():
 def test_sup_pvalue_matches_brute_force_in_sample_space():
     """The grid effect's sup-score p-value, drawn in the small score space, against drawing the
     whole residual vector (the definition) on a strongly correlated 8-point grid."""
-    from gyrojax.diagnose._stats import _project, _sup_pvalue, nominal_basis
+    from gyrojax.diagnose._stats import _sup_pvalue, nominal_basis, project_out
 
     rng = np.random.default_rng(7)
     m = 200
     t = np.linspace(0, 1, m)
     jn = np.stack([np.ones(m), t], 1)
     u = nominal_basis(jn)
-    jts = [_project(u, np.stack([np.exp(-t / tau), np.exp(-t / tau) * t], 1))
+    jts = [project_out(u, np.stack([np.exp(-t / tau), np.exp(-t / tau) * t], 1))
            for tau in np.geomspace(0.05, 1.0, 8)]
     z = rng.standard_normal((m, 20000))
     z -= u @ (u.T @ z)
@@ -148,13 +148,13 @@ def test_grid_scores_of_stacked_bases_are_each_values_residual_drop():
 
 
 def test_directions_from_the_information_are_the_canonical_correlations():
-    """``_directions`` works from ``J^T J`` and ``J~^T J~`` (no factorisation of the rows). Its
+    """``signature_directions`` works from ``J^T J`` and ``J~^T J~`` (no factorisation of the rows). Its
     visible fractions must be ``1 - rho^2`` of the canonical correlations between the raw
     signature's span and the nominal span (an SVD of their orthonormal bases), its directions
     ``D^T J^T J D = I`` and ``D^T J~^T J~ D = diag(w)``; a dependent column gives one
     no-signature direction (the combination itself), a column inside the nominal span one
     confounded direction; one column reads its norms. Fewer rows than columns, too."""
-    from gyrojax.diagnose._stats import VISIBLE_MIN, _directions, _project, nominal_basis
+    from gyrojax.diagnose._stats import VISIBLE_MIN, nominal_basis, project_out, signature_directions
 
     rng = np.random.default_rng(5)
     m = 400
@@ -163,8 +163,8 @@ def test_directions_from_the_information_are_the_canonical_correlations():
     c0, c1 = rng.standard_normal(m), rng.standard_normal(m) + 3 * jn[:, 0]
     c2 = jn @ rng.standard_normal(5)  # inside the nominal span
     j = np.stack([c0, c1, c2, 2 * c0 - c1], axis=1)  # the last one dependent
-    jt = _project(u, j)
-    d, w, v_min, null, conf = _directions(j, jt)
+    jt = project_out(u, j)
+    d, w, v_min, null, conf = signature_directions(j, jt)
     q = np.linalg.svd(j, full_matrices=False)[0][:, :3]  # the rank-3 span
     rho = np.linalg.svd(q.T @ u, compute_uv=False)
     want = np.sort(1 - rho ** 2)
@@ -177,18 +177,18 @@ def test_directions_from_the_information_are_the_canonical_correlations():
     n_dir = np.array([2.0, -1.0, 0.0, -1.0]) / math.sqrt(6)
     assert abs(abs(float(null[0] @ n_dir)) - 1) < 1e-9
     sig_conf = j @ conf[0]
-    assert np.linalg.norm(_project(u, sig_conf)) < 1e-9 * np.linalg.norm(sig_conf)
+    assert np.linalg.norm(project_out(u, sig_conf)) < 1e-9 * np.linalg.norm(sig_conf)
     # one column: the visible fraction is the projected squared norm over the raw one
-    d1, w1, v1, null1, conf1 = _directions(j[:, 1:2], jt[:, 1:2])
+    d1, w1, v1, null1, conf1 = signature_directions(j[:, 1:2], jt[:, 1:2])
     want1 = np.sum(jt[:, 1] ** 2) / np.sum(j[:, 1] ** 2)
     np.testing.assert_allclose([w1[0], v1, d1[0, 0]], [want1, want1,
                                                        1 / np.linalg.norm(j[:, 1])], rtol=1e-12)
     assert null1 == [] and conf1 == []
-    d2, w2, v2, null2, conf2 = _directions(j[:, 2:3], jt[:, 2:3])
+    d2, w2, v2, null2, conf2 = signature_directions(j[:, 2:3], jt[:, 2:3])
     assert d2.shape == (1, 0) and w2.size == 0 and v2 < VISIBLE_MIN and len(conf2) == 1
     # fewer rows than columns: the third coefficient direction has no signature
     a = rng.standard_normal((2, 3))
-    _, _, _, null3, _ = _directions(a, a)
+    _, _, _, null3, _ = signature_directions(a, a)
     assert len(null3) == 1 and np.linalg.norm(a @ null3[0]) < 1e-7
 
 def test_score_equals_refit_drop_in_the_linear_regime():
@@ -246,12 +246,12 @@ def test_grid_effect_flag_follows_the_posterior_over_its_grid():
 def _linear_world(rng, m, u, effects, bases, n, lam, draw):
     """Posteriors of ``n`` linearised cases (equal odds over ``effects``; coefficients drawn by
     ``draw(name, rng)``) under the shape prior, the g-prior and their mixture (the default)."""
-    from gyrojax.diagnose._stats import _project, design_log_bf, grid_log_bf, shape_log_bf
+    from gyrojax.diagnose._stats import design_log_bf, grid_log_bf, project_out, shape_log_bf
 
     pairs = {"shape": [], "zellner": [], "design": []}
     for k in range(n):
         name = list(effects)[k % len(effects)]
-        ek = _project(u, draw(name, rng) + rng.standard_normal(m))
+        ek = project_out(u, draw(name, rng) + rng.standard_normal(m))
         lb = {key: {} for key in pairs}
         for nm, j in effects.items():
             lb["shape"][nm] = float(shape_log_bf([j], ek, [lam])[0])
@@ -280,21 +280,21 @@ def test_design_prior_is_the_exact_marginal_likelihood_and_calibrated():
     from scipy import stats as st
 
     from gyrojax.diagnose._stats import (
-        _project,
         design_log_bf,
         grid_log_bf,
         nominal_basis,
+        project_out,
         shape_log_bf,
     )
-    from gyrojax.diagnose.bench import calibration
+    from gyrojax.validation._scoring import calibration
 
     rng = np.random.default_rng(5)
     m = 60
     jn = rng.standard_normal((m, 3))
     u = nominal_basis(jn)
     q = np.linalg.svd(np.eye(m) - u @ u.T)[0][:, : m - u.shape[1]]
-    e = _project(u, rng.standard_normal(m) + 0.4 * rng.standard_normal((m, 2)) @ [1.0, -1.0])
-    grid = [_project(u, rng.standard_normal((m, d)) * [1.0, 3.0, 0.2][:d]) for d in (2, 2, 3)]
+    e = project_out(u, rng.standard_normal(m) + 0.4 * rng.standard_normal((m, 2)) @ [1.0, -1.0])
+    grid = [project_out(u, rng.standard_normal((m, d)) * [1.0, 3.0, 0.2][:d]) for d in (2, 2, 3)]
     logs = []
     for jt in grid:
         for lam in (8.0, 40.0):
@@ -316,10 +316,10 @@ def test_design_prior_is_the_exact_marginal_likelihood_and_calibrated():
     # (the g-prior expects half its signal there); effect c separable
     rng = np.random.default_rng(1)
     u = nominal_basis(rng.standard_normal((m, 3)))
-    ja = _project(u, rng.standard_normal((m, 2)))
-    jb = _project(u, np.stack([ja[:, 0] + 0.3 * rng.standard_normal(m),
+    ja = project_out(u, rng.standard_normal((m, 2)))
+    jb = project_out(u, np.stack([ja[:, 0] + 0.3 * rng.standard_normal(m),
                                0.1 * rng.standard_normal(m)], axis=1))
-    jc = _project(u, rng.standard_normal((m, 3)) * [1.0, 0.1, 0.1])
+    jc = project_out(u, rng.standard_normal((m, 3)) * [1.0, 0.1, 0.1])
     effects = {"a": ja, "b": jb, "c": jc}
     bases = {k: np.linalg.qr(j)[0] for k, j in effects.items()}
     lam = 24.0
@@ -394,16 +394,16 @@ def test_shell_prior_is_calibrated_on_effects_of_fixed_noncentrality():
         SHELL_DESIGN_LAMBDAS,
         SHELL_RANGE,
         Signature,
-        _project,
         design_log_bf,
         nominal_basis,
         noncentral_log_bf,
+        project_out,
         screen,
         screen_designs,
         shell_log_bf,
         zellner_log_bf,
     )
-    from gyrojax.diagnose.bench import calibration
+    from gyrojax.validation._scoring import calibration
 
     lo, hi = SHELL_RANGE
     for lm in (0.0, 3.0, 50.0, 1659.0, 1e5):
@@ -417,13 +417,13 @@ def test_shell_prior_is_calibrated_on_effects_of_fixed_noncentrality():
     m, k = 80, 8
     u = nominal_basis(rng.standard_normal((m, 3)))
     common = rng.standard_normal((m, 2))
-    cols = _project(u, common @ rng.standard_normal((2, k)) + 0.8 * rng.standard_normal((m, k)))
+    cols = project_out(u, common @ rng.standard_normal((2, k)) + 0.8 * rng.standard_normal((m, k)))
     unit = cols / np.linalg.norm(cols, axis=0)
     n = 6000
     hidden = rng.integers(k, size=n)
     lam = rng.choice([8.0, 16.0, 32.0, 64.0], size=n)
     sign = rng.choice([-1.0, 1.0], size=n)
-    e = _project(u, rng.standard_normal((m, n))) + unit[:, hidden] * np.sqrt(lam) * sign
+    e = project_out(u, rng.standard_normal((m, n))) + unit[:, hidden] * np.sqrt(lam) * sign
     lms = (unit.T @ e) ** 2  # (k, n)
     cal = {}
     for key, lbf in (("shell", shell_log_bf(lms)),
@@ -448,12 +448,12 @@ def test_shell_prior_is_calibrated_on_effects_of_fixed_noncentrality():
     ek = e[:, 0]
     rows = {r.sig.name: r for r in screen(ek, jn, sigs, prior="shell")}
     ref = {r.sig.name: r for r in screen(ek, jn, sigs)}
-    wn = _project(nominal_basis(jn), cols[:, 0])
+    wn = project_out(nominal_basis(jn), cols[:, 0])
     lm1 = float((wn @ ek) ** 2 / (wn @ wn))
     assert rows["one"].lm == pytest.approx(lm1, rel=1e-9) == ref["one"].lm
     assert rows["one"].log_bf == pytest.approx(float(shell_log_bf(lm1)), rel=1e-12)
     ub, des = screen_designs(jn, sigs)
-    jt, ek_p = des[1].jt[0], _project(ub, ek)
+    jt, ek_p = des[1].jt[0], project_out(ub, ek)
     per = np.array([design_log_bf([jt], [np.linalg.qr(jt)[0]], ek_p, [x])[0]
                     for x in SHELL_DESIGN_LAMBDAS])
     wts = np.r_[0.5, np.ones(per.size - 2), 0.5] / (per.size - 1)
@@ -468,21 +468,16 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     carries the delta-method standard error (checked against replicated suites)."""
     from scipy import stats as st
 
-    from gyrojax.diagnose._stats import _project, design_log_bf, grid_log_bf, nominal_basis
-    from gyrojax.diagnose.bench import (
-        calibration,
-        localisation_scores,
-        ool_scores,
-        oracle_choice,
-        ratio_rate,
-    )
+    from gyrojax.diagnose._stats import design_log_bf, grid_log_bf, nominal_basis, project_out
+    from gyrojax.validation._scoring import calibration, ool_scores, oracle_choice, ratio_rate
+    from gyrojax.validation.esg import localisation_scores
 
     rng = np.random.default_rng(3)
     m, lam = 60, 24.0
     jn = rng.standard_normal((m, 3))
     u = nominal_basis(jn)
-    e = _project(u, rng.standard_normal(m) + 0.3 * rng.standard_normal((m, 2)) @ [1.0, -1.0])
-    grid = [_project(u, rng.standard_normal((m, d))) for d in (2, 2, 3)]
+    e = project_out(u, rng.standard_normal(m) + 0.3 * rng.standard_normal((m, 2)) @ [1.0, -1.0])
+    grid = [project_out(u, rng.standard_normal((m, d))) for d in (2, 2, 3)]
     logs, lms, dofs = [], [], []
     for jt in grid:
         d = jt.shape[1]
@@ -500,7 +495,7 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     assert grid_log_bf(lms, dofs, lam) == pytest.approx(mix, rel=1e-9)
     # the oracle's answer depends on the lambda it knows: a 6-dof effect with the larger score
     # wins under a tight prior (lambda = 4) and loses to a 1-dof one under a diffuse one (Lindley)
-    one, six = _project(u, rng.standard_normal((m, 1))), _project(u, rng.standard_normal((m, 6)))
+    one, six = project_out(u, rng.standard_normal((m, 1))), project_out(u, rng.standard_normal((m, 6)))
     e = 1.8 * one[:, 0] / np.linalg.norm(one) + 5.5 * np.linalg.qr(six)[0][:, 0]  # LM ~4, ~31
     lams = [4.0, 1e5]
     r = {"log_bf_by_lambda": {k: {f"{lam:g}": float(v) for lam, v in
@@ -575,9 +570,9 @@ def test_oracle_detection_threshold_by_residual_draws():
     nominal span and scored by ``screen``'s designs; the oracle statistic of ``bench`` (from the
     design-prior factors a blind run records) must exceed the threshold in a fraction alpha of
     them."""
-    from gyrojax.diagnose._harness import _train_jacobians, oracle_detection_thresholds
     from gyrojax.diagnose._stats import design_log_bf, screen_designs
-    from gyrojax.diagnose.bench import oracle_detect_statistic
+    from gyrojax.validation._harness import _train_jacobians, oracle_detection_thresholds
+    from gyrojax.validation._scoring import oracle_detect_statistic
 
     rec = _record(seed=2)
     sigma = [units.ARCSEC, units.ARCSEC]
@@ -1303,7 +1298,7 @@ def test_crb_spread_by_hand():
     """The decay time's Cramér-Rao summary: deviations 0.2, 0.5, 1.0 and 4.0 against a tolerance
     of 0.5 are 0.4, 1, 2, 8 tolerances: median 1.5, within one in 2 of 4; a pair without the
     key is left out."""
-    from gyrojax.diagnose.bench import crb_spread
+    from gyrojax.validation._scoring import crb_spread
 
     pairs = [({"d": x}, {}) for x in (0.2, 0.5, 1.0, 4.0)] + [({}, {})]
     assert crb_spread(pairs, "d", 0.5) == pytest.approx({"median_ratio": 1.5, "resolved": 0.5,
@@ -1517,19 +1512,22 @@ def test_out_of_library_line_is_not_attributed():
 
 # -- blind harness ---------------------------------------------------------------------------
 def test_diagnosis_never_reads_the_harness_or_its_manifest():
-    """The diagnosis modules import nothing of the blind harness (``bench*``) and name neither
-    its sealed folder nor its manifest: the blind runs cannot peek."""
+    """The diagnosis package imports nothing of the blind validation package
+    (:mod:`gyrojax.validation`) and names neither its sealed folder nor its manifest: the blind
+    runs cannot peek. Every module of the package is checked, whatever its name."""
     pkg = Path(__file__).parents[1] / "gyrojax" / "diagnose"
-    for f in ("_diagnose.py", "_esg.py", "_imu.py", "_platform.py", "_schuler.py",
-              "_gyrotheodolite.py", "_stats.py", "_report.py", "__init__.py"):
-        tree = ast.parse((pkg / f).read_text())
+    files = sorted(pkg.glob("*.py"))
+    assert len(files) >= 10
+    for path in files:
+        tree = ast.parse(path.read_text())
         imported = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-        imported |= {f"{n.module}.{a.name}" for n in ast.walk(tree)
+        imported |= {f"{'.' * n.level}{n.module or ''}.{a.name}" for n in ast.walk(tree)
                      if isinstance(n, ast.ImportFrom) for a in n.names}
-        assert not any("bench" in name for name in imported), (f, imported)
+        assert not any("validation" in name or "bench" in name for name in imported), (
+            path.name, imported)
         strings = [n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)
                    and isinstance(n.value, str)]
-        assert not any("sealed" in x or "manifest" in x for x in strings), f
+        assert not any("sealed" in x or "manifest" in x for x in strings), path.name
 
 
 @pytest.mark.slow  # ~110 s: five ESG diagnoses, each compiling its refits, and B2's refits
@@ -1537,7 +1535,7 @@ def test_blind_harness_is_sealed_and_scores(tmp_path):
     """The harness never lets the diagnosis read the manifest; scoring reads it; the oracle
     reads every grid value; B2's refit-all answer (the design prior's factor with each refit's
     estimate) equals the screening's factor where the model is near-linear."""
-    from gyrojax.diagnose import bench
+    from gyrojax.validation import esg as bench
 
     paths = bench.generate(tmp_path, 4, seed=11, null_fraction=0.0, lambdas=(400.0,),
                            families=("rotor_tilt", "drift_ramp"))
@@ -1583,7 +1581,7 @@ def test_ci_blind_subset_of_200_esg_cases(tmp_path):
     without the manifest, then scored against it. The bounds sit several standard errors
     outside the rates of the 400-case benchmark run (false alarms 0.05, power 1.00 at lambda
     >= 32, out-of-library cases not attributed 1.00), so a regression trips them."""
-    from gyrojax.diagnose import bench
+    from gyrojax.validation import esg as bench
 
     bench.generate(tmp_path, 200, seed=2032)
     results = bench.run(tmp_path, refit_all=False)
@@ -1598,7 +1596,7 @@ def test_ci_blind_subset_of_200_esg_cases(tmp_path):
 
 
 def test_advised_design_reads_the_esg_advice_labels():
-    from gyrojax.diagnose.bench import Design, advised_design
+    from gyrojax.validation.esg import Design, advised_design
 
     d = Design(scheme="equatorial", hours=24.0)
     assert advised_design("horizontal scheme", d) == Design(scheme="horizontal", hours=24.0)
@@ -1615,7 +1613,7 @@ def test_rotor_tilt_design_advice_closed_loop(tmp_path):
     to first order it has no signature (spec esg-drift §9). The advisor's first design for it
     predicts an MDE well below that size; the same sealed instrument run again on it (new noise)
     is attributed to rotor_tilt alone, and the refit reads the sealed tilt back."""
-    from gyrojax.diagnose import bench
+    from gyrojax.validation import esg as bench
 
     bench.generate_closed_loop(tmp_path, 2, "rotor_tilt", seed=31, fractions=(0.03,),
                                schemes=("equatorial",))
@@ -1640,7 +1638,7 @@ def test_imu_blind_harness_design_shift(tmp_path):
     """Two sealed IMU cases (scale factor at lambda = 400, design-shift split: six other poses
     held out): both detected and attributed; the truth-side lambda and the records agree (the
     diagnosis' score is of the order of lambda)."""
-    from gyrojax.diagnose import bench_imu
+    from gyrojax.validation import imu as bench_imu
 
     design = bench_imu.IMUDesign(split="design-shift")
     bench_imu.generate(tmp_path, 2, seed=5, design=design, null_fraction=0.0,
@@ -1660,7 +1658,7 @@ def test_imu_blind_harness_per_coefficient(tmp_path):
     its standard deviations (sqrt(2 dof + 4 lambda); the warm-up's decay time is off its grid);
     B2 refit-all runs its 70 refits beside the
     screening and agrees."""
-    from gyrojax.diagnose import bench_imu
+    from gyrojax.validation import imu as bench_imu
 
     design = bench_imu.IMUDesign(per_coefficient=True)
     fams = ("g_sensitivity:gszx", "warmup_transient:way")
@@ -1684,7 +1682,7 @@ def test_imu_out_of_library_mimic_fails_its_heldout_check(tmp_path):
     fit of one effect or a pair is < 2 % of the step's noncentrality); the diagnosis names the
     best single mimic, but its refit makes the held-out gap worse, so the verdict is
     `unexplained`, not `attributed`."""
-    from gyrojax.diagnose import bench_imu
+    from gyrojax.validation import imu as bench_imu
 
     bench_imu.generate(tmp_path, 1, seed=5, null_fraction=0.0, lambdas=(64.0,),
                        families=("pose_step",))
@@ -1963,7 +1961,7 @@ def test_remainder_after_library_equals_direct_least_squares_on_every_row():
     """Spec §6 G9's truth side takes every fit in the coordinates of one QR; each remainder
     equals the residual sum of squares of a least-squares fit on all rows (numpy's SVD solver),
     the best one effect or pair of grid blocks, with a rank-deficient nominal block."""
-    from gyrojax.diagnose import bench
+    from gyrojax.validation import esg as bench
 
     rng = np.random.default_rng(5)
     n = 3000
@@ -1997,10 +1995,10 @@ def test_g9_truth_side_uses_the_diagnosis_onset_grid():
     block per onset of ``onset_grid`` (one every 5 % of the record over the train span), each
     zero on the train rows before its onset and not after (the step's angle response is its
     integral), and one transient block per decay time."""
-    from gyrojax.diagnose import bench
     from gyrojax.diagnose._esg import TRANSIENT_TIMES_H
     from gyrojax.diagnose._stats import onset_grid
     from gyrojax.models.esg import ESGConditions
+    from gyrojax.validation import esg as bench
 
     design = bench.Design(hours=6.0)
     ts = design.ts
@@ -2023,18 +2021,19 @@ def test_onset_crb_and_an_efficient_estimators_rate_analytic():
     """``onset_crb``: a step of height a at the onset, a constant as nuisance: the projected
     column is the step minus its mean, so sigma = 1 / (a sqrt(N p (1 - p))) with p the share of
     samples after the onset; ``crb_rate`` is the normal probability of |error| <= tol."""
-    from gyrojax.diagnose import bench
+    from gyrojax.validation import _scoring
+    from gyrojax.validation import esg as bench
 
     n, a = 400, 0.3
     on = (np.arange(n) >= 100).astype(float)
     sigma = bench.onset_crb(np.ones((n, 1)), a * on)
     assert sigma == pytest.approx(1 / (a * math.sqrt(n * 0.75 * 0.25)), rel=1e-12)
     pairs = [({"crb": 2.0}, {"tol": 2.0}), ({"crb": 1.0}, {"tol": 1.96}), ({}, {"tol": 1.0})]
-    got = bench.crb_rate(pairs, "crb", lambda r: r["tol"])
+    got = _scoring.crb_rate(pairs, "crb", lambda r: r["tol"])
     assert got["n"] == 2 and got["rate"] == pytest.approx((0.682689 + 0.950004) / 2, abs=1e-6)
-    assert bench.crb_rate(pairs, "crb", lambda r: r["tol"], truth_scale=0.5)["rate"] == (
+    assert _scoring.crb_rate(pairs, "crb", lambda r: r["tol"], truth_scale=0.5)["rate"] == (
         pytest.approx((0.954500 + 0.999911) / 2, abs=1e-6))
-    assert bench.crb_rate(pairs[2:], "crb", lambda r: 1.0) is None
+    assert _scoring.crb_rate(pairs[2:], "crb", lambda r: 1.0) is None
 
 
 @pytest.mark.slow  # ~20 s: compiles the truth rig's Jacobian and solver
@@ -2042,9 +2041,9 @@ def test_esg_generator_onset_crb_matches_a_trajectory_difference():
     """The ESG generator's truth-side Cramér-Rao deviation of a drift step's onset (the sizes'
     Jacobian differenced over one sample) against a second method: the simulated noise-free
     trajectories with the onset moved half a sample either way, differenced."""
-    from gyrojax.diagnose import bench
     from gyrojax.models.esg import ESGConditions
     from gyrojax.simulate import integrate
+    from gyrojax.validation import esg as bench
 
     design = bench.Design(hours=8.0)
     cond = ESGConditions.from_scheme(design.scheme, design.latitude_deg)
@@ -2088,7 +2087,7 @@ def test_blind_scores_worked_by_hand(tmp_path):
     confident misattribution (a noise term without a posterior counts as confident), both
     members of a two-effect case named, G5's confounding recall and precision, and the binomial
     standard error sqrt(p (1 - p) / n); the other rigs' scorer's named rate and G7's 0.9 rule."""
-    from gyrojax.diagnose import bench
+    from gyrojax.validation import esg as bench
 
     common = {"time_diagnose_s": 1.0, "time_screen_s": 0.1, "ranking": [{"name": "x"}],
               "noise_effects": []}
@@ -2183,7 +2182,7 @@ def test_blind_scores_worked_by_hand(tmp_path):
     assert s["confounding_agreement"]["rate"] == 0.75
     # the other rigs' scorer on the same cases: named = in the verdict, the set or the noise
     # list; G7's rule R >= 0.9 R_oracle: 0.9 >= 0.9 x 0.95 holds, 0.5 >= 0.9 x 0.875 does not
-    from gyrojax.diagnose._harness import score_cases
+    from gyrojax.validation._harness import score_cases
 
     h = score_cases(tmp_path, results, bench.LIBRARY_FAMILIES,
                     out_of_library=bench.OUT_OF_LIBRARY)

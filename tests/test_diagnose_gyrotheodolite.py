@@ -109,7 +109,7 @@ def test_gyrotheodolite_blind_harness(tmp_path):
     stay unattributed), a strong torque step, an out-of-library pick-off line."""
     import shutil
 
-    from gyrojax.diagnose import bench_gyrotheodolite as bg
+    from gyrojax.validation import gyrotheodolite as bg
 
     bg.generate(tmp_path, 1, seed=3, null_fraction=1.0)
     bg.generate(tmp_path / "b", 3, seed=4, null_fraction=0.0, lambdas=(400.0,),
@@ -136,7 +136,7 @@ def test_gyrotheodolite_blind_harness(tmp_path):
 
 def test_gyrotheodolite_localisation_scores_by_hand(tmp_path):
     """Spec §6 G8 on a 40-min record (tolerance 2 min; decay grid step ratio 10^(1/7))."""
-    from gyrojax.diagnose import bench_gyrotheodolite as bg
+    from gyrojax.validation import gyrotheodolite as bg
 
     cases = {"a": {"family": "torque_step", "lambda": 32.0, "t_step": 10.0},
              "b": {"family": "torque_step", "lambda": 64.0, "t_step": 10.0},
@@ -302,7 +302,7 @@ def test_blind_harness_diagnoses_under_the_prior_it_is_given(tmp_path, monkeypat
     """The blind suites' ``--prior`` reaches the diagnosis: ``run(prior=...)`` calls
     ``diagnose`` with that prior (none given: none passed, the diagnosis' default)."""
     from gyrojax.diagnose import _diagnose
-    from gyrojax.diagnose import bench_gyrotheodolite as bg
+    from gyrojax.validation import gyrotheodolite as bg
 
     bg.generate(tmp_path, 1, seed=3, null_fraction=1.0)
     seen = {}

@@ -98,7 +98,7 @@ def test_first_order_nominal_screens_each_left_out_coefficient(tmp_path, capsys)
     from gyrojax import rigs
     from gyrojax.diagnose import library
     from gyrojax.diagnose._platform import FIRST_ORDER_TERMS
-    from gyrojax.diagnose.bench import refit_all_baseline
+    from gyrojax.validation._scoring import refit_all_baseline
 
     sets = sum([["--set", f"{k}=0"] for k in TRUE_TABLE2
                 if len(k.split("_")[1]) == 2 and k != "D_ii_y"], [])
@@ -353,7 +353,7 @@ def test_platform_blind_harness(tmp_path):
     out-of-library pick-off line (not confidently attributed)."""
     import shutil
 
-    from gyrojax.diagnose import bench_platform as bp
+    from gyrojax.validation import platform as bp
 
     bp.generate(tmp_path, 1, seed=3, null_fraction=1.0)
     bp.generate(tmp_path / "b", 4, seed=4, null_fraction=0.0, lambdas=(400.0,),
@@ -380,7 +380,7 @@ def test_platform_blind_harness(tmp_path):
 
 def test_advised_amplitudes_read_the_advisor_labels():
     """The G6 closed loop turns the advisor's platform design labels into table amplitudes."""
-    from gyrojax.diagnose.bench_platform import advised_amplitudes
+    from gyrojax.validation.platform import advised_amplitudes
 
     assert advised_amplitudes("second amplitude 7 g (table)", [9.0]) == [9.0, 7.0]
     assert advised_amplitudes("an added 0 g (static) run", [9.0, 7.0]) == [9.0, 7.0, 0.0]
@@ -487,8 +487,8 @@ def test_blind_scripts_diagnose_under_the_prior_they_are_given(tmp_path, monkeyp
     confounding script's runner took no prior at all and failed)."""
     import sys
 
-    from gyrojax.diagnose import bench_platform as bp
     from gyrojax.diagnose._platform import FIRST_ORDER_TERMS
+    from gyrojax.validation import platform as bp
 
     monkeypatch.syspath_prepend(str(Path(__file__).parent.parent / "benchmarks"))
     import _results

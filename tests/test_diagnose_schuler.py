@@ -95,7 +95,7 @@ def test_schuler_blind_harness(tmp_path):
     ramp, an out-of-library velocity line, a strong drift step (onset localised, spec §6 G8)."""
     import shutil
 
-    from gyrojax.diagnose import bench_schuler as bs
+    from gyrojax.validation import schuler as bs
 
     bs.generate(tmp_path, 1, seed=3, null_fraction=1.0)
     bs.generate(tmp_path / "b", 3, seed=4, null_fraction=0.0, lambdas=(400.0,),
@@ -129,7 +129,7 @@ def test_schuler_blind_harness(tmp_path):
 def test_schuler_blind_design_is_the_specs_four_hours():
     """Spec gap-diagnosis §5.2: D5 records 4 h (1441 samples at 10 s, ~2.84 Schuler periods);
     ``of_periods`` and ``with_periods`` give a record of whole periods on the same sample grid."""
-    from gyrojax.diagnose import bench_schuler as bs
+    from gyrojax.validation import schuler as bs
 
     d = bs.SchulerDesign()
     period = float(SchulerConditions.create(d.latitude_deg).schuler_period)
@@ -148,7 +148,7 @@ def test_schuler_blind_design_is_the_specs_four_hours():
 def test_schuler_localisation_scores_by_hand(tmp_path):
     """Spec §6 G8 on a 2-period record (~169 min, tolerance ~8.4 min): the truth in minutes (the
     parameters' display unit) against grids in hours; decay grid step ratio 12^(1/7)."""
-    from gyrojax.diagnose import bench_schuler as bs
+    from gyrojax.validation import schuler as bs
 
     cases = {"a": {"family": "drift_step", "lambda": 32.0, "t_step": 60.0, "onset_crb_min": 6.0},
              "b": {"family": "drift_step", "lambda": 64.0, "t_step": 60.0, "onset_crb_min": 3.0},

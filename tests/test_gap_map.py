@@ -246,7 +246,7 @@ def test_lag_axis_is_ljung_box_and_reported_only():
 def test_angle_random_walk_generator_sets_the_longest_band_excess():
     """The ESG harness' noise-model case: its random-walk step gives the longest tau band an
     expected Allan excess of z null standard deviations (no projection), by 4,000 draws."""
-    from gyrojax.diagnose import bench
+    from gyrojax.validation import esg as bench
 
     design = bench.Design()
     rng = np.random.default_rng(6)
@@ -451,7 +451,7 @@ def test_truth_visibility_is_one_minus_squared_cosine_and_flags_it():
     effect direction at angle phi to it keeps the visible fraction sin^2(phi) = 1 - cos^2(phi);
     the smallest over the effect's directions sets the flag (< 0.05 practically confounded,
     < 1e-6 structurally, a zero column no signature in that direction)."""
-    from gyrojax.diagnose.bench import projector, truth_visibility
+    from gyrojax.validation._scoring import projector, truth_visibility
 
     rng = np.random.default_rng(7)
     q, _ = np.linalg.qr(rng.standard_normal((200, 3)))
@@ -473,7 +473,7 @@ def test_truth_visibility_is_one_minus_squared_cosine_and_flags_it():
 
 
 def test_confounding_scores_count_recall_precision_and_misattribution():
-    from gyrojax.diagnose.bench import confounding_scores
+    from gyrojax.validation._scoring import confounding_scores
 
     def case(truth_flag, diag_flag, post):
         return ({"family": "a", "visibility": truth_flag},

@@ -600,8 +600,8 @@ def test_design_advice_closed_loop_rate_table_resolves_gyro_scale_factor_and_mis
     standard errors of the sealed truth: each scale factor, and each of the nine misalignment
     combinations the rate table determines (the common rotation, absorbed by the poses, leaves
     the coefficients themselves undetermined, standard error inf)."""
-    from gyrojax.diagnose import bench_imu
     from gyrojax.diagnose._imu import TABLE_DESIGN
+    from gyrojax.validation import imu as bench_imu
 
     for k, fam in enumerate(("scale_factor", "misalignment")):
         bench_imu.generate_closed_loop(tmp_path / fam, 1, seed=11 + k, families=(fam,))
@@ -658,7 +658,7 @@ def test_cli_diagnoses_a_rate_table_csv_with_table_run_options(tmp_path, capsys)
     """A CSV carries no conditions: ``--table-run T0:T1:RATE`` gives the table's runs and the
     diagnosis attributes a hidden gyro scale factor (invisible on the still poses) with its
     refit within 4 standard errors of the truth."""
-    from gyrojax.diagnose.bench_imu import table_poses
+    from gyrojax.validation.imu import table_poses
 
     poses = cube_poses(6, 20.0) + table_poses(20.0)
     truth = {"sgx": 2e-3, "sgy": -3e-3, "sgz": 1e-3}
@@ -716,8 +716,8 @@ def test_design_advice_closed_loop_temperature_cycle_resolves_a_ramp(tmp_path):
     temperature alone); the advisor ranks the temperature cycle first with an MDE within the
     prior scale, and re-run under the cycle the diagnosis attributes ``temperature`` alone,
     its gyro coefficients within 4 standard errors of the sealed truth."""
-    from gyrojax.diagnose import bench_imu
     from gyrojax.diagnose._imu import CYCLE_DESIGN
+    from gyrojax.validation import imu as bench_imu
 
     bench_imu.generate_closed_loop(tmp_path, 1, seed=5, families=("temperature",))
     (row,) = bench_imu.closed_loop(tmp_path, "temperature", seed=6)
@@ -763,7 +763,7 @@ def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, ca
     their six decay times: 70 Levenberg-Marquardt refits) picks it too; other rigs refuse
     the option."""
     from gyrojax import rigs
-    from gyrojax.diagnose.bench import refit_all_baseline
+    from gyrojax.validation._scoring import refit_all_baseline
 
     rec = _record({"gsxy": SPACE["gsxy"].from_display(15.0)})
     fam = rigs.get("imu").problem_for(rec, holdout=0.25)

@@ -1,10 +1,66 @@
 """Sim-to-real gap diagnosis: where model and record disagree, which catalogued effect causes it,
 whether the test can see it at all, and how far the held-out gap shrinks once it is added
-(spec ``gap-diagnosis.md``). ``diagnose`` is the entry point; ``bench`` the blind harness."""
+(spec ``gap-diagnosis.md``).
+
+:func:`diagnose` is the entry point; :class:`AbstractGapProblem` the interface a rig implements
+(:mod:`gyrojax.rigs` registers it). The statistical building blocks and the rigs' catalogue
+constants below are public for the blind validation suites (:mod:`gyrojax.validation`), which
+the diagnosis never imports."""
+
+__all__ = ["AbstractGapProblem", "ESGProblem", "ESG_LIBRARY", "ESG_TRANSIENT_TIMES_H",
+           "GYROTHEODOLITE_TRANSIENT_TIMES_MIN", "GapReport", "GyrotheodoliteProblem",
+           "IMUProblem", "IMU_CYCLE_DESIGN", "IMU_CYCLE_MIN_C", "IMU_LIBRARY",
+           "IMU_PRIOR_BY_UNIT", "IMU_TABLE_DESIGN", "PLATFORM_NOMINAL", "PlatformProblem",
+           "SCHULER_TRANSIENT_TIMES_H", "SHELL_DESIGN_LAMBDAS", "SchulerProblem", "Signature",
+           "VISIBLE_MIN", "canonical_correlation", "coefficient_effect", "default_prior",
+           "design_log_bf", "diagnose", "effect_family_name", "given_options", "library",
+           "ljung_box", "mix_log_bf", "nominal_basis", "nominal_coefficients", "onset_grid",
+           "platform_library", "project_out", "screen_designs", "shape_log_bf_scores",
+           "shell_design_log_bf", "shell_log_bf", "signature_directions", "table_runs",
+           "train_slice", "visibility_flag", "visible", "zellner_log_bf"]
 
 from ._diagnose import default_prior as default_prior
 from ._diagnose import diagnose as diagnose
+from ._diagnose import given_options as given_options
 from ._diagnose import library as library
+from ._diagnose import train_slice as train_slice
+from ._esg import ESG_LIBRARY as ESG_LIBRARY
+from ._esg import TRANSIENT_TIMES_H as ESG_TRANSIENT_TIMES_H
+from ._esg import ESGProblem as ESGProblem
+from ._gyrotheodolite import TRANSIENT_TIMES_MIN as GYROTHEODOLITE_TRANSIENT_TIMES_MIN
+from ._gyrotheodolite import GyrotheodoliteProblem as GyrotheodoliteProblem
+from ._imu import CYCLE_DESIGN as IMU_CYCLE_DESIGN
+from ._imu import CYCLE_MIN_C as IMU_CYCLE_MIN_C
+from ._imu import IMU_LIBRARY as IMU_LIBRARY
+from ._imu import PRIOR_BY_UNIT as IMU_PRIOR_BY_UNIT
+from ._imu import TABLE_DESIGN as IMU_TABLE_DESIGN
+from ._imu import IMUProblem as IMUProblem
+from ._imu import table_runs as table_runs
+from ._platform import NOMINAL as PLATFORM_NOMINAL
+from ._platform import PlatformProblem as PlatformProblem
+from ._platform import nominal_coefficients as nominal_coefficients
+from ._platform import platform_library as platform_library
 from ._problem import AbstractGapProblem as AbstractGapProblem
 from ._report import GapReport as GapReport
+from ._schuler import TRANSIENT_TIMES_H as SCHULER_TRANSIENT_TIMES_H
+from ._schuler import SchulerProblem as SchulerProblem
+from ._stats import SHELL_DESIGN_LAMBDAS as SHELL_DESIGN_LAMBDAS
+from ._stats import VISIBLE_MIN as VISIBLE_MIN
 from ._stats import Signature as Signature
+from ._stats import canonical_correlation as canonical_correlation
+from ._stats import coefficient_effect as coefficient_effect
+from ._stats import design_log_bf as design_log_bf
+from ._stats import effect_family_name as effect_family_name
+from ._stats import ljung_box as ljung_box
+from ._stats import mix_log_bf as mix_log_bf
+from ._stats import nominal_basis as nominal_basis
+from ._stats import onset_grid as onset_grid
+from ._stats import project_out as project_out
+from ._stats import screen_designs as screen_designs
+from ._stats import shape_log_bf_scores as shape_log_bf_scores
+from ._stats import shell_design_log_bf as shell_design_log_bf
+from ._stats import shell_log_bf as shell_log_bf
+from ._stats import signature_directions as signature_directions
+from ._stats import visibility_flag as visibility_flag
+from ._stats import visible as visible
+from ._stats import zellner_log_bf as zellner_log_bf

@@ -51,10 +51,8 @@ from ._stats import (
     PRIORS,
     SEPARABLE,
     Screen,
-    _directions,
     _f_sf,
     _orth,
-    _project,
     _visibility,
     ambiguity_set,
     bh_qvalues,
@@ -68,8 +66,10 @@ from ._stats import (
     map_design,
     map_statistics,
     nominal_basis,
+    project_out,
     screen,
     screen_designs,
+    signature_directions,
     visible,
 )
 
@@ -82,10 +82,10 @@ _CONFOUNDED_FLAGS = ("structurally confounded", "no signature")  # the nominal f
 def library(rig: str, **options) -> dict:
     """The diagnosis catalogue of ``rig`` under its ``options`` (platform: ``nominal_terms``):
     effect name -> family (the registry's :meth:`~gyrojax.rigs.RigEntry.catalogue`)."""
-    return rigs.get(rig).catalogue(**_given(options))
+    return rigs.get(rig).catalogue(**given_options(options))
 
 
-def _given(options: dict) -> dict:
+def given_options(options: dict) -> dict:
     """The rig options given: ``None`` means the rig's default."""
     return {k: v for k, v in options.items() if v is not None}
 
@@ -167,7 +167,7 @@ def default_prior(rig: str = "esg", **options) -> str:
     a catalogue of effect families (every rig's default catalogue). The blind suites that chose
     this rule: ``benchmarks/RESULTS.md`` (the shell and design sections of each suite)."""
     entry = rigs.get(rig)
-    options = _given(options)
+    options = given_options(options)
     entry.check_options(options)
     return "shell" if entry.problem_class.single_coefficients(**options) else "design"
 
@@ -246,7 +246,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     if null_draws < 0 or (null_draws and np.floor(alpha * (null_draws + 1) + 1e-9) < 1):
         raise ValueError(f"null_draws={null_draws} with alpha={alpha}: give 0 (plain weighted "
                          f"BH) or at least {int(np.ceil(1 / alpha)) - 1} draws (default 499)")
-    options = _given(options)
+    options = given_options(options)
     if prior is None:
         prior = default_prior(rig, **options)
     if prior not in PRIORS:
@@ -280,7 +280,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     jn_all, sigs_all = prob.jacobians(params0, sigma)
     rows_tr = slice(0, n * c)
     jn = jn_all[rows_tr]
-    sigs = [_train_slice(s, n * c) for s in sigs_all]
+    sigs = [train_slice(s, n * c) for s in sigs_all]
     s_full = {s.name: s for s in sigs_all}
     e_all = standardize(resid_all).reshape(-1)
     e = e_all[rows_tr]
@@ -597,7 +597,7 @@ def _heldout_has_gap(verdict) -> bool:
     return bool(g0 is not None and band is not None and np.isfinite(g0) and g0 > band[1])
 
 
-def _train_slice(sig, m):
+def train_slice(sig, m):
     return dataclasses.replace(sig, jac=sig.jac[:, :m, :])
 
 
@@ -681,7 +681,7 @@ def _refit_uncertainty(combo, coefficients: dict) -> tuple[dict, list]:
     information, ``(J~^T J~)^+`` of the projected columns, times the prior scales; and the
     combinations the rows determine of the coefficients they do not.
 
-    The undetermined directions are the screening's (:func:`~._stats._directions` on the
+    The undetermined directions are the screening's (:func:`~._stats.signature_directions` on the
     combination's raw and projected signatures): those without a signature and those whose
     visible fraction after the nominal projection is below ``VISIBLE_MIN`` (absorbed by the
     nominal parameters, e.g. the IMU's common rotation of both triads, which the poses take;
@@ -701,7 +701,7 @@ def _refit_uncertainty(combo, coefficients: dict) -> tuple[dict, list]:
     ok = w > 1e-12 * max(float(w.max()), 1e-300)
     cov = (v[:, ok] / w[ok]) @ v[:, ok].T  # prior-scale units
     var = np.diag(cov).copy()
-    _, _, _, null, absorbed = _directions(j, jt)
+    _, _, _, null, absorbed = signature_directions(j, jt)
     hidden = np.array(null + absorbed + [v[:, i] for i in np.flatnonzero(~ok)]).reshape(
         -1, len(names)).T
     if hidden.size:
@@ -851,7 +851,7 @@ def _design_advice(prob, params0, sigma, flagged):
         jn, sigs = prob.jacobians(params0, sigma, conditions=cond, t=t, **only)
         u = nominal_basis(jn)
         raw = {s.name: s.jac[min(grid.get(s.name, 0), s.jac.shape[0] - 1)] for s in sigs}
-        designs.append((label, sigs, {k: _project(u, v) for k, v in raw.items()},
+        designs.append((label, sigs, {k: project_out(u, v) for k, v in raw.items()},
                         {k: _hidden_directions(v, u) for k, v in raw.items() if k in names}))
     # an effect's directions that neither the record's design nor any candidate sees (no
     # signature, or absorbed by the nominal: e.g. the accelerometer triad's rotation, which the
@@ -876,7 +876,7 @@ def _design_advice(prob, params0, sigma, flagged):
                          "seen_dims": int(basis.shape[0] - len(hidden[s.name])),
                          "kept_dims": int(basis.shape[1]),
                          "mde_vs_closest_rival": max(
-                             (_mde(_project(span[o], mine)) for o in others), default=mde),
+                             (_mde(project_out(span[o], mine)) for o in others), default=mde),
                          "max_correlation_with_other_effects": corr,
                          "separable": corr <= SEPARABLE,
                          "unseen_dims": int(basis.shape[0] - basis.shape[1])})

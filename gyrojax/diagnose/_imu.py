@@ -84,7 +84,7 @@ IMU_LIBRARY = {
     "rate_random_walk": ("noise", None),
     "outliers": ("noise", None),
 }
-_PRIOR_BY_UNIT = {"deg/h/h": 10.0, "mg/h": 1.0, "deg/h": 100.0, "mg": 5.0,
+PRIOR_BY_UNIT = {"deg/h/h": 10.0, "mg/h": 1.0, "deg/h": 100.0, "mg": 5.0,
                   "deg/h/degC": 10.0, "mg/degC": 1.0, "deg/h/(degC/min)": 10.0,
                   "mg/(degC/min)": 1.0}
 AUX_PREFIXES = ("temp", "tilt", "supply", "aux")  # auxiliary channels: not modelled, mapped
@@ -379,7 +379,7 @@ class IMUProblem(AbstractGapProblem):
         names = tuple(free)
         full, idx, model_args = self._full(params, names, self.t, self.seg,
                                            self._vector(params, names))
-        where, valid = _padded(idx)
+        where, valid = _padded(idx, len(self.nominal_names) + len(self.pose_names))
         rw = np.zeros(len(self.t))
         rw[rows] = 1.0
         fit = self._compiled(len(self.segments))[2]
@@ -565,7 +565,7 @@ class IMUProblem(AbstractGapProblem):
                 continue
             fam, prior = IMU_LIBRARY[effect_family_name(e)]
             pri = np.array([prior if prior is not None else
-                            _PRIOR_BY_UNIT[self.space[n].display_unit] for n in names])
+                            PRIOR_BY_UNIT[self.space[n].display_unit] for n in names])
             factor = np.array([self.space[n].display_factor / self.space[n].scale
                                for n in names])
             slices = [np.stack([cols[n][g] for n in names], axis=2) / sigma[None, :, None]
@@ -916,12 +916,14 @@ def _build(n_pose, cond, ch_idx):
     return jax.jit(f), jax.jit(jvps), jax.jit(fit)
 
 
-def _padded(idx):
-    """``(where, valid)``: the indices ``idx`` padded to a multiple of ``JVP_WIDTH`` (the
-    padding points at entry 0, weight 0): one compiled fit per width, and no Jacobian column of
-    a held term (one width for every fit of a record, 64 on 12 poses, measured 2x slower fits
-    for one compilation less)."""
-    width = JVP_WIDTH * max(1, -(-len(idx) // JVP_WIDTH))
+def _padded(idx, at_least: int = 0):
+    """``(where, valid)``: the indices ``idx`` padded to a multiple of ``JVP_WIDTH``, at least
+    ``at_least`` wide (the padding points at entry 0, weight 0): one compiled fit per width.
+    The record's nominal terms and poses set the least width, so the nominal fit, the held-out
+    poses' and the refits with an effect or two share one compilation; a width for every
+    effect's columns besides (96 on 12 poses) made the nominal fits 2x slower."""
+    n = max(len(idx), at_least)
+    width = JVP_WIDTH * max(1, -(-n // JVP_WIDTH))
     where = np.zeros(width, int)
     where[: len(idx)] = idx
     return where, (np.arange(width) < len(idx)).astype(float)

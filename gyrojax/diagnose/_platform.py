@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import units
-from ..estimate.platform import _position_design, cumulative_trapezoid, record_kappas
+from ..estimate.platform import cumulative_trapezoid, position_design, record_kappas
 from ..models.platform import (
     COEFF_NAMES,
     TERMS,
@@ -166,7 +166,7 @@ def _dwell(ts, t0, angles, cond, vibrated, theta, taus):
     """One dwell: centred ``angles - h`` (n, 3), centred drift-coefficient columns (n, 3, 30) and
     the catalogue's columns (n, 3, k) per unit SI coefficient (base misalignment: per rad, at the
     drift coefficients ``theta``; the transient: one block of 3 per grid value)."""
-    y, big_f = _position_design(ts, angles, cond)
+    y, big_f = position_design(ts, angles, cond)
     t_abs = t0 + ts
 
     def per_sample(a, t):

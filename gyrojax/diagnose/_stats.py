@@ -111,7 +111,7 @@ def nominal_basis(jn: np.ndarray, *, rtol: float = 1e-10) -> np.ndarray:
     return u[:, s > rtol * s[0]]
 
 
-def _project(u, j):
+def project_out(u, j):
     return j - u @ (u.T @ j)
 
 
@@ -182,10 +182,10 @@ VISIBLE_MIN = 1e-6  # visible fraction below which a direction counts as absorbe
 def visible(u, j) -> bool:
     """Whether the columns ``j`` keep a visible fraction >= ``VISIBLE_MIN`` of their energy
     once the nominal basis ``u`` is projected out."""
-    return bool(np.sum(_project(u, j) ** 2) >= VISIBLE_MIN * np.sum(j ** 2))
+    return bool(np.sum(project_out(u, j) ** 2) >= VISIBLE_MIN * np.sum(j ** 2))
 
 
-def _directions(j, jt):
+def signature_directions(j, jt):
     """The coefficient directions an effect's score test uses, their information, and
     :func:`_visibility`'s answer, from the raw signature ``j`` and its projection ``jt``
     (through their information matrices: no factorisation of the ``m`` rows).
@@ -222,7 +222,7 @@ def _directions(j, jt):
 
 
 def _column_directions(ss: float, ss_t: float):
-    """:func:`_directions` of a one-column signature with squared norm ``ss`` (``ss_t`` after
+    """:func:`signature_directions` of a one-column signature with squared norm ``ss`` (``ss_t`` after
     the projection): its direction is the coefficient itself, ``w = ss_t / ss``."""
     if ss <= 0.0:
         return np.zeros((1, 0)), np.zeros(0), 0.0, [np.ones(1)], []
@@ -428,7 +428,7 @@ def _visibility(j, u):
     ``(J~^T J~, J^T J)`` gives each direction's visible fraction ``1 - rho^2``. Returns
     ``(v_min, no-signature directions, structurally confounded directions (v < 1e-6))``.
     """
-    return _directions(j, _project(u, j))[2:]
+    return signature_directions(j, project_out(u, j))[2:]
 
 
 def visibility_flag(v: float, has_null: bool, visible_dims: int, n_confounded: int = 0) -> str:
@@ -449,7 +449,7 @@ class SignatureDesign:
     """The data-independent part of one signature's score test (see :func:`screen_designs`).
 
     - `jt`, `d`, `w`: per grid value, the projected Jacobian ``J~``, the tested directions and
-      their information (:func:`_directions`);
+      their information (:func:`signature_directions`);
     - `bases`: per grid value, the orthonormal basis ``J~ D / sqrt(w)`` of the tested directions
       (``LM_g = |W_g^T e|^2``);
     - `sup_null`: for grid effects, the bootstrap draws of ``sup_g LM_g`` under H0 (sorted);
@@ -503,8 +503,8 @@ def screen_designs(jn: np.ndarray, sigs: list[Signature], *, n_boot: int = 2000,
                 jt, (d, w, *v) = part[(i, g)]
             else:
                 j = sig.jac[g]
-                jt = _project(u, j)
-                d, w, *v = _directions(j, jt)
+                jt = project_out(u, j)
+                d, w, *v = signature_directions(j, jt)
             jts.append(jt)
             infos.append(jt.T @ jt)
             ds.append(d)
@@ -880,7 +880,7 @@ def _score_cell(u, cols, *, min_visible=VISIBLE_MIN):
     """Projected basis, pseudo-inverse information and dof of a score cell with raw columns
     ``cols`` (``n c x k``): directions whose visible fraction after projecting out ``u`` is
     below ``min_visible`` are absorbed (not tested)."""
-    jt = _project(u, cols)
+    jt = project_out(u, cols)
     _, dof, _, cov, _, _ = _lm(jt, np.zeros(len(cols)), float(np.max(np.sum(cols ** 2, 0))),
                                rtol=min_visible)
     return jt, cov, dof

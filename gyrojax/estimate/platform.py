@@ -152,7 +152,7 @@ def cumulative_trapezoid(f, ts):
 
 
 @eqx.filter_jit
-def _position_design(ts, angles, conditions, acc=None):
+def position_design(ts, angles, conditions, acc=None):
     """Rows of (S22) for one position: centred ``y - h`` and centred ``F`` (n, 3) and (n, 3, 30).
     With ``acc`` (n, 3; g) the drift uses the measured vibration sample by sample (the original,
     non-averaged model (S10) with ``1 + A_1 = f . n``) instead of ``kappa``."""
@@ -178,7 +178,7 @@ def regression_design(ts, angles, conditions, acc=None):
     """Stack (S22) over positions: ``angles`` (P, n, 3), ``conditions`` stacked over P (and the
     accelerometers (P, n, 3) for the non-averaged model). Returns ``(b, A)`` with ``A``
     (P*n*3, 30) and ``b`` (P*n*3,)."""
-    y, f = jax.vmap(_position_design, in_axes=(None, 0, 0, 0))(jnp.asarray(ts), angles,
+    y, f = jax.vmap(position_design, in_axes=(None, 0, 0, 0))(jnp.asarray(ts), angles,
                                                                 conditions, acc)
     return y.reshape(-1), f.reshape(-1, 30)
 

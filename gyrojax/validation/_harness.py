@@ -18,10 +18,7 @@ import jax
 import numpy as np
 
 from ..io import load_record
-from .bench import (
-    _rate,
-    _scores,
-    _sha,
+from ._scoring import (
     calibration,
     confounding_scores,
     grid_best,
@@ -33,8 +30,11 @@ from .bench import (
     oracle_power,
     plain_bh_far,
     projector,
+    ranking_scores,
+    rate,
     ratio_rate,
     refit_all_baseline,
+    sha256_file,
 )
 
 __all__ = ["run_cases", "score_cases", "projector", "separability",
@@ -49,12 +49,12 @@ def separability(record, rig: str, sigma, split=None, **problem_kw) -> dict:
     ratios between channels matter); ``None``: the problem's own noise model on this record (the
     diagnosis's, e.g. the IMU's AR prewhitening). ``problem_kw``: the diagnosis' catalogue
     options (``nominal_terms``, ``per_coefficient``)."""
-    from ._stats import _project, canonical_correlation, nominal_basis, visible
+    from ..diagnose import canonical_correlation, nominal_basis, project_out, visible
 
     jn, sigs = _train_jacobians(record, rig, sigma, split, **problem_kw)
     u = nominal_basis(jn)
     vis = [s for s in sigs if visible(u, s.jac[0])]  # the diagnosis' threshold
-    return {a.name: max(canonical_correlation(_project(u, ja), _project(u, jb))
+    return {a.name: max(canonical_correlation(project_out(u, ja), project_out(u, jb))
                         for b in vis if b is not a for ja in a.jac for jb in b.jac)
             for a in vis}
 
@@ -63,31 +63,31 @@ def _train_jacobians(record, rig, sigma, split, **problem_kw):
     """The whitened nominal Jacobian and the catalogue's signatures on the train rows of
     ``split``, at the nominal fit of ``record`` (``sigma``: see :func:`separability`)."""
     from .. import rigs
-    from ._diagnose import _given, _train_slice
+    from ..diagnose import given_options, train_slice
 
-    prob = rigs.get(rig).problem_for(record, **_given(dict(problem_kw, split=split)))
+    prob = rigs.get(rig).problem_for(record, **given_options(dict(problem_kw, split=split)))
     params0 = prob.fit_nominal()
     if sigma is None:
         resid = (prob.y - prob.predict(params0))[: prob.n_train]
         sigma = prob.noise_level(resid)[0]
     jn, sigs = prob.jacobians(params0, sigma)
     m = prob.n_train * len(prob.channels)
-    return jn[:m], [_train_slice(s, m) for s in sigs]
+    return jn[:m], [train_slice(s, m) for s in sigs]
 
 
 def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
                                 alpha: float = 0.05, n_draws: int = 20_000,
                                 seed: int = 0, **problem_kw) -> dict:
-    """Null thresholds of the Bayes-oracle detector (:func:`~gyrojax.diagnose.bench.
+    """Null thresholds of the Bayes-oracle detector (:func:`~gyrojax.validation._scoring.
     oracle_detect_statistic`) on the design of ``record``: per noncentrality, the ``1 - alpha``
     quantile of the statistic under the linearised null, from ``n_draws`` draws of the residual
     in the span of the library's projected signatures (its only part the scores see; drawn there
-    as :func:`~gyrojax.diagnose._stats._sup_null` does). The statistic is the Neyman-Pearson
+    as `gyrojax.diagnose._sup_null` does). The statistic is the Neyman-Pearson
     statistic of the generator's alternative (equal odds between the catalogue's effects
     with a signature, the diagnosis' design prior sized to expect exactly ``lambda``), so
     rejecting above the threshold is the most powerful level-``alpha`` test a diagnosis could
     run: the reference for spec §6 G2's detection power."""
-    from ._stats import design_log_bf, screen_designs
+    from ..diagnose import design_log_bf, screen_designs
 
     jn, sigs = _train_jacobians(record, rig, sigma, split, **problem_kw)
     _, designs = screen_designs(jn, sigs, n_boot=0)
@@ -111,12 +111,12 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
     (the scorer's oracle is then the hidden effect's own refit, spec §6 G7). ``split_for``:
     ``(record, split) -> split`` where a record's own design decides (a one-amplitude platform
     test has no design shift). ``baselines``: also run B2 refit-all + BIC on each record
-    (:func:`~gyrojax.diagnose.bench.refit_all_baseline`: its answers, wall time and refit count,
+    (:func:`~gyrojax.validation._scoring.refit_all_baseline`: its answers, wall time and refit count,
     beside the screening's time). ``diagnose_kw``: more arguments of the diagnosis (e.g. the
     platform's ``nominal_terms``). ``prior``: the diagnosis' Bayes-factor prior (and B2's;
     ``None``: the diagnosis' default)."""
     from .. import rigs
-    from ._diagnose import _given, diagnose
+    from ..diagnose import diagnose, given_options
 
     diagnose_kw = dict(diagnose_kw or {}) | {"prior": prior}  # None: the diagnosis' default
 
@@ -131,13 +131,13 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
         t_diag = time.perf_counter() - t0
         v = rep.verdict
         results.append({
-            "sha": _sha(path), "file": path.name, "verdict": v["kind"], "prior": rep.prior,
+            "sha": sha256_file(path), "file": path.name, "verdict": v["kind"], "prior": rep.prior,
             "effects": v.get("effects") or [], "noise_effects": v.get("noise_effects") or [],
             "ranking": [r["name"] for r in rep.ranking],
             "posterior": {r["name"]: r["posterior"] for r in rep.ranking},
             "flags": {r["name"]: r["flag"] for r in rep.ranking},
             "visible_fraction": {r["name"]: r["visible_fraction"] for r in rep.ranking},
-            "scores": _scores(rep.ranking),
+            "scores": ranking_scores(rep.ranking),
             "log_bf_by_lambda": {r["name"]: r["log_bf_by_lambda"] for r in rep.ranking},
             "ambiguity": rep.ambiguity["set"],
             "heldout_gap_before": v.get("heldout_gap_before"),
@@ -165,7 +165,7 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
         if baselines:
             options = {k: v for k, v in diagnose_kw.items() if k != "prior"}
             prob = rigs.get(rig).problem_for(rec, holdout=holdout,
-                                             **_given(options | {"split": rec_split}))
+                                             **given_options(options | {"split": rec_split}))
             results[-1] |= refit_all_baseline(prob, rep.ranking, np.asarray(rep.noise["std"]),
                                               prior=rep.prior)
         if progress is not None:
@@ -181,7 +181,7 @@ def sealed_pairs(case_dir, results) -> list:
 
 
 def sealed_localisation(case_dir, results, *, lam_min: float = 32.0, **rules) -> dict:
-    """Spec §6 G8's grid rules (:func:`~gyrojax.diagnose.bench.grid_localisation` with
+    """Spec §6 G8's grid rules (:func:`~gyrojax.validation._scoring.grid_localisation` with
     ``rules``) over the sealed in-library cases at ``lambda >= lam_min`` that screened a grid."""
     strong = [(t, r) for t, r in sealed_pairs(case_dir, results)
               if t.get("lambda", 0) >= lam_min and "grid_best" in r]
@@ -195,7 +195,7 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
     in the verdict, the ambiguity set or the noise-model list. ``structural``: families with no
     signature on the design, scored by ``structural_silent`` (verdict no-gap or confounded).
     Per noncentrality also the top-1 over the ``separable`` families (spec §6 G3), the Bayes
-    oracle's top-1 on the mean families (:func:`~gyrojax.diagnose.bench.oracle_choice`: the
+    oracle's top-1 on the mean families (:func:`~gyrojax.validation._scoring.oracle_choice`: the
     sealed lambda as the prior) and the ratio of the two. With the runs' ``single_refits``
     (``run_cases(refit_all=True)``): the oracle comparison of spec §6 G7 over the detected
     cases of the ``separable`` families (default: every mean family) whose held-out gap
@@ -223,37 +223,37 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
     def oracle(t, r):
         return oracle_choice(r, t["lambda"]) == t["family"]
 
-    out = {"far": _rate(nulls, lambda t, r: r["verdict"] != "no-gap"), **plain_bh_far(nulls),
+    out = {"far": rate(nulls, lambda t, r: r["verdict"] != "no-gap"), **plain_bh_far(nulls),
            "by_lambda": {}}
     for lam in sorted({t["lambda"] for t, _ in lib}):
         sub = [(t, r) for t, r in lib if t["lambda"] == lam]
         sizes = [len(r["ambiguity"]) for _, r in sub if r["ambiguity"]]
         sub_mean = [(t, r) for t, r in sub if t["family"] in mean_families]
         out["by_lambda"][f"{lam:g}"] = {
-            "power": _rate(sub, lambda t, r: r["verdict"] != "no-gap"),
-            "top1": _rate(sub, top), "named": _rate(sub, named),
+            "power": rate(sub, lambda t, r: r["verdict"] != "no-gap"),
+            "top1": rate(sub, top), "named": rate(sub, named),
             "mean_set_size": float(np.mean(sizes)) if sizes else None,
             # spec §6 G3: top-1 on the separable families, and against the Bayes oracle (mean
             # effects: the oracle reads the score statistics, which noise effects do not have)
-            "top1_separable": _rate([(t, r) for t, r in sub if t["family"] in sep], top),
-            "oracle_top1_separable": _rate([(t, r) for t, r in sub_mean if t["family"] in sep],
+            "top1_separable": rate([(t, r) for t, r in sub if t["family"] in sep], top),
+            "oracle_top1_separable": rate([(t, r) for t, r in sub_mean if t["family"] in sep],
                                            oracle),
-            "oracle_top1": _rate(sub_mean, oracle),
+            "oracle_top1": rate(sub_mean, oracle),
             "oracle_efficiency": ratio_rate(sub_mean, top, oracle),
             "oracle_power": oracle_power(sub_mean, lam, oracle_thresholds),
             "calibration": calibration(sub_mean),
-            "b2_top1": (_rate(sub_mean, lambda t, r: r["b2_choice"] == t["family"])
+            "b2_top1": (rate(sub_mean, lambda t, r: r["b2_choice"] == t["family"])
                         if all("b2_choice" in r for _, r in sub_mean) else None),
         }
     out["calibration"] = calibration([(t, r) for t, r in lib if t["family"] in mean_families])
-    out["by_family"] = {f: _rate([(t, r) for t, r in lib if t["family"] == f], top)
+    out["by_family"] = {f: rate([(t, r) for t, r in lib if t["family"] == f], top)
                         for f in sorted({t["family"] for t, _ in lib})}
     mean_lib = [(t, r) for t, r in lib if t["family"] in mean_families]
     red = [1 - r["heldout_gap_after"] / r["heldout_gap_before"] for t, r in mean_lib
            if r["heldout_gap_after"] is not None and r["null_band"] is not None
            and r["heldout_gap_before"] > r["null_band"][1]]
     out["heldout_reduction_median"] = float(np.median(red)) if red else None
-    out["heldout_closure"] = _rate([(t, r) for t, r in mean_lib if r["heldout_gap_after"]
+    out["heldout_closure"] = rate([(t, r) for t, r in mean_lib if r["heldout_gap_after"]
                                     is not None and r["null_band_after"] is not None],
                                    lambda t, r: r["heldout_gap_after"] <= r["null_band_after"][1])
     g7 = [(t, r) for t, r in mean_lib if t["family"] in sep and r.get("single_refits")
@@ -265,8 +265,8 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
         g0 = r["heldout_gap_before"]
         return 1 - r["heldout_gap_after"] / g0 >= 0.9 * (1 - r["single_refits"][t["family"]] / g0)
 
-    out["heldout_vs_oracle"] = _rate(g7, vs_oracle)
-    out["heldout_vs_oracle_all"] = _rate(  # every mean family, confusable ones included
+    out["heldout_vs_oracle"] = rate(g7, vs_oracle)
+    out["heldout_vs_oracle_all"] = rate(  # every mean family, confusable ones included
         [(t, r) for t, r in mean_lib if r.get("single_refits") and r["verdict"] != "no-gap"
          and r["heldout_gap_after"] is not None and t["family"] in r["single_refits"]
          and r["null_band"] is not None and r["heldout_gap_before"] > r["null_band"][1]],
@@ -274,16 +274,16 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
     out["heldout_oracle_reduction_median"] = (float(np.median(
         [1 - r["single_refits"][t["family"]] / r["heldout_gap_before"] for t, r in g7]))
         if g7 else None)
-    out["heldout_closure_separable"] = _rate(
+    out["heldout_closure_separable"] = rate(
         [(t, r) for t, r in g7 if r["null_band_after"] is not None],
         lambda t, r: r["heldout_gap_after"] <= r["null_band_after"][1])
-    out["out_of_library_honest"] = _rate(ool, lambda t, r: r["verdict"] in
+    out["out_of_library_honest"] = rate(ool, lambda t, r: r["verdict"] in
                                          ("unexplained", "ambiguous", "no-gap"))
 
     out |= ool_scores(ool)  # spec §6 G9
     out |= confounding_scores(mean_lib)  # spec §6 G5, practical confounding
     if structural:
-        out["structural_silent"] = _rate([(t, r) for t, r in rows if t["family"] in structural],
+        out["structural_silent"] = rate([(t, r) for t, r in rows if t["family"] in structural],
                                          lambda t, r: r["verdict"] in ("no-gap", "confounded"))
     out["median_diagnose_s"] = float(np.median([r["time_diagnose_s"] for _, r in rows]))
     b2 = [r for _, r in rows if "time_refit_all_s" in r]
@@ -298,14 +298,14 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
                        "n_refits": int(np.median([r["n_refits"] for r in b2])),
                        "n_effects": int(np.median([len(r["ranking"]) for r in b2]))}
         strong = [(t, r) for t, r in mean_lib if t["lambda"] >= 32 and r.get("b2_lr_choice")]
-        out["screen_refit_agreement"] = _rate(
+        out["screen_refit_agreement"] = rate(
             strong, lambda t, r: max(r["posterior"], key=r["posterior"].get)
             == r["b2_lr_choice"])
 
         def same_class(t, r):  # the same answer, or two effects the design cannot tell apart
             a, b = max(r["posterior"], key=r["posterior"].get), r["b2_lr_choice"]
             return a == b or any(a in c and b in c for c in r["classes"])
-        out["screen_refit_agreement_classes"] = _rate(
+        out["screen_refit_agreement_classes"] = rate(
             [(t, r) for t, r in strong if "classes" in r], same_class)
     return out
 
@@ -331,7 +331,7 @@ def closed_loop(case_dir, rig: str, hidden: str, rerun, truth_coefficients, *,
     coefficients of the verdict's effects with their standard errors (display units) and, where
     the verdict is the hidden effect alone, the errors in standard errors of the coefficients
     and combinations it determines (``z_advised``, :func:`refit_z`)."""
-    from ._diagnose import diagnose
+    from ..diagnose import diagnose
 
     paths = sorted(Path(case_dir).glob("case_*.nc"))
     first = []
@@ -348,7 +348,7 @@ def closed_loop(case_dir, rig: str, hidden: str, rerun, truth_coefficients, *,
     key = jax.random.key(seed)
     out = []
     for i, (path, rec, verdict, top, flagged, advice) in enumerate(first):
-        truth = manifest[_sha(path)]
+        truth = manifest[sha256_file(path)]
         row = {"file": path.name, "family": truth["family"],
                "truth": {k: v for k, v in truth.items() if isinstance(v, (str, int, float))},
                "verdict": verdict["kind"],
@@ -413,22 +413,22 @@ def closed_loop_scores(rows, hidden: str) -> dict:
              if e in row["advised"]]
     resolved = lambda _, a: _resolves(a)  # noqa: E731
     looped = [(None, r) for r in rows if "top_advised" in r]
-    return {"resolved": _rate(pairs, resolved),
-            "resolved_by_effect": {e: _rate([x for x in pairs if x[0] == e], resolved)
+    return {"resolved": rate(pairs, resolved),
+            "resolved_by_effect": {e: rate([x for x in pairs if x[0] == e], resolved)
                                    for e in sorted({x for x, _ in pairs})},
-            "hidden_flagged": _rate([(None, r) for r in rows], lambda _, r: hidden in r["flagged"]),
+            "hidden_flagged": rate([(None, r) for r in rows], lambda _, r: hidden in r["flagged"]),
             "advised_designs": sorted({r["advised"][hidden]["design"] for r in rows
                                        if hidden in r["advised"]}),
             "max_mde_hidden": max((r["advised"][hidden]["mde_vs_closest_rival"] for r in rows
                                    if hidden in r["advised"]), default=float("nan")),
-            "top1_own": _rate([(None, r) for r in rows], lambda _, r: r["top"] == hidden),
-            "attributed_own": _rate([(None, r) for r in rows],
+            "top1_own": rate([(None, r) for r in rows], lambda _, r: r["top"] == hidden),
+            "attributed_own": rate([(None, r) for r in rows],
                                     lambda _, r: r["verdict"] == "attributed"
                                     and r["effects"] == [hidden]),
-            "top1_advised": _rate(looped, lambda _, r: r["top_advised"] == hidden),
-            "top1_advised_resolving": _rate(
+            "top1_advised": rate(looped, lambda _, r: r["top_advised"] == hidden),
+            "top1_advised_resolving": rate(
                 [(None, r) for _, r in looped if _resolves(r["advised"][hidden])],
                 lambda _, r: r["top_advised"] == hidden),
-            "attributed_advised": _rate(looped, lambda _, r: r["verdict_advised"] == "attributed"
+            "attributed_advised": rate(looped, lambda _, r: r["verdict_advised"] == "attributed"
                                         and r["effects_advised"] == [hidden]),
             "z_advised": [z for r in rows for z in r.get("z_advised", {}).values()]}

@@ -36,7 +36,7 @@ from ..models.schuler import SchulerConditions, SchulerRig, add_measurement_nois
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._harness import projector, run_cases, score_cases, sealed_localisation
-from .bench import _Sealer, onset_crb, truth_visibility
+from ._scoring import Sealer, onset_crb, truth_visibility
 
 __all__ = ["SchulerDesign", "generate", "run", "score", "localisation_scores", "MEAN_FAMILIES",
            "OUT_OF_LIBRARY"]
@@ -111,7 +111,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: SchulerDesign | No
              families=None) -> list[Path]:
     """Write ``n_cases`` blind Schuler-test records into ``out_dir`` and the sealed manifest."""
     design = design or SchulerDesign()
-    sealer = _Sealer(out_dir, seed)
+    sealer = Sealer(out_dir, seed)
     rng = sealer.rng
     cond = design.conditions
     space = _RIG.param_space
@@ -216,7 +216,7 @@ def localisation_scores(case_dir, results, *, lam_min: float = 32.0) -> dict:
     largest score within 5 % of the record of the truth, and a drift transient's decay time within
     one step of its geometric grid (``_schuler.TRANSIENT_TIMES_H``). The truth is in minutes (the
     parameters' display unit), the grids in hours."""
-    from ._schuler import TRANSIENT_TIMES_H
+    from ..diagnose import SCHULER_TRANSIENT_TIMES_H as TRANSIENT_TIMES_H
 
     return sealed_localisation(case_dir, results, lam_min=lam_min,
                                step=("drift_step", "t_step"),

@@ -1,6 +1,6 @@
 """Blind validation harness for the gap diagnosis, strapdown IMU rig (spec gap-diagnosis §5).
 
-Like :mod:`gyrojax.diagnose.bench` (ESG): :func:`generate` writes records and a sealed manifest
+Like :mod:`gyrojax.validation.esg` (ESG): :func:`generate` writes records and a sealed manifest
 keyed by each file's SHA-256, :func:`run` diagnoses the records without reading the manifest, and
 :func:`score` unseals it. Two designs:
 
@@ -41,6 +41,7 @@ import numpy as np
 
 from .. import units
 from ..analysis.spectral import term_spectra
+from ..diagnose import coefficient_effect, effect_family_name
 from ..models.imu import (
     IMU_CHANNELS,
     IMUConditions,
@@ -53,8 +54,7 @@ from ..models.imu import (
 )
 from ..record import BenchRecord
 from ._harness import run_cases, score_cases
-from ._stats import coefficient_effect, effect_family_name
-from .bench import _basis, _Sealer, remainder_after_library, truth_visibility
+from ._scoring import Sealer, orthonormal_basis, remainder_after_library, truth_visibility
 
 __all__ = ["IMUDesign", "generate", "run", "score", "mean_families", "MEAN_FAMILIES", "NOISE_FAMILIES",
            "OUT_OF_LIBRARY"]
@@ -144,7 +144,7 @@ class IMUDesign:
 def table_poses(dwell_s: float) -> list:
     """The advisor's rate-table runs (:func:`gyrojax.diagnose._imu.table_runs`) as poses of
     ``dwell_s`` each."""
-    from ._imu import table_runs
+    from ..diagnose import table_runs
 
     ups, rates = table_runs()
     return [Pose(tuple(map(float, u)), dwell_s, float(np.degrees(r))) for u, r in zip(ups, rates)]
@@ -179,10 +179,10 @@ def mean_families(design: IMUDesign | None = None) -> tuple:
 
 def _lambda_scale(params, design, names, b, n_train_frac):
     """The factor that scales ``b`` to unit efficient noncentrality on the train samples, and
-    the effect's visibility there (:func:`~gyrojax.diagnose.bench.truth_visibility`): truth
+    the effect's visibility there (:func:`~gyrojax.validation.esg.truth_visibility`): truth
     side."""
     jn, jb, _ = _train_jacobian(params, design, names, n_train_frac)
-    q = _basis(jn)
+    q = orthonormal_basis(jn)
     jt = jb - q @ (q.T @ jb)
     return 1.0 / math.sqrt(float(b @ (jt.T @ jt) @ b)), truth_visibility(jb, jt)
 
@@ -347,7 +347,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: IMUDesign | None =
     channel) makes one
     channel's bias follow."""
     design = design or IMUDesign()
-    sealer = _Sealer(out_dir, seed)
+    sealer = Sealer(out_dir, seed)
     rng = sealer.rng
     if families is None:
         families = STATIC_FAMILIES if design.kind == "static" else \
@@ -408,7 +408,7 @@ def expected_position_z(record, truth) -> dict:
     whitened step (the stepped accelerometer channel, every pose from ``truth["pose"]`` on).
     Empty when the record's static segments are not the design's poses one to one."""
     from .. import rigs
-    from ._stats import VISIBLE_MIN, _project, nominal_basis
+    from ..diagnose import VISIBLE_MIN, nominal_basis, project_out
 
     prob = rigs.get("imu").problem_for(record, holdout=0.25)
     params0 = prob.fit_nominal()
@@ -418,14 +418,14 @@ def expected_position_z(record, truth) -> dict:
     u = nominal_basis(jn[: n * c])
     d = np.zeros((n, c))
     d[prob.seg[:n] >= truth["pose"], prob.channels.index("a" + truth["axis"])] = 1.0
-    dt = _project(u, (prob.whiten(d) / sigma).reshape(-1))
+    dt = project_out(u, (prob.whiten(d) / sigma).reshape(-1))
     out = {}
     for label, _, w in prob.position_signatures(sigma):
         for j, name in enumerate(prob.channels):
             col = np.zeros((n, c))
             col[:, j] = w[:, j]
             col = col.reshape(-1)
-            jt = _project(u, col[:, None])[:, 0]
+            jt = project_out(u, col[:, None])[:, 0]
             if jt @ jt >= VISIBLE_MIN * (col @ col):
                 out[(label, name)] = float(jt @ dt / np.linalg.norm(jt))
     return out
@@ -506,16 +506,17 @@ def generate_closed_loop(out_dir, n_cases: int, *, seed: int = 0,
     channel on a ramp of 2-4 deg C over the record (warming up), where Delta T is a linear
     function of time like the ``time_drift`` effect. The manifest keeps the whole instrument
     (display units) and the ramp."""
-    from ._imu import _PRIOR_BY_UNIT, IMU_LIBRARY
+    from ..diagnose import IMU_LIBRARY
+    from ..diagnose import IMU_PRIOR_BY_UNIT as PRIOR_BY_UNIT
 
     design = design or IMUDesign()
-    sealer = _Sealer(out_dir, seed)
+    sealer = Sealer(out_dir, seed)
     rng = sealer.rng
     key = jax.random.key(seed)
     for i in range(n_cases):
         family = families[i % len(families)]
         names = G6_PARAMS[family]
-        prior = IMU_LIBRARY[family][1] or _PRIOR_BY_UNIT[_SPACE[names[0]].display_unit]
+        prior = IMU_LIBRARY[family][1] or PRIOR_BY_UNIT[_SPACE[names[0]].display_unit]
         b = rng.standard_normal(len(names))
         b *= fraction * prior / np.sqrt(np.mean(b ** 2))
         instrument = {k: float(_SPACE[k].to_display(v)) for k, v in _truth_params(rng).items()
@@ -534,7 +535,8 @@ def _g6_temperature(truth, design, label=None):
     one: :data:`~gyrojax.diagnose._imu.CYCLE_DESIGN` replaces the ramp by a cycle of period
     half the record and amplitude half the ramp (the advisor's own assumption); other designs
     keep the ramp, held at its end beyond it."""
-    from ._imu import CYCLE_DESIGN, CYCLE_MIN_C
+    from ..diagnose import IMU_CYCLE_DESIGN as CYCLE_DESIGN
+    from ..diagnose import IMU_CYCLE_MIN_C as CYCLE_MIN_C
 
     if "ramp_c" not in truth:
         return None
@@ -565,7 +567,8 @@ def _simulate_g6(truth, poses, design, key, label=None):
 def advised_poses(label: str, design: IMUDesign) -> list:
     """The poses of the test an IMU advice row names, from the record's ``design`` (the labels
     of :meth:`gyrojax.diagnose._imu.IMUProblem.designs`)."""
-    from ._imu import CYCLE_DESIGN, TABLE_DESIGN
+    from ..diagnose import IMU_CYCLE_DESIGN as CYCLE_DESIGN
+    from ..diagnose import IMU_TABLE_DESIGN as TABLE_DESIGN
 
     if label == TABLE_DESIGN:
         return design.all_poses + table_poses(design.dwell_s)

@@ -25,7 +25,7 @@ case family, hidden one coefficient at a time (:func:`mean_families`).
 Magnitudes: the noncentrality ``lambda`` of the effect's noise-free change of the record on the
 train rows (block means of every dwell, each centred by its train part, whitened by the block
 noise), with the nominal coefficients projected out through the estimator's own regression
-columns (:func:`gyrojax.estimate.platform._position_design` of (S22)); the effect is then scaled
+columns (:func:`gyrojax.estimate.platform.position_design` of (S22)); the effect is then scaled
 to the drawn ``lambda`` and integrated again.
 """
 
@@ -40,7 +40,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import units
-from ..estimate.platform import _position_design
+from ..diagnose import PLATFORM_NOMINAL as NOMINAL
+from ..diagnose import nominal_coefficients, platform_library
+from ..estimate.platform import position_design
 from ..models.platform import COEFF_NAMES, TABLE1_DEG, PlatformRig
 from ..models.platform_schedule import (
     dwell_span,
@@ -51,8 +53,7 @@ from ..models.platform_schedule import (
 )
 from . import _harness
 from ._harness import projector, run_cases, score_cases
-from ._platform import NOMINAL, nominal_coefficients, platform_library
-from .bench import _Sealer, truth_visibility
+from ._scoring import Sealer, truth_visibility
 
 __all__ = ["PlatformDesign", "generate", "run", "score", "MEAN_FAMILIES", "OUT_OF_LIBRARY",
            "STRUCTURAL", "mean_families"]
@@ -127,7 +128,7 @@ class _TrainRows:
         for a, conds in enumerate(schedule_conditions(s)):
             for p in range(y0.shape[1]):
                 c = jax.tree.map(lambda x, p=p: x[p], conds)
-                _, f = _position_design(ts, jnp.asarray(y0[a, p]), c)
+                _, f = position_design(ts, jnp.asarray(y0[a, p]), c)
                 fb, sizes = _reduce(np.asarray(f), design.blocks, self.k_train)
                 cols.append(fb * np.sqrt(sizes)[:, None, None])
         nominal = design.nominal_names()
@@ -155,7 +156,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: PlatformDesign | N
              families=None) -> list:
     """Write ``n_cases`` blind platform test records into ``out_dir`` and the sealed manifest."""
     design = design or PlatformDesign()
-    sealer = _Sealer(out_dir, seed)
+    sealer = Sealer(out_dir, seed)
     rng = sealer.rng
     space = _RIG.param_space
     s = design.schedule()

@@ -36,7 +36,7 @@ from ..models.gyrotheodolite import (
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._harness import projector, run_cases, score_cases, sealed_localisation
-from .bench import _Sealer, onset_crb, truth_visibility
+from ._scoring import Sealer, onset_crb, truth_visibility
 
 __all__ = ["GyrotheodoliteDesign", "generate", "run", "score", "MEAN_FAMILIES",
            "OUT_OF_LIBRARY", "STRUCTURAL"]
@@ -78,7 +78,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0,
              null_fraction: float = 0.3, families=None) -> list[Path]:
     """Write ``n_cases`` blind north-seeking runs into ``out_dir`` and the sealed manifest."""
     design = design or GyrotheodoliteDesign()
-    sealer = _Sealer(out_dir, seed)
+    sealer = Sealer(out_dir, seed)
     rng = sealer.rng
     cond = design.conditions
     space = _RIG.param_space
@@ -174,7 +174,7 @@ def localisation_scores(case_dir, results, *, lam_min: float = 32.0) -> dict:
     """Spec §6 G8 over the in-library cases at ``lambda >= lam_min``: a torque step's onset at
     its largest score within 5 % of the record of the truth, and a drift transient's decay time
     within one step of its geometric grid (``_gyrotheodolite.TRANSIENT_TIMES_MIN``)."""
-    from ._gyrotheodolite import TRANSIENT_TIMES_MIN
+    from ..diagnose import GYROTHEODOLITE_TRANSIENT_TIMES_MIN as TRANSIENT_TIMES_MIN
 
     return sealed_localisation(case_dir, results, lam_min=lam_min,
                                step=("torque_step", "t_step"),
