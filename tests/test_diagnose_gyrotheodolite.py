@@ -301,7 +301,7 @@ def test_a_large_torque_step_is_fitted_with_damped_steps(tmp_path):
 def test_blind_harness_diagnoses_under_the_prior_it_is_given(tmp_path, monkeypatch, prior):
     """The blind suites' ``--prior`` reaches the diagnosis: ``run(prior=...)`` calls
     ``diagnose`` with that prior (none given: none passed, the diagnosis' default)."""
-    from gyrojax.diagnose import _diagnose
+    import gyrojax.diagnose
     from gyrojax.validation import gyrotheodolite as bg
 
     bg.generate(tmp_path, 1, seed=3, null_fraction=1.0)
@@ -314,7 +314,7 @@ def test_blind_harness_diagnoses_under_the_prior_it_is_given(tmp_path, monkeypat
         seen.update(kw)
         raise Called
 
-    monkeypatch.setattr(_diagnose, "diagnose", fake)
+    monkeypatch.setattr(gyrojax.diagnose, "diagnose", fake)
     with pytest.raises(Called):
         bg.run(tmp_path, prior=prior)
     assert seen.get("prior") == prior
