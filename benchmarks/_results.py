@@ -393,7 +393,7 @@ def decay_crb_text(r) -> str:
 def onset_text(g8: dict, ts, n_train: int, digits: int = 1) -> str:
     """G8's onset rate in words: the tolerance (5 % of the record ``ts``, in minutes), the rate,
     the onset grid's size and the Cramér-Rao reference."""
-    from gyrojax.diagnose._stats import onset_grid
+    from gyrojax.diagnose._signatures import onset_grid
 
     minutes = (ts[-1] - ts[0]) / 60
     return (f"onset within 5 % of the record ({0.05 * minutes:.{digits}f} min) of the truth: "

@@ -15,7 +15,10 @@ import pytest
 from gyrojax import units
 from gyrojax.analysis.observability import format_combination
 from gyrojax.diagnose import diagnose
-from gyrojax.diagnose._stats import Signature, bh_qvalues, fisher_g_pvalue, screen
+from gyrojax.diagnose._gapmap import fisher_g_pvalue
+from gyrojax.diagnose._multiplicity import bh_qvalues
+from gyrojax.diagnose._screening import screen
+from gyrojax.diagnose._signatures import Signature
 from gyrojax.models.esg import ESGConditions, ESGRig
 from gyrojax.record import BenchRecord
 from gyrojax.simulate import simulate
@@ -71,7 +74,7 @@ def test_hidden_directions_are_named_in_display_units():
     from scipy.linalg import null_space
 
     from gyrojax.analysis.observability import _pretty_basis
-    from gyrojax.diagnose._diagnose import _named_directions
+    from gyrojax.diagnose._rows import _named_directions
 
     rng = np.random.default_rng(3)
     m = 200
@@ -103,7 +106,8 @@ def test_hidden_directions_are_named_in_display_units():
 def test_sup_pvalue_matches_brute_force_in_sample_space():
     """The grid effect's sup-score p-value, drawn in the small score space, against drawing the
     whole residual vector (the definition) on a strongly correlated 8-point grid."""
-    from gyrojax.diagnose._stats import _sup_pvalue, nominal_basis, project_out
+    from gyrojax.diagnose._screening import _sup_pvalue
+    from gyrojax.diagnose._signatures import nominal_basis, project_out
 
     rng = np.random.default_rng(7)
     m = 200
@@ -130,7 +134,7 @@ def test_grid_scores_of_stacked_bases_are_each_values_residual_drop():
     score must be the drop of the residual sum of squares when ``e`` is regressed on that
     value's columns alone (lstsq), a value without tested directions scoring 0, for one
     residual and for a batch of them."""
-    from gyrojax.diagnose._stats import SignatureDesign, _grid_lm
+    from gyrojax.diagnose._screening import SignatureDesign, _grid_lm
 
     rng = np.random.default_rng(11)
     m = 300
@@ -154,7 +158,7 @@ def test_directions_from_the_information_are_the_canonical_correlations():
     ``D^T J^T J D = I`` and ``D^T J~^T J~ D = diag(w)``; a dependent column gives one
     no-signature direction (the combination itself), a column inside the nominal span one
     confounded direction; one column reads its norms. Fewer rows than columns, too."""
-    from gyrojax.diagnose._stats import VISIBLE_MIN, nominal_basis, project_out, signature_directions
+    from gyrojax.diagnose._signatures import VISIBLE_MIN, nominal_basis, project_out, signature_directions
 
     rng = np.random.default_rng(5)
     m = 400
@@ -214,7 +218,7 @@ def test_grid_effect_flag_follows_the_posterior_over_its_grid():
     posterior over the grid is nearly flat, so the flag is "visible" (the largest score alone
     would flag it confounded); with a strong residual there, both agree on "practically
     confounded". The grid posterior's average of its per-value factors is the row's log BF."""
-    from gyrojax.diagnose._stats import grid_posterior, screen_designs
+    from gyrojax.diagnose._screening import grid_posterior, screen_designs
 
     m = 240
     basis = np.linalg.qr(np.random.default_rng(3).standard_normal((m, 5)))[0]
@@ -235,7 +239,7 @@ def test_grid_effect_flag_follows_the_posterior_over_its_grid():
         w = grid_posterior(designs[0], e, r.lm_grid, r.dof_grid)
         assert w.sum() == pytest.approx(1.0) and (w[0] > 0.5) == at_argmax
     # the per-value factors average to the row's Bayes factor (same prior, lambda0 = 32)
-    from gyrojax.diagnose._stats import design_log_bf
+    from gyrojax.diagnose._bayes import design_log_bf
     lbf_g = np.array([design_log_bf([jt], [b], e, [32.0])[0]
                       for jt, b in zip(designs[0].jt, designs[0].bases)])
     assert np.logaddexp.reduce(lbf_g) - np.log(4) == pytest.approx(r.log_bf, rel=1e-9)
@@ -246,7 +250,8 @@ def test_grid_effect_flag_follows_the_posterior_over_its_grid():
 def _linear_world(rng, m, u, effects, bases, n, lam, draw):
     """Posteriors of ``n`` linearised cases (equal odds over ``effects``; coefficients drawn by
     ``draw(name, rng)``) under the shape prior, the g-prior and their mixture (the default)."""
-    from gyrojax.diagnose._stats import design_log_bf, grid_log_bf, project_out, shape_log_bf
+    from gyrojax.diagnose._bayes import design_log_bf, grid_log_bf, shape_log_bf
+    from gyrojax.diagnose._signatures import project_out
 
     pairs = {"shape": [], "zellner": [], "design": []}
     for k in range(n):
@@ -279,13 +284,8 @@ def test_design_prior_is_the_exact_marginal_likelihood_and_calibrated():
     the shape prior alone loses 5 points."""
     from scipy import stats as st
 
-    from gyrojax.diagnose._stats import (
-        design_log_bf,
-        grid_log_bf,
-        nominal_basis,
-        project_out,
-        shape_log_bf,
-    )
+    from gyrojax.diagnose._bayes import design_log_bf, grid_log_bf, shape_log_bf
+    from gyrojax.diagnose._signatures import nominal_basis, project_out
     from gyrojax.validation._scoring import calibration
 
     rng = np.random.default_rng(5)
@@ -357,7 +357,7 @@ def test_noncentral_factor_is_the_density_ratio_of_the_score_statistic():
     from scipy import integrate
     from scipy import stats as st
 
-    from gyrojax.diagnose._stats import noncentral_log_bf
+    from gyrojax.diagnose._bayes import noncentral_log_bf
 
     for lm, dof, lam in [(5.0, 1, 8.0), (0.3, 1, 64.0), (40.0, 3, 16.0), (900.0, 3, 1024.0),
                          (12.0, 7, 32.0), (1e-9, 2, 8.0)]:
@@ -390,19 +390,16 @@ def test_shell_prior_is_calibrated_on_effects_of_fixed_noncentrality():
     and a three-coefficient one the design prior's averaged over the same sizes."""
     from scipy import integrate
 
-    from gyrojax.diagnose._stats import (
+    from gyrojax.diagnose._bayes import (
         SHELL_DESIGN_LAMBDAS,
         SHELL_RANGE,
-        Signature,
         design_log_bf,
-        nominal_basis,
         noncentral_log_bf,
-        project_out,
-        screen,
-        screen_designs,
         shell_log_bf,
         zellner_log_bf,
     )
+    from gyrojax.diagnose._screening import screen, screen_designs
+    from gyrojax.diagnose._signatures import Signature, nominal_basis, project_out
     from gyrojax.validation._scoring import calibration
 
     lo, hi = SHELL_RANGE
@@ -468,7 +465,8 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     carries the delta-method standard error (checked against replicated suites)."""
     from scipy import stats as st
 
-    from gyrojax.diagnose._stats import design_log_bf, grid_log_bf, nominal_basis, project_out
+    from gyrojax.diagnose._bayes import design_log_bf, grid_log_bf
+    from gyrojax.diagnose._signatures import nominal_basis, project_out
     from gyrojax.validation._scoring import calibration, ool_scores, oracle_choice, ratio_rate
     from gyrojax.validation.esg import localisation_scores
 
@@ -570,7 +568,8 @@ def test_oracle_detection_threshold_by_residual_draws():
     nominal span and scored by ``screen``'s designs; the oracle statistic of ``bench`` (from the
     design-prior factors a blind run records) must exceed the threshold in a fraction alpha of
     them."""
-    from gyrojax.diagnose._stats import design_log_bf, screen_designs
+    from gyrojax.diagnose._bayes import design_log_bf
+    from gyrojax.diagnose._screening import screen_designs
     from gyrojax.validation._harness import _train_jacobians, oracle_detection_thresholds
     from gyrojax.validation._scoring import oracle_detect_statistic
 
@@ -601,8 +600,8 @@ def test_refit_standard_errors_are_the_joint_fit_covariance():
     squares of the nominal columns and ``x`` alone."""
     from types import SimpleNamespace
 
-    from gyrojax.diagnose._diagnose import _refit_uncertainty
-    from gyrojax.diagnose._stats import nominal_basis
+    from gyrojax.diagnose._signatures import nominal_basis
+    from gyrojax.diagnose._verdict import _refit_uncertainty
 
     rng = np.random.default_rng(7)
     jn, jb = rng.standard_normal((400, 5)), rng.standard_normal((400, 3))
@@ -647,7 +646,8 @@ def test_tail_functions_equal_scipy_distributions():
     dof, d2 the noise level's), and an infinite d2 is the chi2(d1) / d1 limit."""
     from scipy import stats
 
-    from gyrojax.diagnose._stats import _f_sf, chi2_sf
+    from gyrojax.diagnose._gapmap import _f_sf
+    from gyrojax.diagnose._signatures import chi2_sf
 
     x = np.array([-1.0, 0.0, 0.3, 2.0, 7.5, 40.0])
     for dof in (1, 2, 5, 17):
@@ -671,7 +671,7 @@ def test_posteriors_and_the_90_percent_set_by_bayes_rule():
     share, so two of them beside the three leave every figure above as it was."""
     from types import SimpleNamespace
 
-    from gyrojax.diagnose._stats import _posteriors, ambiguity_set
+    from gyrojax.diagnose._screening import _posteriors, ambiguity_set
 
     def rows_of(bfs, dofs):
         return [SimpleNamespace(name=n, log_bf=math.log(b), dof_grid=np.array(d), posterior=0.0)
@@ -707,7 +707,7 @@ def test_bh_and_fisher_g():
     np.testing.assert_array_equal(bh_qvalues(pp, ww), np.stack([bh_qvalues(r, ww) for r in pp]))
     # the diagnosis's weights (library half): under the global null with independent tests the
     # chance of any q < alpha stays alpha (sum of alpha w_i / m), 20,000 draws
-    from gyrojax.diagnose._diagnose import _bh_weights
+    from gyrojax.diagnose._multiplicity import _bh_weights
 
     w = _bh_weights(150, 6, 0.5)
     p_null = np.random.default_rng(5).uniform(size=(20000, 156))
@@ -722,7 +722,7 @@ def test_bh_and_fisher_g():
     # a record far from the model: every map cell at p ~ 0; a library test weighted 25.5 (half
     # the weight over 4 rows against 200 cells, above 1 / alpha) gets q = (1 / 25.5) 204 / 204
     # < 0.05 at p = 1 - weighted BH rejects it; the report never calls it significant
-    from gyrojax.diagnose._diagnose import rejected
+    from gyrojax.diagnose._multiplicity import rejected
 
     p_far = np.concatenate([np.full(200, 1e-12), [1e-12, 0.5, 1.0, 1.0]])
     q_far = bh_qvalues(p_far, _bh_weights(200, 4, 0.5))
@@ -759,19 +759,11 @@ def test_calibrated_level_gives_alpha_on_fresh_nulls_by_the_per_residual_code():
     is conservative on these correlated tests."""
     from scipy import stats
 
-    from gyrojax.diagnose._diagnose import (
-        _bh_weights,
-        _calibrated_level,
-        _outside_pvalues,
-    )
     from gyrojax.diagnose._esg import ESGProblem
-    from gyrojax.diagnose._stats import (
-        _f_sf,
-        gap_map_cells,
-        map_design,
-        nominal_basis,
-        screen_designs,
-    )
+    from gyrojax.diagnose._gapmap import _f_sf, gap_map_cells, map_design
+    from gyrojax.diagnose._multiplicity import _bh_weights, _calibrated_level, _outside_pvalues
+    from gyrojax.diagnose._screening import screen_designs
+    from gyrojax.diagnose._signatures import nominal_basis
 
     rng = np.random.default_rng(11)
     n, c = 200, 2
@@ -851,13 +843,8 @@ def test_library_pvalues_of_many_residuals_are_the_screens_one_at_a_time():
     per-residual code, a second method), a grid effect's at the grid value of the largest
     score. Residuals: pure nulls, and nulls plus a step at one grid point (noncentrality 25),
     whose p-value must then be the one at that grid point's score (stop 68)."""
-    from gyrojax.diagnose._stats import (
-        _grid_lm,
-        _pvalue,
-        library_pvalues,
-        nominal_basis,
-        screen_designs,
-    )
+    from gyrojax.diagnose._screening import _grid_lm, _pvalue, library_pvalues, screen_designs
+    from gyrojax.diagnose._signatures import nominal_basis
 
     rng = np.random.default_rng(68)
     n, c = 150, 2
@@ -900,7 +887,7 @@ def test_canonical_correlations_are_the_cosines_of_the_principal_angles():
     empty span gives 0 (stop 67)."""
     import scipy.linalg
 
-    from gyrojax.diagnose._stats import canonical_correlation, canonical_correlations
+    from gyrojax.diagnose._signatures import canonical_correlation, canonical_correlations
 
     rng = np.random.default_rng(67)
     q, _ = np.linalg.qr(rng.standard_normal((200, 5)))
@@ -925,13 +912,8 @@ def test_screening_statistics_by_hand():
     factors."""
     import scipy.stats
 
-    from gyrojax.diagnose._stats import (
-        _median_index,
-        _smooth_bootstrap_p,
-        mix_log_bf,
-        score_draws,
-        zellner_log_bf,
-    )
+    from gyrojax.diagnose._bayes import mix_log_bf, zellner_log_bf
+    from gyrojax.diagnose._screening import _median_index, _smooth_bootstrap_p, score_draws
 
     sup = np.array([1.0, 2.0, 3.0, 4.0])  # B = 4 sorted draws
     tail = min(0.2 * scipy.stats.chi2.sf(10.0, 1) / scipy.stats.chi2.sf(4.0, 1),
@@ -976,18 +958,16 @@ def test_pipeline_pieces_by_hand():
 
     from scipy import stats
 
-    from gyrojax.diagnose._diagnose import (
-        _bh_weights,
-        _consistency,
-        _design_advice,
+    from gyrojax.diagnose._advice import _design_advice, _mde
+    from gyrojax.diagnose._diagnose import _greedy_second
+    from gyrojax.diagnose._multiplicity import _bh_weights, rejected
+    from gyrojax.diagnose._rows import _consistency
+    from gyrojax.diagnose._verdict import (
         _does_not_transfer,
-        _greedy_second,
         _heldout_by_member,
         _heldout_cell,
         _heldout_leans,
-        _mde,
         _null_band,
-        rejected,
     )
 
     np.testing.assert_allclose(_bh_weights(4, 2, 0.8), [0.05] * 4 + [0.4] * 2, rtol=1e-12)
@@ -1103,7 +1083,7 @@ def test_design_advice_counts_the_directions_each_design_sees():
     third, the two partial designs rank above one that sees none."""
     from types import SimpleNamespace
 
-    from gyrojax.diagnose._diagnose import _design_advice
+    from gyrojax.diagnose._advice import _design_advice
     from gyrojax.diagnose._report import _mde_text, _unit_suffix
 
     rng = np.random.default_rng(5)
@@ -1361,7 +1341,7 @@ def test_report_gives_the_posterior_over_a_step_onset():
     # the score statistic at that onset (by hand: the train residual's projection on the step's
     # columns there, the nominal projected out), 1.1 at the grid's first and 17 at the truth
     from gyrojax.diagnose._esg import ESGProblem
-    from gyrojax.diagnose._stats import nominal_basis
+    from gyrojax.diagnose._signatures import nominal_basis
 
     prob = ESGProblem(rec, holdout=0.25)
     p0 = prob.fit_nominal()
@@ -1699,7 +1679,7 @@ def test_imu_out_of_library_mimic_fails_its_heldout_check(tmp_path):
 def test_heldout_transfer_rule():
     """The verdict's held-out check: a refit that leaves the held-out gap outside its band and
     removes less than half of it does not transfer; closing it, or removing most of it, does."""
-    from gyrojax.diagnose._diagnose import _does_not_transfer
+    from gyrojax.diagnose._verdict import _does_not_transfer
 
     def rf(before, after, closure):
         return {"heldout_gap_before": before, "heldout_gap_after": after, "closure": closure}
@@ -1719,8 +1699,8 @@ def test_confounded_verdict_needs_a_significant_majority_top():
     ambiguity set."""
     from types import SimpleNamespace
 
-    from gyrojax.diagnose._diagnose import _verdict
-    from gyrojax.diagnose._stats import ambiguity_set
+    from gyrojax.diagnose._screening import ambiguity_set
+    from gyrojax.diagnose._verdict import _verdict
 
     def row(name, flag, q, post, log_bf=1.0):
         return SimpleNamespace(sig=SimpleNamespace(name=name), flag=flag, q=q, p=q,
@@ -1754,8 +1734,8 @@ def test_ambiguous_verdict_reports_each_members_heldout_gap_and_whether_it_separ
     best train refit's, as before."""
     from types import SimpleNamespace
 
-    from gyrojax.diagnose._diagnose import _verdict
-    from gyrojax.diagnose._stats import ambiguity_set
+    from gyrojax.diagnose._screening import ambiguity_set
+    from gyrojax.diagnose._verdict import _verdict
 
     rows = [SimpleNamespace(sig=SimpleNamespace(name=n), flag="visible", q=1e-9, p=1e-9,
                             posterior=0.5, log_bf=20.0, dof_grid=np.ones(1))
@@ -1797,8 +1777,8 @@ def test_unexplained_verdict_says_what_the_two_effect_refit_did():
     misalignment too); a pair that predicts less, or no pair, adds nothing."""
     from types import SimpleNamespace
 
-    from gyrojax.diagnose._diagnose import _verdict
-    from gyrojax.diagnose._stats import ambiguity_set
+    from gyrojax.diagnose._screening import ambiguity_set
+    from gyrojax.diagnose._verdict import _verdict
 
     rows = [SimpleNamespace(sig=SimpleNamespace(name=n), flag="visible", q=1e-9, p=1e-9,
                             posterior=w, log_bf=20.0, dof_grid=np.ones(1))
@@ -1833,7 +1813,7 @@ def test_slow_effect_against_a_random_walk_says_which_way_the_heldout_part_leans
     (stochastic / deterministic) and keeps the verdict's kind: ambiguous when the walk is a
     rival (significant on the nominal residual only); unexplained, with the walk named in the
     reason, when the walk is significant in the noise model (a long MEMS static)."""
-    from gyrojax.diagnose._diagnose import _with_noise
+    from gyrojax.diagnose._verdict import _with_noise
 
     def refit(after, closure):
         return [{"effects": ["time_drift"], "heldout_gap_before": 7.0, "heldout_gap_after": after,
@@ -1996,7 +1976,7 @@ def test_g9_truth_side_uses_the_diagnosis_onset_grid():
     zero on the train rows before its onset and not after (the step's angle response is its
     integral), and one transient block per decay time."""
     from gyrojax.diagnose._esg import TRANSIENT_TIMES_H
-    from gyrojax.diagnose._stats import onset_grid
+    from gyrojax.diagnose._signatures import onset_grid
     from gyrojax.models.esg import ESGConditions
     from gyrojax.validation import esg as bench
 

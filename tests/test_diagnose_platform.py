@@ -269,7 +269,7 @@ def test_design_shift_split_sees_what_the_train_design_cannot(records, capsys):
     esg = Path(gyrojax.__file__).parent / "data" / "esg_equatorial_24h.csv"
     assert main(["diagnose", str(esg), "--rig", "esg", "--latitude", "55.75", "--scheme",
                  "equatorial", "--split", "design-shift"]) == 2
-    assert "split are not for --rig esg" in capsys.readouterr().err
+    assert "--split is for the platform rig" in capsys.readouterr().err
     assert main(["diagnose", str(records["two"]), "--rig", "platform", "--split",
                  "design-shift"]) == 0
     assert "Verdict: confounded** (anisoelastic_oo)" in capsys.readouterr().out

@@ -6,27 +6,29 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from gyrojax.diagnose._problem import first_difference_level
-from gyrojax.diagnose._stats import (
+from gyrojax.diagnose._gapmap import (
+    gap_map_cells,
+    map_design,
+    map_statistics,
+    projected_overlapping_allan_moments,
+    tau_band_moments,
+)
+from gyrojax.diagnose._noise_tests import (
     allan_form,
     cross_correlation,
     full_rate_tau_cells,
-    gap_map_cells,
     lag_cells,
     lag_one_moments,
     ljung_box,
-    map_design,
-    map_statistics,
-    nominal_basis,
     overlapping_allan_form,
     overlapping_allan_forms,
-    projected_overlapping_allan_moments,
     projected_overlapping_allan_traces,
     quantization_score,
-    tau_band_moments,
     white_allan_moments,
     white_overlapping_allan_moments,
 )
+from gyrojax.diagnose._problem import first_difference_level
+from gyrojax.diagnose._signatures import nominal_basis
 
 N, C = 600, 2
 T = np.arange(N) * 60.0
@@ -438,7 +440,7 @@ def test_quantization_score_level_power_and_estimate():
 def test_indistinguishable_classes_are_connected_components():
     """Spec §4.2 stage 3: pairs at canonical correlation >= 0.98 merge (transitively) into
     classes; a pair below it, or with an effect not listed (untested), does not."""
-    from gyrojax.diagnose._stats import indistinguishable_classes
+    from gyrojax.diagnose._signatures import indistinguishable_classes
 
     pairs = {("a", "b"): 0.99, ("b", "c"): 0.981, ("c", "d"): 0.979, ("e", "f"): 1.0,
              ("d", "x"): 1.0}

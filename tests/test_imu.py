@@ -987,7 +987,7 @@ def test_imu_diagnosis_pieces_by_hand():
     # smallest channel's times the channel count (Bonferroni)
     from scipy import stats
 
-    from gyrojax.diagnose._stats import outlier_score
+    from gyrojax.diagnose._noise_tests import outlier_score
 
     pieces = [rng.standard_normal(n) for n in (300, 41, 700)]
     p, z, k = outlier_score(pieces)

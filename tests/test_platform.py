@@ -283,7 +283,8 @@ def test_diagnosis_finds_d_oo_absorbed_with_exact_aliases():
     """Spec gap-diagnosis G5, seed 001: on a single amplitude an unmodelled D_oo is structurally
     confounded and absorbed as D_f + (a^2/2 + 1) D_oo, D_ii - D_oo, D_ss - D_oo (|A - exact| <=
     1e-6); a second amplitude makes it visible."""
-    from gyrojax.diagnose._stats import Signature, screen
+    from gyrojax.diagnose._screening import screen
+    from gyrojax.diagnose._signatures import Signature
 
     a0 = 6.0
     kappa = 1 + a0**2 / 2

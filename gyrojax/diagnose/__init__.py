@@ -19,6 +19,13 @@ __all__ = ["AbstractGapProblem", "ESGProblem", "ESG_LIBRARY", "ESG_TRANSIENT_TIM
            "shell_design_log_bf", "shell_log_bf", "signature_directions", "table_runs",
            "train_slice", "visibility_flag", "visible", "zellner_log_bf"]
 
+from ._bayes import SHELL_DESIGN_LAMBDAS as SHELL_DESIGN_LAMBDAS
+from ._bayes import design_log_bf as design_log_bf
+from ._bayes import mix_log_bf as mix_log_bf
+from ._bayes import shape_log_bf_scores as shape_log_bf_scores
+from ._bayes import shell_design_log_bf as shell_design_log_bf
+from ._bayes import shell_log_bf as shell_log_bf
+from ._bayes import zellner_log_bf as zellner_log_bf
 from ._diagnose import default_prior as default_prior
 from ._diagnose import diagnose as diagnose
 from ._diagnose import given_options as given_options
@@ -36,6 +43,7 @@ from ._imu import PRIOR_BY_UNIT as IMU_PRIOR_BY_UNIT
 from ._imu import TABLE_DESIGN as IMU_TABLE_DESIGN
 from ._imu import IMUProblem as IMUProblem
 from ._imu import table_runs as table_runs
+from ._noise_tests import ljung_box as ljung_box
 from ._platform import NOMINAL as PLATFORM_NOMINAL
 from ._platform import PlatformProblem as PlatformProblem
 from ._platform import nominal_coefficients as nominal_coefficients
@@ -44,23 +52,15 @@ from ._problem import AbstractGapProblem as AbstractGapProblem
 from ._report import GapReport as GapReport
 from ._schuler import TRANSIENT_TIMES_H as SCHULER_TRANSIENT_TIMES_H
 from ._schuler import SchulerProblem as SchulerProblem
-from ._stats import SHELL_DESIGN_LAMBDAS as SHELL_DESIGN_LAMBDAS
-from ._stats import VISIBLE_MIN as VISIBLE_MIN
-from ._stats import Signature as Signature
-from ._stats import canonical_correlation as canonical_correlation
-from ._stats import coefficient_effect as coefficient_effect
-from ._stats import design_log_bf as design_log_bf
-from ._stats import effect_family_name as effect_family_name
-from ._stats import ljung_box as ljung_box
-from ._stats import mix_log_bf as mix_log_bf
-from ._stats import nominal_basis as nominal_basis
-from ._stats import onset_grid as onset_grid
-from ._stats import project_out as project_out
-from ._stats import screen_designs as screen_designs
-from ._stats import shape_log_bf_scores as shape_log_bf_scores
-from ._stats import shell_design_log_bf as shell_design_log_bf
-from ._stats import shell_log_bf as shell_log_bf
-from ._stats import signature_directions as signature_directions
-from ._stats import visibility_flag as visibility_flag
-from ._stats import visible as visible
-from ._stats import zellner_log_bf as zellner_log_bf
+from ._screening import screen_designs as screen_designs
+from ._signatures import VISIBLE_MIN as VISIBLE_MIN
+from ._signatures import Signature as Signature
+from ._signatures import canonical_correlation as canonical_correlation
+from ._signatures import coefficient_effect as coefficient_effect
+from ._signatures import effect_family_name as effect_family_name
+from ._signatures import nominal_basis as nominal_basis
+from ._signatures import onset_grid as onset_grid
+from ._signatures import project_out as project_out
+from ._signatures import signature_directions as signature_directions
+from ._signatures import visibility_flag as visibility_flag
+from ._signatures import visible as visible

@@ -36,7 +36,7 @@ from ..models.esg import SCHEMES, ESGConditions, ESGRig, check_angle_units
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._problem import AbstractGapProblem, first_difference_level
-from ._stats import Signature, check_effects, onset_grid
+from ._signatures import Signature, check_effects, onset_grid
 
 __all__ = ["ESGProblem", "ESG_LIBRARY", "NOISE_MODELS", "SIDEREAL_DAY"]
 

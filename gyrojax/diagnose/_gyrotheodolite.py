@@ -41,7 +41,7 @@ from ..models.gyrotheodolite import (
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._problem import AbstractGapProblem
-from ._stats import Signature, check_effects, onset_grid
+from ._signatures import Signature, check_effects, onset_grid
 
 __all__ = ["GyrotheodoliteProblem", "GYROTHEODOLITE_LIBRARY", "north_seeking_period"]
 

@@ -19,7 +19,7 @@ model: ``bias_instability`` and ``rate_random_walk`` by the likelihood-ratio tes
 fit (:func:`gyrojax.analysis.spectral.fit_noise_likelihood`, band-limited to ``rate / 10`` for real
 sensors' anti-alias roll-off) on static pieces of at least ``MIN_NOISE_PIECE_S``;
 ``quantization``, which lives up to the Nyquist frequency, by the MA(1) score test (the lag-one
-autocorrelation, :func:`~._stats.quantization_score`) on every static piece; ``outliers`` by the
+autocorrelation, :func:`~._noise_tests.quantization_score`) on every static piece; ``outliers`` by the
 excess kurtosis of non-overlapping first differences (one-sided). Each effect's p-value is the
 smallest over channels, Bonferroni-corrected.
 
@@ -56,16 +56,9 @@ from ..models.imu import (
     pose_frame,
 )
 from ..record import BenchRecord
+from ._noise_tests import full_rate_tau_cells, outlier_score, quantization_score
 from ._problem import AbstractGapProblem
-from ._stats import (
-    Signature,
-    check_effects,
-    coefficient_effect,
-    effect_family_name,
-    full_rate_tau_cells,
-    outlier_score,
-    quantization_score,
-)
+from ._signatures import Signature, check_effects, coefficient_effect, effect_family_name
 
 __all__ = ["IMUProblem", "IMU_LIBRARY"]
 
@@ -741,7 +734,7 @@ class IMUProblem(AbstractGapProblem):
         return [x for x in pcs if self._is_long(x.size)]
 
     def full_rate_tau_cells(self, params):
-        """The gap map's full-rate tau band (:func:`~._stats.full_rate_tau_cells`) of the
+        """The gap map's full-rate tau band (:func:`~._noise_tests.full_rate_tau_cells`) of the
         full-model residual on the static pieces that test the slow noise terms (>=
         ``MIN_NOISE_PIECE_S``): where in tau the noise departs from white, down to one sample
         (reported, not decided on). Its white reference has the full mean fit's columns removed,

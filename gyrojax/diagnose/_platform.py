@@ -70,7 +70,7 @@ from ..models.platform_schedule import (
 )
 from ..record import BenchRecord
 from ._problem import AbstractGapProblem
-from ._stats import Signature, check_effects
+from ._signatures import Signature, check_effects
 
 __all__ = ["PlatformProblem", "PLATFORM_LIBRARY", "platform_library", "FIRST_ORDER_TERMS"]
 

@@ -83,7 +83,7 @@ class AbstractGapProblem(abc.ABC):
     def jacobians(self, params: dict, sigma, *, conditions=None, t=None):
         """``(jn, signatures)``: the nominal Jacobian ``(N c, k)`` (rows time-major, whitened
         by ``sigma`` and the rig's noise model, columns per parameter scale) and one
-        :class:`~gyrojax.diagnose._stats.Signature` per catalogued effect (per prior scale, a
+        :class:`~gyrojax.diagnose._signatures.Signature` per catalogued effect (per prior scale, a
         slice per grid value), over the record or over a candidate design's ``conditions`` and
         ``t`` (from :meth:`designs`)."""
 

@@ -36,7 +36,7 @@ from ..models.schuler import SchulerConditions, SchulerRig
 from ..record import BenchRecord
 from ..simulate import integrate
 from ._problem import AbstractGapProblem
-from ._stats import Signature, check_effects, onset_grid
+from ._signatures import Signature, check_effects, onset_grid
 
 __all__ = ["SchulerProblem", "SCHULER_LIBRARY"]
 

@@ -91,7 +91,7 @@ def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
 
     jn, sigs = _train_jacobians(record, rig, sigma, split, **problem_kw)
     _, designs = screen_designs(jn, sigs, n_boot=0)
-    # the effects with a signature: the others hold no posterior (_stats._posteriors)
+    # the effects with a signature: the others hold no posterior (_screening._posteriors)
     designs = [des for des in designs if any(b.shape[1] for b in des.bases)]
     span = np.concatenate([jt for des in designs for jt in des.jt], axis=1)
     q, s, _ = np.linalg.svd(span, full_matrices=False)

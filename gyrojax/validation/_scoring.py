@@ -109,7 +109,7 @@ def refit_all_baseline(prob, ranking, sigma, prior: str = "design") -> dict:
     one-step one (``b2_lr_choice``: the answer screening approximates, spec §6 G10), their log
     Bayes factors, the refits' wall time and count. ``ranking``: the report's rows (the dof each
     effect was screened on); ``sigma``: the report's noise level; ``prior``: the screening's
-    (``"design"`` or ``"shell"``, :func:`~gyrojax.diagnose._stats.screen`)."""
+    (``"design"`` or ``"shell"``, :func:`~gyrojax.diagnose._screening.screen`)."""
     if prior not in ("design", "shell"):
         raise ValueError(f"prior={prior!r}: B2's Bayes factors follow 'design' or 'shell'")
     params0 = prob.fit_nominal()
@@ -390,7 +390,7 @@ def oracle_choice(r, lam: float):
     """The Bayes-oracle answer (spec §5.6) for a case of noncentrality ``lam``: the effect of
     largest posterior under the linearised model with equal prior odds between the catalogue
     effects and the diagnosis' design prior sized to expect exactly ``lam``
-    (:func:`~gyrojax.diagnose._stats.design_log_bf`), averaged over each effect's grid. It
+    (:func:`~gyrojax.diagnose._bayes.design_log_bf`), averaged over each effect's grid. It
     reads the blind run's design-prior factors at every prior size (``r["log_bf_by_lambda"]``)
     at the sealed ``lam``, which the diagnosis does not know (it assumes ``lambda0 = 32``)."""
     lbf = _oracle_log_bfs(r, lam)
@@ -407,7 +407,7 @@ def _oracle_log_bfs(r, lam: float) -> dict:
     out = {}
     for k, c in curves.items():
         if k in scores and not any(scores[k][1]):
-            continue  # no signature: no posterior (as the diagnosis', _stats._posteriors)
+            continue  # no signature: no posterior (as the diagnosis', _screening._posteriors)
         sizes = sorted(c, key=float)
         x = np.log([float(v) for v in sizes])
         if not x[0] - 1e-12 <= math.log(lam) <= x[-1] + 1e-12:

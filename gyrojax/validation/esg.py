@@ -218,7 +218,7 @@ def _hidden(rng, family, p, cond, design, lam):
 def _library_columns(p, cond, ts, n_train, sigma) -> dict:
     """Truth-side whitened columns of every library effect on the train rows ``ts[:n_train]``
     (family -> one block per grid value: the diagnosis' decay-time grid and its onset grid,
-    ``_stats.onset_grid`` of the record)."""
+    ``_signatures.onset_grid`` of the record)."""
     onsets = onset_grid(np.asarray(ts) / 3600, n_train)
     rows = ts[:n_train]
     grids = {"drift_transient": len(ESG_TRANSIENT_TIMES_H), "drift_step": len(onsets)}
