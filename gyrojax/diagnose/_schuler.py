@@ -53,8 +53,8 @@ SCHULER_LIBRARY = {
 CHANNELS = ("V1", "V2", "rot1", "rot2", "rot3")
 TRANSIENT_TIMES_H = tuple(float(x) for x in np.geomspace(0.25, 3.0, 8))
 DEFAULT_NOISE = (0.05, 0.05, units.ARCMIN, units.ARCMIN, units.ARCMIN)  # spec §10
-_NOMINAL_MAX_ITER = 20  # fit_schuler's default (optimistix steps per pass)
-_REFIT_MAX_ITER = 50  # optimistix steps of a refit (a 10 deg/h drift step starts far off)
+_NOMINAL_MAX_ITER = 40  # optimistix steps per pass: evaluations, rejected trials included
+_REFIT_MAX_ITER = 150  # a large unmodelled step: a trial rejected twice for each step taken
 
 
 @eqx.filter_jit

@@ -192,9 +192,10 @@ def _fit_prior(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names=TH
     time...); ``mask`` (per name, default all 1): a name with 0 is held at its start (its
     Jacobian column and prior row zeroed, so the damped step leaves it).
 
-    ``weights`` broadcast to per-sample (N, 5) and the mask passed as arrays before the jit
-    boundary, so every caller (a staged first pass, refits of different effect sets over one
-    superset ``names``) reuses one compiled solver per ``max_iter``. ``tol``: optimistix's test
+    ``weights`` broadcast to per-sample (N, 5), the mask and the step budget ``max_iter``
+    passed as arrays before the jit boundary, so every caller (a staged first pass, refits of
+    different effect sets over one superset ``names``, any ``max_iter``) reuses one compiled
+    solver. ``tol``: optimistix's test
     on successive iterates (prior standard deviations).
 
     Returns a :class:`_FitOutcome`; ``converged`` by the rule of every fit in gyrojax
@@ -203,9 +204,14 @@ def _fit_prior(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names=TH
     weights = jnp.broadcast_to(jnp.asarray(weights, dtype=float), y.shape)
     mask = jnp.ones(len(names)) if mask is None else jnp.asarray(mask, dtype=float)
     fixed = {k: jnp.asarray(v, dtype=float) for k, v in (fixed or {}).items()}
+    if not 1 <= int(max_iter) <= _MAX_STEPS:
+        raise ValueError(f"max_iter={max_iter}: give 1 to {_MAX_STEPS} optimistix steps")
     return _fit_prior_jit(rig, conditions, jnp.asarray(ts, dtype=float), y, weights,
                           jnp.asarray(sig, dtype=float), jnp.asarray(u0, dtype=float),
-                          int(max_iter), float(tol), names, fixed, mask)
+                          jnp.asarray(int(max_iter)), jnp.asarray(float(tol)), names, fixed, mask)
+
+
+_MAX_STEPS = 200  # the compiled bound; each call's budget is a traced max_iter below it
 
 
 @eqx.filter_jit
@@ -217,7 +223,7 @@ def _fit_prior_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, name
                               throw=False)
         return jnp.concatenate([(r * weights).ravel(), u * mask])
 
-    sol = solve_least_squares(resid, u0 * mask, max_steps=max_iter,
+    sol = solve_least_squares(resid, u0 * mask, max_steps=_MAX_STEPS, budget=max_iter,
                               solver=ScaledLevenbergMarquardt(atol=tol))
     u = sol.value * mask
     _, cov, _ = scaled_lstsq(sol.jacobian, sol.residual)
@@ -229,7 +235,7 @@ def _fit_prior_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, name
 
 def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_v: float = 0.05,
                 sigma_theta: float = units.ARCMIN, prior_std: dict | None = None,
-                max_iter: int = 20, tol: float = 1e-3, staged: bool = True,
+                max_iter: int = 40, tol: float = 1e-3, staged: bool = True,
                 check: bool = True) -> SchulerEstimate:
     """Iterated Gauss-Newton on the nonlinear model (spec §9.3), as optimistix's trust-region
     Levenberg-Marquardt (:func:`~gyrojax.estimate.solve_least_squares`).
