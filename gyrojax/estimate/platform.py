@@ -31,7 +31,7 @@ from ._result import AbstractNamedEstimate
 
 __all__ = ["amplitude_first_harmonic", "kappa_from_accelerometers", "record_kappas",
            "forgetting_blend",
-           "accelerometer_amplitude_error", "regression_design", "platform_regression",
+           "accelerometer_amplitude_error", "platform_regression_design", "platform_regression",
            "PlatformFit", "two_amplitude_resolution", "check_sampling"]
 
 
@@ -174,7 +174,7 @@ def position_design(ts, angles, conditions, acc=None):
     return y - y.mean(0), big_f - big_f.mean(0)
 
 
-def regression_design(ts, angles, conditions, acc=None):
+def platform_regression_design(ts, angles, conditions, acc=None):
     """Stack (S22) over positions: ``angles`` (P, n, 3), ``conditions`` stacked over P (and the
     accelerometers (P, n, 3) for the non-averaged model). Returns ``(b, A)`` with ``A``
     (P*n*3, 30) and ``b`` (P*n*3,)."""
@@ -280,7 +280,7 @@ def _regression_core(ts, records, conditions, accs, free):
     """Design of every record, column selection and scaling, and the QR/SVD solve, in one jit."""
     bs, As = [], []
     for ang, cond, acc in zip(records, conditions, accs):
-        b, a = regression_design(ts, ang, cond, acc)
+        b, a = platform_regression_design(ts, ang, cond, acc)
         bs.append(b)
         As.append(a)
     b, a = jnp.concatenate(bs), jnp.concatenate(As)
