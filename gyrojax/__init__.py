@@ -8,12 +8,12 @@ import jax as _jax
 
 _jax.config.update("jax_enable_x64", True)
 
-from . import earth as earth  # noqa: E402
+from . import diagnose as diagnose  # noqa: E402  (the package; its entry is diagnose.diagnose)
+from . import earth as earth
 from . import rigs as rigs
 from . import rotations as rotations
 from . import units as units
 from .analysis.observability import observability as observability  # noqa: E402
-from .diagnose import diagnose as diagnose  # noqa: E402
 from .estimate import fit as fit  # noqa: E402
 from .estimate import fit_trajectory as fit_trajectory
 from .estimate import solve_least_squares as solve_least_squares

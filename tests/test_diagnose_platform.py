@@ -217,7 +217,7 @@ def test_null_draws_of_the_calibrated_level_follow_the_data_residual(records):
     the data (the offsets), orthogonal to the nominal span, and with the noise given their mean
     squared norm is the residual dof n c - p - offsets (analytic: trace of the projector); the
     diagnosis reports the calibrated level."""
-    from gyrojax.diagnose._stats import nominal_basis
+    from gyrojax.diagnose import nominal_basis
 
     prob = PlatformProblem(load_record(records["null"]), noise_std=units.ARCSEC)
     params = prob.fit_nominal()

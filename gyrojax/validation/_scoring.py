@@ -429,7 +429,7 @@ def oracle_detect_statistic(r, lam: float) -> float:
 def oracle_power(pairs, lam: float, thresholds):
     """Detection power of the Bayes oracle on ``pairs`` of noncentrality ``lam``: its statistic
     above the level-alpha threshold ``thresholds[lam]`` (from
-    :func:`gyrojax.diagnose._harness.oracle_detection_thresholds`); ``None`` without one."""
+    :func:`gyrojax.validation._harness.oracle_detection_thresholds`); ``None`` without one."""
     if not thresholds or float(lam) not in thresholds:
         return None
     return rate([(t, r) for t, r in pairs if r.get("log_bf_by_lambda")],

@@ -375,7 +375,7 @@ def advised_design(label: str, design: Design) -> Design:
 def closed_loop(case_dir, hidden: str = "rotor_tilt", *, design: Design | None = None,
                 seed: int = 0, progress=None) -> list:
     """Spec §6 G6 on the cases of :func:`generate_closed_loop` (``hidden``: their family):
-    :func:`~gyrojax.diagnose._harness.closed_loop`, the same instrument (every sealed
+    :func:`~gyrojax.validation._harness.closed_loop`, the same instrument (every sealed
     parameter and the line) run again on the design the advisor ranks first for ``hidden``.
     ``rotor_tilt`` is G6's "equatorial / arbitrary alpha_2 -> theta"; ``diurnal_line`` on a
     short record, its ">= 24 h -> diurnal vs ramp"."""

@@ -163,7 +163,7 @@ def run(case_dir, *, design: GyrotheodoliteDesign | None = None, progress=None,
 
 
 def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
-    """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`); a hidden tape torque
+    """Unseal and score (:func:`gyrojax.validation._harness.score_cases`); a hidden tape torque
     must stay unattributed (``structural_silent``)."""
     return score_cases(case_dir, results, MEAN_FAMILIES, (), OUT_OF_LIBRARY,
                        structural=STRUCTURAL, separable=separable,

@@ -393,7 +393,7 @@ def run(case_dir, *, design: IMUDesign | None = None, progress=None,
 
 def score(case_dir, results, separable=None, oracle_thresholds=None,
           design: IMUDesign | None = None) -> dict:
-    """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`)."""
+    """Unseal and score (:func:`gyrojax.validation._harness.score_cases`)."""
     return score_cases(case_dir, results, mean_families(design), NOISE_FAMILIES, OUT_OF_LIBRARY,
                        separable=separable,
                        oracle_thresholds=oracle_thresholds)
@@ -585,7 +585,7 @@ def closed_loop(case_dir, hidden: str, *, design: IMUDesign | None = None, seed:
                 progress=None) -> list:
     """Spec §6 G6's "cw/ccw rotation -> sf vs misalignment" on the cases of
     :func:`generate_closed_loop` (``hidden``: their family):
-    :func:`~gyrojax.diagnose._harness.closed_loop`, the same instrument run again, new noise,
+    :func:`~gyrojax.validation._harness.closed_loop`, the same instrument run again, new noise,
     on the poses the advisor's first design for ``hidden`` names."""
     from . import _harness
 

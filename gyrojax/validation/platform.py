@@ -261,7 +261,7 @@ def _split_for(record, split):
 
 def score(case_dir, results, separable=None, oracle_thresholds=None,
           design: PlatformDesign | None = None) -> dict:
-    """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`)."""
+    """Unseal and score (:func:`gyrojax.validation._harness.score_cases`)."""
     return score_cases(case_dir, results, mean_families(design), (), OUT_OF_LIBRARY,
                        structural=STRUCTURAL, separable=separable,
                        oracle_thresholds=oracle_thresholds)
@@ -283,7 +283,7 @@ def advised_amplitudes(label: str, amplitudes) -> list:
 def closed_loop(case_dir, *, design: PlatformDesign | None = None, seed: int = 0,
                 progress=None) -> list:
     """Spec §6 G6 on the seed-001 structural cases of ``case_dir`` (hidden ``D_oo`` at its
-    prior scale on a single-amplitude test): :func:`~gyrojax.diagnose._harness.closed_loop`,
+    prior scale on a single-amplitude test): :func:`~gyrojax.validation._harness.closed_loop`,
     the same instrument (the sealed truth: the nominal coefficients and ``D_oo``) run again on
     the table amplitudes the advisor's first design for ``anisoelastic_oo`` names."""
     design = design or PlatformDesign()

@@ -206,7 +206,7 @@ def run(case_dir, *, design: SchulerDesign | None = None, progress=None,
 
 
 def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
-    """Unseal and score (:func:`gyrojax.diagnose._harness.score_cases`)."""
+    """Unseal and score (:func:`gyrojax.validation._harness.score_cases`)."""
     return score_cases(case_dir, results, MEAN_FAMILIES, (), OUT_OF_LIBRARY, separable=separable,
                        oracle_thresholds=oracle_thresholds)
 
