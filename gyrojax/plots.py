@@ -159,9 +159,9 @@ def plot_gap_report(report, path=None):
         if res is not None:  # a legend without lines is a matplotlib warning, and empty
             ax.legend(fontsize=6, ncol=min(len(chans), 6), loc="upper right", framealpha=0.7)
     ax_rank = fig.add_subplot(gs[1:3, 1])
-    names = [r["name"] for r in report.ranking][::-1]
-    post = [r["posterior"] for r in report.ranking][::-1]
-    logp = [min(-np.log10(max(r["p"], 1e-300)), 50.0) for r in report.ranking][::-1]
+    names = [r.name for r in report.ranking][::-1]
+    post = [r.posterior for r in report.ranking][::-1]
+    logp = [min(-np.log10(max(r.p, 1e-300)), 50.0) for r in report.ranking][::-1]
     yy = np.arange(len(names))
     ax_rank.barh(yy - 0.2, post, height=0.4, label="posterior")
     ax2 = ax_rank.twiny()
@@ -210,7 +210,7 @@ def _map_title(report) -> str:
     channels), wrapped to two lines at most."""
     import textwrap
 
-    head = f"verdict: {report.kind} {', '.join(report.verdict.get('effects') or [])}".rstrip()
+    head = f"verdict: {report.kind} {', '.join(report.verdict.effects)}".rstrip()
     names = [x["cell"] for x in report.where if x["axis"] == "frequency" and x["significant"]]
     if names:
         counts = dict.fromkeys(names, 0)

@@ -207,6 +207,7 @@ def test_attitude_residual_is_the_specs_sign_and_size():
     np.testing.assert_allclose(np.asarray(attitude_residual(a, a)), 0.0, atol=1e-17)
 
 
+@pytest.mark.slow  # the far-off case of the next test, with the overshoot shown (compile-heavy)
 def test_far_off_the_prior_the_trust_region_reaches_the_truth():
     """Nominal errors 30x their prior scale on a 2-period record: a whole Gauss-Newton step from
     the prior mean overshoots there (its cost exceeds the start's; numpy's least squares on the

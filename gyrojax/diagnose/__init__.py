@@ -7,17 +7,17 @@ whether the test can see it at all, and how far the held-out gap shrinks once it
 constants below are public for the blind validation suites (:mod:`gyrojax.validation`), which
 the diagnosis never imports."""
 
-__all__ = ["AbstractGapProblem", "ESGProblem", "ESG_LIBRARY", "ESG_TRANSIENT_TIMES_H",
+__all__ = ["AbstractGapProblem", "Candidate", "ESGProblem", "ESG_LIBRARY", "ESG_TRANSIENT_TIMES_H",
            "GYROTHEODOLITE_TRANSIENT_TIMES_MIN", "GapReport", "GyrotheodoliteProblem",
            "IMUProblem", "IMU_CYCLE_DESIGN", "IMU_CYCLE_MIN_C", "IMU_LIBRARY",
-           "IMU_PRIOR_BY_UNIT", "IMU_TABLE_DESIGN", "PLATFORM_NOMINAL", "PlatformProblem",
+           "IMU_PRIOR_BY_UNIT", "IMU_TABLE_DESIGN", "PLATFORM_NOMINAL", "PlatformProblem", "Refit",
            "SCHULER_TRANSIENT_TIMES_H", "SHELL_DESIGN_LAMBDAS", "SchulerProblem", "Signature",
            "VISIBLE_MIN", "canonical_correlation", "coefficient_effect", "default_prior",
            "design_log_bf", "diagnose", "effect_family_name", "given_options", "library",
            "ljung_box", "mix_log_bf", "nominal_basis", "nominal_coefficients", "onset_grid",
            "platform_library", "project_out", "screen_designs", "shape_log_bf_scores",
            "shell_design_log_bf", "shell_log_bf", "signature_directions", "table_runs",
-           "train_slice", "visibility_flag", "visible", "zellner_log_bf"]
+           "train_slice", "Verdict", "visibility_flag", "visible", "zellner_log_bf"]
 
 from ._bayes import SHELL_DESIGN_LAMBDAS as SHELL_DESIGN_LAMBDAS
 from ._bayes import design_log_bf as design_log_bf
@@ -49,6 +49,9 @@ from ._platform import PlatformProblem as PlatformProblem
 from ._platform import nominal_coefficients as nominal_coefficients
 from ._platform import platform_library as platform_library
 from ._problem import AbstractGapProblem as AbstractGapProblem
+from ._records import Candidate as Candidate
+from ._records import Refit as Refit
+from ._records import Verdict as Verdict
 from ._report import GapReport as GapReport
 from ._schuler import TRANSIENT_TIMES_H as SCHULER_TRANSIENT_TIMES_H
 from ._schuler import SchulerProblem as SchulerProblem

@@ -48,8 +48,9 @@ from ._bayes import PRIORS
 from ._gapmap import gap_map_cells, map_design
 from ._multiplicity import _bh_weights, _calibrated_level, _outside_pvalues, bh_qvalues, rejected
 from ._noise_tests import lag_cells
+from ._records import Refit, Verdict
 from ._report import GapReport
-from ._rows import _onestep_display, _row_json
+from ._rows import _onestep_display, candidate_record
 from ._screening import Screen, ambiguity_set, screen, screen_designs
 from ._signatures import (
     canonical_correlations,
@@ -341,7 +342,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         remaining = [dict(x, q=float(q)) for x, q in zip(post_cells, qq) if q < alpha]
         resid_after[tuple(r.sig.name for r in combo)] = ea
         std_errors, estimable = _refit_uncertainty(combo, coeffs)
-        return dict(effects=[r.sig.name for r in combo], coefficients=coeffs,
+        return Refit(effects=[r.sig.name for r in combo], coefficients=coeffs,
                     std_errors=std_errors, estimable=estimable,
                     units={nm: u for r in combo for nm, u in zip(r.sig.names, r.sig.units)},
                     nominal_after=prob.display_nominal(p_refit),
@@ -364,8 +365,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
                 refits.append(singles[r.sig.name][0])
         # greedy forward step: the top effect's refit leaves a localised gap -> rescore the rest
         # of the library on the refit residual with the top effect's signature in the span
-        if top is not None and top.sig.name in singles and singles[top.sig.name][0][
-                "remaining_cells"]:
+        if top is not None and top.sig.name in singles and singles[top.sig.name][0].remaining_cells:
             _, e_post, span = singles[top.sig.name]
             second = _greedy_second(e_post, span, rows, top, alpha)
             if second is not None:
@@ -378,10 +378,10 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     verdict = _with_noise(verdict, noise_rows, alpha, refits)
     if refit_all:
         t0 = time.perf_counter()
-        done = {tuple(rf["effects"]) for rf in refits}
+        done = {tuple(rf.effects) for rf in refits}
         for r in rows:
             if (r.sig.name,) not in done and r.dof > 0 and r.flag not in _CONFOUNDED_FLAGS:
-                refits.append(dict(run_refit([r])[0], screened=False))
+                refits.append(dataclasses.replace(run_refit([r])[0], screened=False))
         timings["refit_all_s"] = time.perf_counter() - t0
     prob.notes += prob.verdict_notes(verdict)  # e.g. the ESG's hint at its noise model
     if prob.notes:
@@ -408,7 +408,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
              "rms_train": [float(x) for x in np.sqrt(np.mean(resid_all[:n] ** 2, axis=0))],
              "rms_heldout": [float(x) for x in np.sqrt(np.mean(resid_all[n:] ** 2, axis=0))]
              if n_ho else None},
-        where=cells, ranking=[_row_json(r, prob, excess, n, c, cells) for r in
+        where=cells, ranking=[candidate_record(r, prob, excess, n, c, cells) for r in
                               sorted(rows, key=lambda r: -r.posterior)],
         ambiguity={"set": [r.sig.name for r in amb],
                    "pairs": {f"{a} ~ {b}": v for (a, b), v in pairs.items()},
@@ -416,7 +416,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
                        contained, [r.sig.name for r in sorted(rows, key=lambda r: -r.posterior)
                                if r.dof > 0])},
         second=second.sig.name if second is not None else None,
-        refits=refits, design_advice=advice, verdict=verdict, alpha=alpha, timings=timings,
+        refits=refits, design_advice=advice, verdict=Verdict(**verdict), alpha=alpha,
+        timings=timings,
         multiplicity=multiplicity, prior=prior,
         noise_effects=noise_rows,
         split=prob.split_kind,

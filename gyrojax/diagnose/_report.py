@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from .. import units
+from ._records import Candidate, Refit, Verdict, json_clean
 
 __all__ = ["GapReport"]
 
@@ -17,23 +18,6 @@ ADVICE_SHOWN = 3  # design-advice rows per effect in the Markdown summary (the J
 # Schuler record's velocities in km/h 489 and its latitude in rad 151; of the 19 real records
 # (`gyrojax.datasets`) the largest is 8.6 (Xsens, train gap 73.7), the next 4.6 (LN-100)
 UNITS_CHECK_RATIO = 30.0
-
-
-def _clean(x):
-    """JSON-safe: numpy -> Python, non-finite -> None."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, (np.floating, float)):
-        return float(x) if math.isfinite(x) else None
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    if isinstance(x, np.ndarray):
-        return _clean(x.tolist())
-    return x
 
 
 @dataclasses.dataclass
@@ -72,12 +56,12 @@ class GapReport:
     noise: dict
     gap: dict
     where: list
-    ranking: list
+    ranking: list[Candidate]
     ambiguity: dict
     second: str | None
-    refits: list
+    refits: list[Refit]
     design_advice: list
-    verdict: dict
+    verdict: Verdict
     alpha: float
     timings: dict
     residual_all: np.ndarray = dataclasses.field(repr=False)  # whitened, nominal fit, (n, c)
@@ -90,37 +74,37 @@ class GapReport:
 
     @property
     def kind(self) -> str:
-        return self.verdict["kind"]
+        return self.verdict.kind
 
-    def candidate(self, name: str) -> dict:
+    def candidate(self, name: str) -> Candidate:
         for r in self.ranking:
-            if r["name"] == name:
+            if r.name == name:
                 return r
-        raise KeyError(f"no effect {name!r} in the report; it has {[r['name'] for r in self.ranking]}")
+        raise KeyError(f"no effect {name!r} in the report; it has {[r.name for r in self.ranking]}")
 
     def candidates_json(self) -> list:
         out = []
         for r in self.ranking:
-            rf = next((x for x in self.refits if x["effects"] == [r["name"]]), None)
+            rf = next((x for x in self.refits if x.effects == [r.name]), None)
             out.append({
-                "name": r["name"], "score": r["score"], "dof": r["dof"], "p_value": r["p"],
-                "q_value": r["q"], "posterior": r["posterior"],
-                "identifiable": r["identifiable"], "visibility": r["flag"],
-                "visible_fraction": r["visible_fraction"],
-                "confounded_with": r["confounded_with"], "aliases": r["aliases"],
-                "no_signature_directions": r["no_signature_directions"],
-                "confounded_directions": r["confounded_directions"],
-                "onestep": r["onestep"], "onestep_se": r["onestep_se"], "units": r["units"],
-                "grid": r["grid"], "score_grid": r["score_grid"], "dof_grid": r["dof_grid"],
-                "signature_consistency": r["signature_consistency"],
-                "mde_over_prior": r["mde_over_prior"],
-                "heldout_gap_after": rf["heldout_gap_after"] if rf else None,
-                "reduction": rf["reduction"] if rf else None,
+                "name": r.name, "score": r.score, "dof": r.dof, "p_value": r.p,
+                "q_value": r.q, "posterior": r.posterior,
+                "identifiable": r.identifiable, "visibility": r.flag,
+                "visible_fraction": r.visible_fraction,
+                "confounded_with": r.confounded_with, "aliases": r.aliases,
+                "no_signature_directions": r.no_signature_directions,
+                "confounded_directions": r.confounded_directions,
+                "onestep": r.onestep, "onestep_se": r.onestep_se, "units": r.units,
+                "grid": r.grid, "score_grid": r.score_grid, "dof_grid": r.dof_grid,
+                "signature_consistency": r.signature_consistency,
+                "mde_over_prior": r.mde_over_prior,
+                "heldout_gap_after": rf.heldout_gap_after if rf else None,
+                "reduction": rf.reduction if rf else None,
             })
         return out
 
     def to_json(self) -> dict:
-        return _clean({
+        return json_clean({
             "rig": self.rig, "channels": list(self.channels),
             "split": {"train_samples": self.n_train, "heldout_samples": self.n_heldout,
                       "kind": self.split},
@@ -148,14 +132,14 @@ class GapReport:
     def markdown(self) -> str:
         v = self.verdict
         lines = [f"# Gap diagnosis ({self.rig})", ""]
-        eff = ", ".join(v.get("effects") or []) or "-"
-        lines.append(f"**Verdict: {v['kind']}** ({eff})" + (f" - {v['reason']}" if v.get("reason")
+        eff = ", ".join(v.effects or []) or "-"
+        lines.append(f"**Verdict: {v.kind}** ({eff})" + (f" - {v.reason}" if v.reason
                                                             else ""))
-        g0, g1 = v.get("heldout_gap_before"), v.get("heldout_gap_after")
+        g0, g1 = v.heldout_gap_before, v.heldout_gap_after
         band = self.gap.get("heldout_null_band") or [None, None]
         if g0 is not None and math.isfinite(g0):
-            each = v.get("heldout_gap_after_by_effect")
-            no_refit = [e for e in (v.get("effects") or []) if each and e not in each]
+            each = v.heldout_gap_after_by_effect
+            no_refit = [e for e in (v.effects or []) if each and e not in each]
             after = (f"after {g1:.3g}" if g1 is not None else "after -") if not each else (
                 ("after refitting each: " if len(each) > 1 else "after refitting ")
                 + ", ".join(f"{k} {x:.3g}" for k, x in each.items())
@@ -164,9 +148,9 @@ class GapReport:
                    + ", no refit" if no_refit else ""))
             lines.append(f"Held-out gap G = mean(e^2) - 1: before {g0:.3g}, {after} "
                          f"(null band <= {band[1]:.3g})")
-            lean = (v.get("heldout_leans") or {}).get("lean")
+            lean = (v.heldout_leans or {}).get("lean")
             if lean:
-                slow = ", ".join(v["heldout_leans"]["effects"])
+                slow = ", ".join(v.heldout_leans["effects"])
                 lines.append(
                     f"The held-out part leans to the random walk: the refit of {slow} fits the "
                     "train part only, as a drift fitted to one realisation of a random walk "
@@ -175,7 +159,7 @@ class GapReport:
                     f"The held-out part leans to the drift: the refit of {slow} removes most of "
                     "the held-out gap, which a random walk's realisation would not repeat "
                     "(repeat the run to decide)")
-            sep = v.get("heldout_separates")
+            sep = v.heldout_separates
             if sep:
                 lines.append(f"The held-out part tells them apart: refitted alone, "
                              f"{', '.join(sep['transfer'])} removes most of its gap, "
@@ -205,9 +189,9 @@ class GapReport:
                   "| effect | score | dof | p | posterior | visible | flag | absorbed by |",
                   "|---|---|---|---|---|---|---|---|"]
         for r in self.ranking:
-            lines.append(f"| {r['name']} | {r['score']:.3g} | {r['dof']} | {r['p']:.2g} | "
-                         f"{r['posterior']:.2f} | {r['visible_fraction']:.2g} | {r['flag']} | "
-                         f"{', '.join(r['confounded_with'][:3]) or '-'} |")
+            lines.append(f"| {r.name} | {r.score:.3g} | {r.dof} | {r.p:.2g} | "
+                         f"{r.posterior:.2f} | {r.visible_fraction:.2g} | {r.flag} | "
+                         f"{', '.join(r.confounded_with[:3]) or '-'} |")
         if self.noise_effects:
             lines += ["", "## Noise-model effects (full-rate static residual)", "",
                       "| effect | p (Bonferroni over channels) | q | channel | fitted per channel |",
@@ -229,7 +213,7 @@ class GapReport:
                       "decided on): " + ("; ".join(
                           f"{ch} at tau {x['tau_s']:.3g} s (ratio {x['statistic']:.3g}, "
                           f"p {x['p']:.2g})" for ch, x in best.items()) or "nowhere")]
-        grids = [r for r in self.ranking if r.get("grid") and r["posterior"] >= 0.05][:5]
+        grids = [r for r in self.ranking if r.grid and r.posterior >= 0.05][:5]
         if grids:
             lines += ["", "Grid values (uniform prior over the grid; the posterior given the "
                       "effect): " + "; ".join(_grid_text(r) for r in grids)]
@@ -239,14 +223,14 @@ class GapReport:
                       "mimicked by the other: smallest projected canonical correlation >= 0.98; "
                       "the design advice says which test would): "
                       + "; ".join(" = ".join(c) for c in classes)]
-        if self.verdict.get("notes"):
-            lines += [""] + [f"Note: {x}" for x in self.verdict["notes"]]
-        nulls = [(r["name"], d) for r in self.ranking for d in r["no_signature_directions"]]
+        if self.verdict.notes:
+            lines += [""] + [f"Note: {x}" for x in self.verdict.notes]
+        nulls = [(r.name, d) for r in self.ranking for d in r.no_signature_directions]
         if nulls:
             lines += ["", "No signature on this bench (a change of the coefficients along these "
                       "directions, in their units, leaves the record as it was): "
                       + "; ".join(f"{d} ({n})" for n, d in nulls)]
-        conf = [(r["name"], d) for r in self.ranking for d in r["confounded_directions"]]
+        conf = [(r.name, d) for r in self.ranking for d in r.confounded_directions]
         if conf:
             lines += ["", "Absorbed by the nominal parameters (a change along these directions "
                       "is fitted away by them: visible fraction < 1e-6): "
@@ -255,34 +239,34 @@ class GapReport:
             lines += ["", "## How much (refit on train, gap on held-out)", "",
                       "| effects | estimate ± std. error | held-out gap before | after | "
                       "reduction | closure | cells left |", "|---|---|---|---|---|---|---|"]
-            no_sig = {d for r in self.ranking for d in r["no_signature_directions"]}
+            no_sig = {d for r in self.ranking for d in r.no_signature_directions}
             for rf in self.refits:
-                red = f"{rf['reduction']:.2f}" if rf["reduction"] is not None else "-"
-                se, un = rf.get("std_errors", {}), rf.get("units", {})
+                red = f"{rf.reduction:.2f}" if rf.reduction is not None else "-"
+                se, un = rf.std_errors, rf.units
                 # a coefficient the rows do not determine (infinite standard error) is named
                 # once, not printed as a value: without a signature on this bench, or one whose
                 # other directions have none or are absorbed by the nominal parameters, when
                 # only the combinations printed with the values are determined
-                undetermined = [k for k in rf["coefficients"]
+                undetermined = [k for k in rf.coefficients
                                 if not math.isfinite(se.get(k, 0.0))]
                 blind = [k for k in undetermined if k in no_sig]
                 partial = [k for k in undetermined if k not in no_sig]
                 est = ", ".join(
                     [f"{k} {v:.4g}" + (f" ± {se[k]:.2g}" if k in se else "")
                      + _unit_suffix(un.get(k))
-                     for k, v in rf["coefficients"].items() if k not in undetermined]
+                     for k, v in rf.coefficients.items() if k not in undetermined]
                     + [f"{x['combination']} {x['value']:.4g} ± {x['std_error']:.2g}"
-                       + _unit_suffix(x["unit"]) for x in rf.get("estimable", [])])
+                       + _unit_suffix(x["unit"]) for x in rf.estimable])
                 if blind:
                     est += f"; no signature, not estimated: {', '.join(blind)}"
                 if partial:
                     est += ("; determined only in the combinations given (their other "
                             "directions have no signature or are absorbed by the nominal "
                             f"parameters, as listed above): {', '.join(partial)}")
-                lines.append(f"| {' + '.join(rf['effects'])} | {est} | "
-                             f"{rf['heldout_gap_before']:.3g} | "
-                             f"{rf['heldout_gap_after']:.3g} | {red} | {rf['closure']} | "
-                             f"{len(rf['remaining_cells'])} |")
+                lines.append(f"| {' + '.join(rf.effects)} | {est} | "
+                             f"{rf.heldout_gap_before:.3g} | "
+                             f"{rf.heldout_gap_after:.3g} | {red} | {rf.closure} | "
+                             f"{len(rf.remaining_cells)} |")
         if self.design_advice:
             shown, count = [], {}  # the best ADVICE_SHOWN designs per effect
             for a in self.design_advice:
@@ -389,7 +373,7 @@ def grid_located(values, weights, points_per_step: int = 64):
 
 
 def _grid_text(r) -> str:
-    g = r["grid"]
+    g = r.grid
     lo, hi, held = grid_interval(g["values"], g["posterior"])
     unit = f" {g['unit']}" if g["unit"] else ""
     mode = int(np.argmax(g["posterior"]))
@@ -397,7 +381,7 @@ def _grid_text(r) -> str:
     located = "" if win is None else (
         f"located at {g['located']:.3g}{unit} (one grid step either side, {win[0]:.3g}-"
         f"{win[1]:.3g}{unit}, holds {g['located_mass']:.2f}), ")
-    return (f"{r['name']} {g['name']} {located}{g['best']:.3g}{unit} at the largest score, "
+    return (f"{r.name} {g['name']} {located}{g['best']:.3g}{unit} at the largest score, "
             f"posterior {g['posterior'][mode]:.2f} at {g['values'][mode]:.3g}{unit}, 90 % within "
             f"{lo:.3g}-{hi:.3g}{unit} (mass {held:.2f}), flag taken at {g['flag_at']:.3g}{unit}")
 

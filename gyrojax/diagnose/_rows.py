@@ -7,6 +7,7 @@ import numpy as np
 
 from ..analysis.observability import _pretty_basis, format_combination
 from ._advice import _mde
+from ._records import Candidate
 from ._report import grid_located
 from ._screening import Screen
 
@@ -37,7 +38,7 @@ def _onestep_display(r: Screen) -> dict:
     return {n: float(b * ps) for n, b, ps in zip(r.sig.names, r.beta, r.sig.prior_scale)}
 
 
-def _row_json(r: Screen, prob, excess, n, c, cells):
+def candidate_record(r: Screen, prob, excess, n, c, cells) -> Candidate:
     names = prob.nominal_names
     aliases = []  # coefficients in display units of the nominal per display unit of the effect
     for k, en in enumerate(r.sig.names):
@@ -55,41 +56,42 @@ def _row_json(r: Screen, prob, excess, n, c, cells):
     confounded_with = sorted(strength, key=lambda k: -strength[k])
     cons = _consistency(r, prob, n, c, cells)
     mde = _mde(r.projected)
-    return {
-        "name": r.sig.name, "family": r.sig.family, "kind": r.sig.kind,
-        "params": list(r.sig.names), "units": list(r.sig.units),
-        "prior_scale": [float(x) for x in r.sig.prior_scale],
-        "score": r.lm, "dof": r.dof, "p": r.p, "q": r.q,
+    return Candidate(
+        name=r.sig.name, family=r.sig.family, kind=r.sig.kind,
+        params=list(r.sig.names), units=list(r.sig.units),
+        prior_scale=[float(x) for x in r.sig.prior_scale],
+        score=float(r.lm), dof=int(r.dof), p=float(r.p),
+        q=None if r.q is None else float(r.q),
         # the score statistic and its dof at every grid value (one entry without a grid)
-        "score_grid": [float(x) for x in r.lm_grid], "dof_grid": [int(x) for x in r.dof_grid],
-        "log_bf": r.log_bf, "posterior": r.posterior,
+        score_grid=[float(x) for x in r.lm_grid], dof_grid=[int(x) for x in r.dof_grid],
+        log_bf=float(r.log_bf), posterior=float(r.posterior),
         # the design prior's log Bayes factor at other expected noncentralities (prior sizes)
-        "log_bf_by_lambda": {f"{k:g}": v for k, v in r.log_bf_curve.items()},
-        "onestep": _onestep_display(r),
-        "onestep_se": {nm: float(s * ps) for nm, s, ps in zip(r.sig.names, r.beta_se,
-                                                              r.sig.prior_scale)},
-        "grid": ({"name": r.sig.grid_name, "unit": r.sig.grid_unit,
-                  "values": [float(x) for x in r.sig.grid], "best": r.sig.grid[r.grid_index],
-                  # the posterior median of the visible fraction, where the flag is taken
-                  "flag_at": r.sig.grid[r.vis_index],
-                  # the posterior over the grid values given the effect (uniform prior)
-                  "posterior": ([float(x) for x in r.grid_weights]
-                                if r.grid_weights is not None else [1.0]),
-                  # the value within one grid step of the most posterior mass (spec §6 G8's
-                  # loss): the localisation to quote; "best" is what the refit uses
-                  **dict(zip(("located", "located_mass", "located_window"),
-                             grid_located(r.sig.grid, r.grid_weights
-                                          if r.grid_weights is not None else [1.0])))}
-                 if r.sig.grid else None),
-        "explained_gap_share": float(min(1.0, r.lm / excess)) if excess > 0 else 0.0,
-        "signature_consistency": cons,
-        "visible_fraction": r.visible_fraction, "identifiable": r.flag in
+        log_bf_by_lambda={f"{k:g}": float(v) for k, v in r.log_bf_curve.items()},
+        onestep=_onestep_display(r),
+        onestep_se={nm: float(s * ps) for nm, s, ps in zip(r.sig.names, r.beta_se,
+                                                           r.sig.prior_scale)},
+        grid=({"name": r.sig.grid_name, "unit": r.sig.grid_unit,
+               "values": [float(x) for x in r.sig.grid], "best": r.sig.grid[r.grid_index],
+               # the posterior median of the visible fraction, where the flag is taken
+               "flag_at": r.sig.grid[r.vis_index],
+               # the posterior over the grid values given the effect (uniform prior)
+               "posterior": ([float(x) for x in r.grid_weights]
+                             if r.grid_weights is not None else [1.0]),
+               # the value within one grid step of the most posterior mass (spec §6 G8's
+               # loss): the localisation to quote; "best" is what the refit uses
+               **dict(zip(("located", "located_mass", "located_window"),
+                          grid_located(r.sig.grid, r.grid_weights
+                                       if r.grid_weights is not None else [1.0])))}
+              if r.sig.grid else None),
+        explained_gap_share=float(min(1.0, r.lm / excess)) if excess > 0 else 0.0,
+        signature_consistency=cons,
+        visible_fraction=float(r.visible_fraction), identifiable=r.flag in
         ("visible", "weakly identifiable", "partly no signature"),
-        "flag": r.flag,
+        flag=r.flag,
         **_named_directions(r),
-        "confounded_with": confounded_with, "aliases": aliases,
-        "mde_over_prior": mde,
-    }
+        confounded_with=confounded_with, aliases=aliases,
+        mde_over_prior=float(mde),
+    )
 
 
 def _named_directions(r: Screen) -> dict:

@@ -131,22 +131,22 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
         t_diag = time.perf_counter() - t0
         v = rep.verdict
         results.append({
-            "sha": sha256_file(path), "file": path.name, "verdict": v["kind"], "prior": rep.prior,
-            "effects": v.get("effects") or [], "noise_effects": v.get("noise_effects") or [],
-            "ranking": [r["name"] for r in rep.ranking],
-            "posterior": {r["name"]: r["posterior"] for r in rep.ranking},
-            "flags": {r["name"]: r["flag"] for r in rep.ranking},
-            "visible_fraction": {r["name"]: r["visible_fraction"] for r in rep.ranking},
+            "sha": sha256_file(path), "file": path.name, "verdict": v.kind, "prior": rep.prior,
+            "effects": v.effects, "noise_effects": v.noise_effects,
+            "ranking": [r.name for r in rep.ranking],
+            "posterior": {r.name: r.posterior for r in rep.ranking},
+            "flags": {r.name: r.flag for r in rep.ranking},
+            "visible_fraction": {r.name: r.visible_fraction for r in rep.ranking},
             "scores": ranking_scores(rep.ranking),
-            "log_bf_by_lambda": {r["name"]: r["log_bf_by_lambda"] for r in rep.ranking},
+            "log_bf_by_lambda": {r.name: r.log_bf_by_lambda for r in rep.ranking},
             "ambiguity": rep.ambiguity["set"],
-            "heldout_gap_before": v.get("heldout_gap_before"),
-            "heldout_gap_after": v.get("heldout_gap_after"),
+            "heldout_gap_before": v.heldout_gap_before,
+            "heldout_gap_after": v.heldout_gap_after,
             "null_band": rep.gap.get("heldout_null_band"),
-            "null_band_after": next((rf["heldout_null_band_after"] for rf in rep.refits
-                                     if rf["effects"] == (v.get("effects") or [])), None),
-            "single_refits": {rf["effects"][0]: rf["heldout_gap_after"] for rf in rep.refits
-                              if len(rf["effects"]) == 1},
+            "null_band_after": next((rf.heldout_null_band_after for rf in rep.refits
+                                     if rf.effects == v.effects), None),
+            "single_refits": {rf.effects[0]: rf.heldout_gap_after for rf in rep.refits
+                              if len(rf.effects) == 1},
             "time_diagnose_s": t_diag,
             "time_screen_s": rep.timings.get("screening_s", 0.0)
             + rep.timings.get("jacobians_s", 0.0),
@@ -312,8 +312,8 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
 
 def _first_effect(rep):
     """The verdict's first effect, or the top posterior where the verdict names none."""
-    return (rep.verdict.get("effects") or [None])[0] or max(
-        rep.ranking, key=lambda r: r["posterior"])["name"]
+    return (rep.verdict.effects or [None])[0] or max(
+        rep.ranking, key=lambda r: r.posterior).name
 
 
 def closed_loop(case_dir, rig: str, hidden: str, rerun, truth_coefficients, *,
@@ -342,7 +342,7 @@ def closed_loop(case_dir, rig: str, hidden: str, rerun, truth_coefficients, *,
         for a in rep.design_advice:  # ranked per effect: the first is the advised one
             advice.setdefault(a["effect"], a)
         first.append((path, rec, rep.verdict, _first_effect(rep),
-                      {r["name"]: r["flag"] for r in rep.ranking if r["flag"] != "visible"},
+                      {r.name: r.flag for r in rep.ranking if r.flag != "visible"},
                       advice))
     manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
     key = jax.random.key(seed)
