@@ -111,12 +111,22 @@ def names() -> tuple[str, ...]:
     return tuple(_REGISTRY)
 
 
-def get(name: str) -> RigEntry:
-    """The rig named ``name``; a clear error naming the registered rigs."""
-    try:
-        return _REGISTRY[name]
-    except KeyError:
-        raise ValueError(f"unknown rig {name!r}; rigs: {', '.join(_REGISTRY)}") from None
+def get(rig) -> RigEntry:
+    """The registered rig ``rig``: its name (``"esg"``), or its model, as an object
+    (``ESGRig()``, what :func:`gyrojax.fit` and :func:`gyrojax.simulate` take) or a class.
+
+    **Raises:** `ValueError` naming the registered rigs when none is ``rig``."""
+    if isinstance(rig, str):
+        try:
+            return _REGISTRY[rig]
+        except KeyError:
+            raise ValueError(f"unknown rig {rig!r}; rigs: {', '.join(_REGISTRY)}") from None
+    cls = rig if isinstance(rig, type) else type(rig)
+    for entry in _REGISTRY.values():
+        if issubclass(cls, entry.model_class):
+            return entry
+    raise ValueError(f"no registered rig has the model {cls.__name__}; rigs: "
+                     f"{', '.join(_REGISTRY)} (gyrojax.rigs.register adds one)")
 
 
 register(RigEntry(

@@ -44,6 +44,14 @@ def test_a_registered_sixth_rig_runs_every_command(turntable, tmp_path, capsys):
     refit = rep["refits"][0]
     assert refit["coefficients"]["r"] == pytest.approx(3.0, abs=4 * refit["std_errors"]["r"])
     assert refit["heldout_gap_after"] < refit["heldout_null_band_after"][1]
+    # the library's entry takes the rig as fit and simulate do, a model object: the same report
+    from gyrojax.diagnose import diagnose
+    from gyrojax.io import load_record
+
+    again = diagnose(load_record(rec), rig=toy_rig.TurntableRig())
+    assert again.rig == "turntable" and again.verdict.effects == ["bias_ramp"]
+    assert again.refits[0].coefficients["r"] == pytest.approx(refit["coefficients"]["r"],
+                                                              rel=1e-9)
     # a rig option of another rig is refused by name
     assert main(["simulate", "--rig", "esg", "--omega0", "5", "--out", str(rec)]) == 2
     assert "--omega0 is for the turntable rig" in capsys.readouterr().err
@@ -56,3 +64,15 @@ def test_the_registry_names_the_rig_and_refuses_an_unknown_one(turntable):
         rigs.get("carousel")
     with pytest.raises(ValueError, match="option.* order are not for --rig turntable"):
         rigs.get("turntable").catalogue(order="exact")
+    # a rig's model object or class names its entry; one no entry has is refused by name
+    from gyrojax import ESGRig
+    from gyrojax.models import AbstractRig
+
+    assert rigs.get(toy_rig.TurntableRig()) is rigs.get("turntable")
+    assert rigs.get(ESGRig).name == "esg"
+
+    class Carousel(AbstractRig):
+        pass
+
+    with pytest.raises(ValueError, match="no registered rig has the model Carousel; rigs: esg"):
+        rigs.get(Carousel)

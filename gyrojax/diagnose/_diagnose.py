@@ -142,7 +142,7 @@ def default_prior(rig: str = "esg", **options) -> str:
     return "shell" if entry.problem_class.single_coefficients(**options) else "design"
 
 
-def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=None,
+def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
              holdout: float = 0.25, alpha: float = 0.05, noise_std=None,
              design_advice: bool = True, max_refits: int = 3, prior: str | None = None,
              library_share: float = 0.5, refit_all: bool = False, null_draws: int = 499,
@@ -152,7 +152,8 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
     **Arguments:**
     - `record`: a BenchRecord with the rig's channels and conditions (ESG: ``scheme``,
       ``latitude_deg``).
-    - `rig`: a registered rig's name (``"esg"``, :mod:`gyrojax.rigs`): its diagnosis problem
+    - `rig`: a registered rig (:mod:`gyrojax.rigs`), by name (``"esg"``) or by its model object
+      (``ESGRig()``, as :func:`gyrojax.fit` takes it): its diagnosis problem
       (:class:`~gyrojax.diagnose.AbstractGapProblem`) reads the record.
     - `options`: the rig's own options, passed to its problem's constructor (``None``: the
       default; an option another rig takes is an error naming the ones this rig takes):
@@ -217,6 +218,7 @@ def diagnose(record: BenchRecord, *, rig: str = "esg", conditions=None, effects=
         raise ValueError(f"null_draws={null_draws} with alpha={alpha}: give 0 (plain weighted "
                          f"BH) or at least {int(np.ceil(1 / alpha)) - 1} draws (default 499)")
     options = given_options(options)
+    rig = rigs.get(rig).name  # a model object (ESGRig()) names its registered rig
     if prior is None:
         prior = default_prior(rig, **options)
     if prior not in PRIORS:
