@@ -127,6 +127,35 @@ def emit_json(obj, dest) -> None:
         print(f"wrote {dest}", file=sys.stderr)
 
 
+def write_outputs(outputs) -> None:
+    """``outputs`` (``(path, write_fn)`` pairs; ``path`` ``None``: not asked for) written all
+    or none (:func:`gyrojax.io.write_together`), each named on stderr once written."""
+    from .io import write_together
+
+    outputs = [(path, fn) for path, fn in outputs if path]
+    write_together(outputs)
+    for path, _ in outputs:
+        print(f"wrote {path}", file=sys.stderr)
+
+
+OUTPUT_OPTIONS = ("out", "json", "plot")  # the options that name a file a command writes
+
+
+def check_outputs(args, extra=()) -> None:
+    """Every output file the command line names (``--out``, ``--json`` but ``-``, ``--plot``,
+    and ``extra``: ``(option, path)`` pairs a command derives), checked before any work: a
+    usage error naming the option and the fix where one cannot be written."""
+    from .io import check_writable
+
+    named = [(f"--{o}", getattr(args, o, None)) for o in OUTPUT_OPTIONS]
+    for option, path in [*named, *extra]:
+        if path and path != "-":
+            try:
+                check_writable(path, option)
+            except ValueError as exc:
+                raise UsageError(str(exc)) from None
+
+
 def load(args, channels):
     """The record ``args.record`` with ``channels`` (``None``: any); a usage error names what is
     wrong with the file."""

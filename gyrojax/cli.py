@@ -26,12 +26,15 @@ from ._cli_base import (
     EXIT_USAGE,
     AbstractRigCommands,
     UsageError,
+    check_outputs,
     emit_json,
     load,
     parse_sets,
     stage_printer,
+    write_outputs,
 )
 from ._cli_esg import rig_and_conditions
+from .io import json_writer
 
 __all__ = ["AbstractRigCommands", "UsageError", "build_parser", "emit_json", "load", "main",
            "parse_sets"]
@@ -177,15 +180,19 @@ def cmd_demo(args):
     print(f"\ndiagnosis verdict: {v['kind']} ({', '.join(v.get('effects') or []) or '-'}); "
           f"held-out gap {v['heldout_gap_before']:.3g} -> "
           f"{'-' if after is None else f'{after:.3g}'} (0 = model and data agree)")
+    if args.json == "-":
+        emit_json(summary, "-")
+    outputs = [(args.json if args.json != "-" else None, json_writer(summary))]
     if args.plot:
-        from .plots import plot_fit, plot_gap_report
+        from .plots import figure_writer, plot_fit, plot_gap_report
 
-        plot_fit(rig, rec, cond, fits["gauss-newton"], args.plot)
-        print(f"wrote {args.plot}")
         gap_plot = _gap_figure_path(args.plot)
-        plot_gap_report(gap, gap_plot)
-        print(f"wrote {gap_plot} (the diagnosis: gap map, residuals before and after, ranking)")
-    emit_json(summary, args.json)
+        outputs += [(args.plot, figure_writer(plot_fit(rig, rec, cond, fits["gauss-newton"]),
+                                              args.plot)),
+                    (gap_plot, figure_writer(plot_gap_report(gap), gap_plot))]
+    write_outputs(outputs)  # every output or none
+    if args.plot:
+        print(f"{gap_plot}: the diagnosis (gap map, residuals before and after, ranking)")
 
 
 def _gap_figure_path(path) -> Path:
@@ -263,12 +270,14 @@ def cmd_diagnose(args):
                       null_draws=args.null_draws, prior=args.prior,
                       progress=stage_printer("diagnose"), **options)
     print(report.markdown())
-    emit_json(report.to_json(), args.json)
+    if args.json == "-":
+        emit_json(report.to_json(), "-")
+    outputs = [(args.json if args.json != "-" else None, json_writer(report.to_json()))]
     if args.plot:
-        from .plots import plot_gap_report
+        from .plots import figure_writer, plot_gap_report
 
-        plot_gap_report(report, args.plot)
-        print(f"wrote {args.plot}", file=sys.stderr)
+        outputs.append((args.plot, figure_writer(plot_gap_report(report), args.plot)))
+    write_outputs(outputs)  # the report and its figure, both or neither
 
 
 # -- parser --------------------------------------------------------------------------------
@@ -495,6 +504,9 @@ def main(argv=None) -> int:
             except ValueError:
                 raise UsageError(f"--plot {args.plot!r}: use a .png, .pdf or .svg file "
                                  "name") from None
+        derived = ([("--plot", _gap_figure_path(args.plot))]
+                   if args.command == "demo" and args.plot else [])
+        check_outputs(args, derived)  # before the work, not after it
         args.func(args)
     except UsageError as exc:
         print(f"gyrojax {args.command}: error: {exc}", file=sys.stderr)

@@ -242,22 +242,63 @@ def atomic_write(path, write_fn):
     The file gets the permissions a plain ``open(path, "w")`` would give it: an existing file's
     mode is kept, a new one gets ``0o666`` less the umask (``mkstemp``'s temp file is private,
     ``0o600``, and the rename would otherwise carry that over to a record others must read)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    write_together([(path, write_fn)])
+
+
+def write_together(writes) -> None:
+    """All of ``writes`` or none: ``(path, write_fn)`` pairs, each ``write_fn(tmp_path)``
+    writing one output. Every output is written to a temp file beside its path first; only when
+    all are written are they renamed into place. On an error the temp files are removed and no
+    path is touched (a run that fails leaves no new output). Permissions as
+    :func:`atomic_write`'s."""
+    staged = []
     try:
-        mode = path.stat().st_mode & 0o7777
-    except FileNotFoundError:
-        mode = 0o666 & ~_umask()
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write_fn(tmp)
-        os.chmod(tmp, mode)
-        os.replace(tmp, path)
+        for path, write_fn in writes:
+            path = Path(path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                mode = path.stat().st_mode & 0o7777
+            except FileNotFoundError:
+                mode = 0o666 & ~_umask()
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+            os.close(fd)
+            staged.append((tmp, path))
+            write_fn(tmp)
+            os.chmod(tmp, mode)
+        for tmp, path in staged:
+            os.replace(tmp, path)
     except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+        for tmp, _ in staged:
+            if os.path.exists(tmp):
+                os.remove(tmp)
         raise
+
+
+def check_writable(path, option: str) -> Path:
+    """``path`` checked, before any work is done, to be a file this run can write: not a
+    folder, in a folder that exists or can be made, and that takes a new file (a probe file is
+    made there and removed).
+
+    **Raises:** `ValueError` naming ``option``, the path, what is wrong and the fix."""
+    out = Path(path)
+    if out.is_dir():
+        raise ValueError(f"{option} {str(path)!r} is a folder; give a file name (e.g. "
+                         f"{str(out / ('out' + (out.suffix or '.json')))!r})")
+    folder = out.parent
+    while not os.path.lexists(folder) and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise ValueError(f"{option} {str(path)!r}: {str(folder)!r} is a file, not a folder; "
+                         "give a path in a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".probe", dir=folder)
+    except OSError as exc:
+        raise ValueError(f"{option} {str(path)!r}: cannot write in {str(folder)!r} "
+                         f"({exc.strerror or exc}); give a path in a folder you can write to"
+                         ) from None
+    os.close(fd)
+    os.remove(probe)
+    return out
 
 
 RECORD_SUFFIXES = (".nc", ".csv")
@@ -330,13 +371,19 @@ def json_text(obj) -> str:
     return json.dumps(_plain(obj), indent=2, allow_nan=False)
 
 
-def write_json(obj, path) -> Path:
-    """Write :func:`json_text` of ``obj`` atomically."""
+def json_writer(obj):
+    """A ``write_fn(tmp_path)`` for :func:`write_together` writing :func:`json_text` of
+    ``obj`` (converted now: an object JSON cannot hold fails before any file is written)."""
     text = json_text(obj)
 
     def write(tmp):
         with open(tmp, "w") as fh:
             fh.write(text + "\n")
 
-    atomic_write(path, write)
+    return write
+
+
+def write_json(obj, path) -> Path:
+    """Write :func:`json_text` of ``obj`` atomically."""
+    atomic_write(path, json_writer(obj))
     return Path(path)

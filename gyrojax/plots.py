@@ -30,11 +30,17 @@ def figure_format(path) -> str:
     return fmt
 
 
+def figure_writer(fig, path):
+    """A ``write_fn(tmp_path)`` for :func:`gyrojax.io.write_together` saving ``fig`` in the
+    format ``path`` names (checked now)."""
+    fmt = figure_format(path)
+    return lambda tmp: fig.savefig(tmp, dpi=110, format=fmt)
+
+
 def _save(fig, path):
     from .io import atomic_write
 
-    fmt = figure_format(path)
-    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format=fmt))
+    atomic_write(path, figure_writer(fig, path))
 
 
 def plot_fit(rig, record, conditions, report, path=None):

@@ -1,4 +1,5 @@
 import json
+import os
 
 import jax
 import numpy as np
@@ -310,3 +311,70 @@ def test_cli_version_is_the_installed_distribution(capsys):
         main(["--version"])
     assert exc.value.code == 0
     assert capsys.readouterr().out.strip() == f"gyrojax {version('gyrojax')}"
+
+
+def test_outputs_that_cannot_be_written_are_refused_before_the_work(tmp_path, capsys,
+                                                                   monkeypatch):
+    """An output path that is a folder, lies under a file, or in a folder that takes no new
+    file is refused with one line naming the option and the fix, exit 2, before any record is
+    read or simulated (the record named here does not even exist), and nothing is written."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "outdir").mkdir()
+    (tmp_path / "existing_dir.nc").mkdir()
+    (tmp_path / "afile").write_text("x")
+    cases = [
+        (["simulate", "--scheme", "polar", "--latitude", "50", "--out", "existing_dir.nc"],
+         "--out 'existing_dir.nc' is a folder; give a file name"),
+        (["fit", "missing.nc", "--json", "outdir"], "--json 'outdir' is a folder"),
+        (["diagnose", "missing.nc", "--json", "outdir"], "--json 'outdir' is a folder"),
+        (["diagnose", "missing.nc", "--json", "dj.json", "--plot", "afile/gap.png"],
+         "--plot 'afile/gap.png': 'afile' is a file, not a folder"),
+        (["demo", "--plot", "outdir/demo.png", "--json", "afile/sub/x.json"],
+         "--json 'afile/sub/x.json': 'afile' is a file, not a folder"),
+    ]
+    (tmp_path / "outdir" / "demo_gap.png").mkdir()  # where the demo's second figure goes
+    cases.append((["demo", "--plot", "outdir/demo.png"],
+                  "--plot 'outdir/demo_gap.png' is a folder"))
+    if os.path.isdir("/proc/self"):  # Linux: a folder no file can be made in
+        cases.append((["diagnose", "missing.nc", "--plot", "/proc/gap.png", "--json", "dj.json"],
+                      "--plot '/proc/gap.png': cannot write in '/proc'"))
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    for argv, match in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and match in err, (argv, err)
+        assert sorted(p.name for p in tmp_path.rglob("*")) == before, argv
+
+
+def test_a_diagnosis_whose_figure_fails_writes_no_report(tmp_path, monkeypatch):
+    """``diagnose --json --plot`` writes both or neither: the figure failing after the report
+    is ready leaves no JSON behind (and no temp file)."""
+    import types
+
+    import gyrojax.diagnose
+    import gyrojax.plots
+
+    monkeypatch.chdir(tmp_path)
+    csv = tmp_path / "r.csv"
+    csv.write_text("t,alpha1,alpha2\n" + "".join(f"{60.0 * i},0.0,0.0\n" for i in range(30)))
+    report = types.SimpleNamespace(markdown=lambda: "# report", to_json=lambda: {"verdict": 1})
+    monkeypatch.setattr(gyrojax.diagnose, "diagnose", lambda record, **kw: report)
+
+    def broken(report, path=None):
+        raise RuntimeError("the figure failed")
+
+    monkeypatch.setattr(gyrojax.plots, "plot_gap_report", broken)
+    with pytest.raises(RuntimeError, match="the figure failed"):
+        main(["diagnose", "r.csv", "--scheme", "polar", "--latitude", "50",
+              "--json", "dj.json", "--plot", "gap.png"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.csv"]
+    # and a figure that cannot be saved (write_together's second output) leaves no JSON either
+    from gyrojax.io import json_writer, write_together
+
+    def failing(tmp):
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        write_together([(tmp_path / "a.json", json_writer({"a": 1})), (tmp_path / "b.png",
+                                                                       failing)])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.csv"]
