@@ -168,7 +168,30 @@ def load(args, channels):
     try:
         return load_record(args.record, channels=channels)
     except RecordFileError as exc:
-        raise UsageError(str(exc)) from None
+        raise UsageError(str(exc) + _rig_hint(args, channels)) from None
+
+
+def _rig_hint(args, channels) -> str:
+    """Where a record lacks this rig's channels but has all of another registered rig's: a
+    hint to give that ``--rig`` (an IMU's wx..az read as an ESG record)."""
+    from . import rigs
+    from .io import load_record
+
+    if channels is None:
+        return ""
+    try:
+        found = set(load_record(args.record).channels)
+    except Exception:  # noqa: BLE001 - the first error is the one to report
+        return ""
+    for name in rigs.names():
+        try:
+            theirs = rigs.get(name).model_class().channels
+        except Exception:  # noqa: BLE001 - a rig that needs arguments to build gives no hint
+            continue
+        if name != args.rig and set(theirs) <= found:
+            article = "an" if name[0] in "aeiou" else "a"
+            return f" (the columns are {article} {name} record's: add --rig {name})"
+    return ""
 
 
 def with_latitude(args, record):

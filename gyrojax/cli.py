@@ -251,6 +251,7 @@ def cmd_observer(args):
 
 def cmd_diagnose(args):
     from .diagnose import diagnose
+    from .diagnose._diagnose import checked_effects
 
     commands = _commands(args)
     if not 0 < args.alpha < 0.5:
@@ -261,10 +262,10 @@ def cmd_diagnose(args):
                          " (default 499)")
     options = commands.diagnose_options(args)  # checked before the record is read
     noise = commands.noise_std(args)
-    record = commands.load(args)
     effects = None
     if args.effects:
-        effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
+        effects = checked_effects(e.strip() for e in args.effects.split(",") if e.strip())
+    record = commands.load(args)
     report = diagnose(record, rig=args.rig, effects=effects, holdout=args.holdout,
                       alpha=args.alpha, noise_std=noise, refit_all=args.refit_all,
                       null_draws=args.null_draws, prior=args.prior,

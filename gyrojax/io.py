@@ -111,6 +111,9 @@ def load_record(path, *, channels: Sequence[str] | None = None,
     if not path.exists():
         raise RecordFileError(f"{src}: no such file; check the path (relative paths are taken from "
                               f"{os.getcwd()})")
+    if path.is_dir():
+        raise RecordFileError(f"{src} is a folder, not a record file; give the .nc or .csv file "
+                              "in it")
     suffix = path.suffix.lower()
     if suffix == ".csv":
         t, cols, names, attrs = _read_csv(path)
@@ -122,8 +125,37 @@ def load_record(path, *, channels: Sequence[str] | None = None,
     keep = list(channels) if channels is not None else names
     y = np.stack([cols[names.index(c)] for c in keep], axis=-1)
     t, y = validate_samples(t, y, keep, source=src)
-    attrs = dict(attrs) | dict(conditions or {})
+    attrs = _checked_conditions(dict(attrs), src) | dict(conditions or {})
     return BenchRecord(t, y, tuple(keep), freeze(attrs))
+
+
+# test conditions a record file may carry that must be one finite number each (units in the
+# name: deg, g; v10, v20 in m/s; g in m/s^2)
+NUMERIC_CONDITIONS = ("latitude_deg", "azimuth0_deg", "a0_g", "g", "v10", "v20")
+
+
+def _checked_conditions(attrs: dict, src: str) -> dict:
+    """The numeric test conditions of a record file checked: one finite number each (a
+    latitude within [-90, 90] deg). A :class:`RecordFileError` names the file, the attribute,
+    its value and the fix."""
+    for key in NUMERIC_CONDITIONS:
+        if key not in attrs:
+            continue
+        v = attrs[key]
+        arr = np.asarray(v)
+        if arr.ndim != 0 or arr.dtype.kind not in "iuf":
+            what = (f"{arr.size} values" if arr.ndim else f"{v!r}, not a number")
+            raise RecordFileError(f"{src}: attribute {key} is {what}; set it to one number "
+                                  f"({key} in the units its name gives, e.g. latitude_deg = "
+                                  "55.75)")
+        x = float(arr)
+        if not np.isfinite(x):
+            raise RecordFileError(f"{src}: attribute {key} is {x}; set it to a finite number")
+        if key == "latitude_deg" and not -90.0 <= x <= 90.0:
+            raise RecordFileError(f"{src}: attribute latitude_deg = {x:g} is outside [-90, 90]; "
+                                  "set the test site's latitude in deg")
+        attrs[key] = x
+    return attrs
 
 
 def _read_csv(path: Path):
@@ -137,13 +169,20 @@ def _read_csv(path: Path):
 def _read_csv_text(path: Path):
     # utf-8-sig: a spreadsheet's "CSV UTF-8" starts with a byte-order mark, which is not data
     with open(path, newline="", encoding="utf-8-sig") as fh:
-        reader = csv.reader(fh)
+        first = fh.readline()
+        fh.seek(0)
+        if first.startswith("\ufeff"):
+            first = first[1:]
+        # a spreadsheet in a locale with decimal commas writes ';'-separated files, and some
+        # tools tab-separated ones: the header says which
+        delimiter = next((d for d in (",", ";", "\t") if d in first), ",")
+        reader = csv.reader(fh, delimiter=delimiter)
         try:
             header = next(reader)
         except StopIteration:
             raise RecordFileError(f"{path}: the file is empty; expected a header row "
                                   "'t,<channel>,...' and data rows") from None
-        header = [h.strip() for h in header]
+        header = [h.strip().lstrip("\ufeff") for h in header]
         if not header or header[0] != "t":
             raise RecordFileError(f"{path}: line 1: the first column must be 't' (time in s), "
                                   f"got {header[:1]}; add a header row 't,<channel>,...'")
@@ -158,6 +197,10 @@ def _read_csv_text(path: Path):
                 rows.append([float(c) for c in row])
             except ValueError:
                 bad = next(c for c in row if not _is_float(c))
+                if _is_float(bad.replace(",", ".")):
+                    raise RecordFileError(
+                        f"{path}: line {lineno}: {bad!r} has a decimal comma; write numbers "
+                        "with a decimal point (1.5, not 1,5)") from None
                 raise RecordFileError(f"{path}: line {lineno}: non-numeric value {bad!r}; every "
                                       "data cell must be a number in SI units") from None
     if not rows:
@@ -178,11 +221,17 @@ def _is_float(s) -> bool:
 def _read_netcdf(path: Path):
     import xarray as xr
 
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    # NetCDF-3 (classic, 64-bit offset) starts with b"CDF": scipy reads it; NetCDF-4 is HDF5
+    engine = "scipy" if magic[:3] == b"CDF" else "h5netcdf"
     try:
-        ds = xr.load_dataset(path, engine="h5netcdf")
+        ds = xr.load_dataset(path, engine=engine)
     except Exception as exc:  # noqa: BLE001 - report any backend failure as a file error
-        raise RecordFileError(f"{path}: cannot be read as NetCDF ({type(exc).__name__}: {exc}); "
-                              "is the file complete and written by xarray/netCDF4?") from None
+        kind = "NetCDF-3" if engine == "scipy" else "NetCDF-4/HDF5"
+        raise RecordFileError(f"{path}: cannot be read as {kind} ({type(exc).__name__}: "
+                              f"{str(exc).splitlines()[0] if str(exc) else ''}); is the file "
+                              "complete and written by xarray/netCDF4?") from None
     if "t" not in ds.coords and "t" not in ds.variables:
         raise RecordFileError(f"{path}: no time coordinate 't'; name the time axis 't' (seconds)")
     t = np.asarray(ds["t"].values, dtype=float)

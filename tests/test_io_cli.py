@@ -271,6 +271,8 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     (["diagnose", "r.nc", "--rig", "imu", "--latitude", "-91", "--json", "x.json"],
      "latitude -91 deg is outside [-90, 90]"),
     (["simulate", "--rig", "imu", "--out", "x.nc", "--set", "sa_x=1"], "unknown parameter 'sa_x'"),
+    (["diagnose", "r.nc", "--effects", "rotor_tilt,rotor_tilt"],
+     "effects: rotor_tilt named more than once; name each effect once"),
     # every rig checks the output's type before it simulates (one helper, io.record_path)
     *[(["simulate", "--rig", rig, "--out", "x.txt"], "--out 'x.txt': use a .nc or .csv file name")
       for rig in ("imu", "platform", "schuler", "gyrotheodolite")],
@@ -378,3 +380,61 @@ def test_a_diagnosis_whose_figure_fails_writes_no_report(tmp_path, monkeypatch):
         write_together([(tmp_path / "a.json", json_writer({"a": 1})), (tmp_path / "b.png",
                                                                        failing)])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.csv"]
+
+
+def test_records_in_other_layouts_are_read_or_refused_by_name(tmp_path, record):
+    """A ';'- or tab-separated CSV reads as the comma-separated one (a decimal comma is named);
+    a NetCDF-3 file (xarray's scipy engine) reads; a folder named like a record, and numeric
+    conditions that are not one number, are refused naming the file, the attribute and the
+    fix."""
+    import xarray as xr
+
+    save_record(record, tmp_path / "r.csv")
+    text = (tmp_path / "r.csv").read_text()
+    for name, sep in (("semi.csv", ";"), ("tab.csv", "\t")):
+        (tmp_path / name).write_text(text.replace(",", sep))
+        got = load_record(tmp_path / name)
+        np.testing.assert_array_equal(got.y, load_record(tmp_path / "r.csv").y)
+    (tmp_path / "comma.csv").write_text("t;alpha1;alpha2\n0;0,5;1\n1;0,5;1\n2;0,5;1\n")
+    with pytest.raises(RecordFileError, match=r"line 2: '0,5' has a decimal comma; write "
+                                              r"numbers with a decimal point"):
+        load_record(tmp_path / "comma.csv")
+    save_record(record, tmp_path / "r.nc")
+    ds = xr.load_dataset(tmp_path / "r.nc")
+    ds.to_netcdf(tmp_path / "classic.nc", engine="scipy")
+    assert (tmp_path / "classic.nc").read_bytes()[:3] == b"CDF"
+    got = load_record(tmp_path / "classic.nc")
+    np.testing.assert_array_equal(got.y, load_record(tmp_path / "r.nc").y)
+    assert got.conditions["latitude_deg"] == 55.75
+    (tmp_path / "adir.nc").mkdir()
+    with pytest.raises(RecordFileError, match=r"adir.nc is a folder, not a record file"):
+        load_record(tmp_path / "adir.nc")
+    for value, match in (("fifty-five", r"attribute latitude_deg is 'fifty-five', not a number"),
+                         (np.array([55.0, 56.0]), r"attribute latitude_deg is 2 values"),
+                         (95.0, r"attribute latitude_deg = 95 is outside \[-90, 90\]")):
+        bad = ds.copy()
+        bad.attrs["latitude_deg"] = value
+        bad.to_netcdf(tmp_path / "bad.nc", engine="h5netcdf")
+        with pytest.raises(RecordFileError, match=r"bad.nc: " + match):
+            load_record(tmp_path / "bad.nc")
+
+
+def test_bad_record_files_exit_2_on_the_command_line(tmp_path, capsys, monkeypatch):
+    """The same refusals on the command line, one line, exit 2; an IMU's columns read as the
+    default (ESG) rig's are named, with the --rig to give."""
+    import xarray as xr
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "adir.nc").mkdir()
+    xr.Dataset({"alpha1": ("t", np.zeros(5)), "alpha2": ("t", np.zeros(5))},
+               coords={"t": np.arange(5.0)}, attrs={"latitude_deg": "fifty-five",
+                                                    "scheme": "polar"}).to_netcdf(
+        "words.nc", engine="h5netcdf")
+    (tmp_path / "imu.csv").write_text("t,wx,wy,wz,ax,ay,az\n"
+                                      + "".join(f"{i},0,0,0,0,0,9.8\n" for i in range(5)))
+    for argv, match in ((["fit", "adir.nc"], "adir.nc is a folder, not a record file"),
+                        (["diagnose", "imu.csv"], "the columns are an imu record's: add --rig imu"),
+                        (["fit", "words.nc"], "words.nc: attribute latitude_deg is 'fifty-five'")):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and match in err, err

@@ -142,6 +142,19 @@ def default_prior(rig: str = "esg", **options) -> str:
     return "shell" if entry.problem_class.single_coefficients(**options) else "design"
 
 
+def checked_effects(effects) -> tuple | None:
+    """``effects`` as a tuple of names, each named once (``None`` stays ``None``: the whole
+    catalogue). **Raises:** `ValueError` naming an effect given twice."""
+    if effects is None:
+        return None
+    effects = tuple(effects)
+    twice = sorted({e for e in effects if effects.count(e) > 1})
+    if twice:
+        raise ValueError(f"effects: {', '.join(twice)} named more than once; name each effect "
+                         "once")
+    return effects
+
+
 def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
              holdout: float = 0.25, alpha: float = 0.05, noise_std=None,
              design_advice: bool = True, max_refits: int = 3, prior: str | None = None,
@@ -219,6 +232,7 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
                          f"BH) or at least {int(np.ceil(1 / alpha)) - 1} draws (default 499)")
     options = given_options(options)
     rig = rigs.get(rig).name  # a model object (ESGRig()) names its registered rig
+    effects = checked_effects(effects)
     if prior is None:
         prior = default_prior(rig, **options)
     if prior not in PRIORS:
