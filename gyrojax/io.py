@@ -25,6 +25,7 @@ __all__ = ["RecordFileError", "load_record", "save_record", "validate_samples", 
            "write_json", "json_text", "check_times"]
 
 MIN_SAMPLES = 3
+MAX_SPAN_S = 1e9  # s (~32 years): no bench record spans more (epoch times are fine: t0 is free)
 
 
 class RecordFileError(ValueError):
@@ -49,6 +50,13 @@ def check_times(t, *, source: str = "record", min_samples: int = MIN_SAMPLES) ->
         i = int(bad[0])
         raise RecordFileError(f"{source}: t must be strictly increasing but t[{i}]={t[i]} and "
                               f"t[{i + 1}]={t[i + 1]}; sort the samples and drop duplicates")
+    span = float(t[-1] - t[0])
+    if span > MAX_SPAN_S:
+        i = int(np.argmax(np.diff(t)))
+        raise RecordFileError(f"{source}: t spans {span:.3g} s ({span / 3.15576e7:.3g} years), "
+                              f"the largest step from t[{i}]={t[i]:.6g} to t[{i + 1}]="
+                              f"{t[i + 1]:.6g}: not a bench test's times in seconds; check t's "
+                              "unit (s) and that no cell is corrupt")
     return t
 
 

@@ -438,3 +438,33 @@ def test_bad_record_files_exit_2_on_the_command_line(tmp_path, capsys, monkeypat
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and match in err, err
+
+
+def test_records_no_bench_could_give_are_refused_on_the_physics(tmp_path, record, capsys):
+    """A 24-h polar record with t in hours (the gimbals then move at 36 Earth rates), a cell of
+    1e300 rad, and a time cell of 1e300 s: ``fit`` and ``diagnose`` refuse each with one line
+    naming the channel and the unit to check, exit 2 (they gave m11 = -67,095 deg/h, or NaN
+    estimates marked converged)."""
+    rig, cond, p = design("polar", alpha0_deg=(0, 30))
+    polar = gj.simulate(rig, p, cond, TS_24H, key=jax.random.key(0), noise_std=units.ARCSEC,
+                        attrs={"scheme": "polar", "latitude_deg": 55.75})
+    save_record(polar, tmp_path / "polar.csv")
+    lines = (tmp_path / "polar.csv").read_text().splitlines()
+    hours = [lines[0]] + [",".join([repr(float(r.split(",")[0]) / 3600)] + r.split(",")[1:])
+                          for r in lines[1:]]
+    (tmp_path / "hours.csv").write_text("\n".join(hours) + "\n")
+    cell = lines[:]
+    cell[100] = ",".join([cell[100].split(",")[0], "1e300", cell[100].split(",")[2]])
+    (tmp_path / "cell.csv").write_text("\n".join(cell) + "\n")
+    tcell = lines[:]
+    tcell[-1] = ",".join(["1e300", *tcell[-1].split(",")[1:]])
+    (tmp_path / "tcell.csv").write_text("\n".join(tcell) + "\n")
+    cases = [("hours.csv", "rad in 24 s, 5"),
+             ("cell.csv", "alpha1 moves 1e+300 rad"),
+             ("tcell.csv", "t spans 1e+300 s")]
+    for name, match in cases:
+        for command in ("fit", "diagnose"):
+            assert main([command, str(tmp_path / name), "--scheme", "polar", "--latitude",
+                         "55.75"]) == 2
+            err = capsys.readouterr().err.strip()
+            assert len(err.splitlines()) == 1 and match in err, (name, command, err)

@@ -180,7 +180,7 @@ class ESGProblem(AbstractGapProblem):
         self.record = record
         self.t = np.asarray(record.t, float)
         self.y = np.asarray(record.y, float)
-        check_angle_units(self.y)
+        check_angle_units(self.y, self.t)
         self.channels = record.channels
         n = len(self.t)
         self.n_train = n - int(round(holdout * n)) if holdout > 0 else n

@@ -75,7 +75,7 @@ def _check_record(rig, record):
                          f"{list(rig.channels)}; name (and order) the record's channels as the "
                          "rig's")
     validate_samples(record.t, record.y, record.channels)
-    check_angle_units(record.y)
+    check_angle_units(record.y, record.t)
 
 
 def fit(rig, record, conditions, *, effects: Sequence[str] = (), method: str = "gauss-newton",

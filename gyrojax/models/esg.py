@@ -345,15 +345,40 @@ class ESGRig(AbstractRig):
         return (-u1 * sec, -u2), row1 + b1, row2 + b2
 
 
-def check_angle_units(y):
-    """Refuse gimbal angles ``y`` ``(n, 2)`` that cannot be radians: the model's ``alpha2`` lies
-    within +-pi/2 (the gimbal lock, spec esg-drift §3.3), so a record reaching beyond it is in
-    other units (a 24-h record in deg or arcsec: the fits end in inf/NaN, "not converged");
-    ``alpha1`` turns freely (720 deg in two days on the equatorial scheme)."""
+# the gimbals follow the Earth's rotation plus the drifts (a few deg/h at most, a fraction of the
+# Earth rate): a record whose angles move faster than this over its span is not in s and rad
+# (a day's polar record with t in hours moves at 36 Earth rates; a cell of 1e300 rad, faster)
+MAX_GIMBAL_RATE = 10.0 * units.EARTH_RATE  # rad/s
+
+
+def check_angle_units(y, t=None):
+    """Refuse gimbal angles ``y`` ``(n, 2)`` that cannot be radians over times ``t`` (s) that
+    cannot be seconds.
+
+    The model's ``alpha2`` lies within +-pi/2 (the gimbal lock, spec esg-drift §3.3), so a
+    record reaching beyond it is in other units (a 24-h record in deg or arcsec: the fits end
+    in inf/NaN, "not converged"); ``alpha1`` turns freely (720 deg in two days on the
+    equatorial scheme), but no faster than the Earth turns plus the drifts: with ``t``, the
+    range of either angle over the record's span is at most :data:`MAX_GIMBAL_RATE` (10 times
+    the Earth rate). **Raises:** `ValueError` naming the channel, the rate and the units to
+    check."""
     from ..io import check_radians
 
-    check_radians(np.asarray(y)[:, 1:2], ("alpha2",), np.pi / 2, "the gimbal lock",
+    y = np.asarray(y, float)
+    check_radians(y[:, 1:2], ("alpha2",), np.pi / 2, "the gimbal lock",
                   convert=("alpha1", "alpha2"))
+    if t is None:
+        return
+    span = float(np.asarray(t)[-1] - np.asarray(t)[0])
+    rate = np.ptp(y, axis=0) / span
+    j = int(np.argmax(rate))
+    if rate[j] > MAX_GIMBAL_RATE:
+        raise ValueError(
+            f"the record's alpha{j + 1} moves {np.ptp(y[:, j]):.3g} rad in {span:.3g} s, "
+            f"{rate[j] / units.EARTH_RATE:.3g} times the Earth rate: a gyrostabilizer's gimbals "
+            "follow the Earth's rotation, so the record is not in s and rad; check t's unit "
+            "(s: a record in hours moves 3600x too fast) and the angles' (rad), and that no "
+            "cell is corrupt")
 
 
 def _combine(columns, coefficients):
