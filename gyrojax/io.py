@@ -129,6 +129,16 @@ def load_record(path, *, channels: Sequence[str] | None = None,
         t, cols, names, attrs = _read_netcdf(path)
     else:
         raise RecordFileError(f"{src}: unknown file type {suffix!r}; use .nc (NetCDF) or .csv")
+    if not names:
+        raise RecordFileError(f"{src}: no channel after t; a record holds t and at least one "
+                              "channel (e.g. t,alpha1,alpha2)")
+    if "" in names:
+        raise RecordFileError(f"{src}: column {names.index('') + 2} has no name; name every "
+                              "channel in the header")
+    twice = sorted({c for c in names if names.count(c) > 1})
+    if twice:  # not one of them dropped unseen
+        raise RecordFileError(f"{src}: channel(s) {twice} appear more than once; name each "
+                              "column once")
     _check_channels(names, channels, src)
     keep = list(channels) if channels is not None else names
     y = np.stack([cols[names.index(c)] for c in keep], axis=-1)
