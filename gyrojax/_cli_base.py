@@ -165,10 +165,15 @@ def load(args, channels):
         raise UsageError(f"{args.record}: the built-in real data sets are strapdown IMU records; "
                          f"use --rig imu, or give a record file (.nc or .csv) of the "
                          f"{args.rig} rig")
+    from . import rigs
+    from .io import check_channel_bounds
+
     try:
-        return load_record(args.record, channels=channels)
+        record = load_record(args.record, channels=channels)
     except RecordFileError as exc:
         raise UsageError(str(exc) + _rig_hint(args, channels)) from None
+    check_channel_bounds(record, rigs.get(args.rig).model_class.CHANNEL_BOUNDS)
+    return record
 
 
 def _rig_hint(args, channels) -> str:

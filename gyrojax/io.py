@@ -93,6 +93,24 @@ def check_radians(y, channels: Sequence[str], limit: float, why: str, convert=No
                          "arcsec: x 4.84814e-6)")
 
 
+def check_channel_bounds(record, bounds) -> None:
+    """Refuse a record whose channels reach beyond ``bounds`` (a rig's ``CHANNEL_BOUNDS``:
+    ``{channel prefix: (largest magnitude in SI, the fix)}``).
+
+    **Raises:** `ValueError` naming the channel, the sample, its value, the bound and the fix."""
+    y = np.asarray(record.y, float)
+    for j, name in enumerate(record.channels):
+        bound = next((b for prefix, b in bounds.items() if name.startswith(prefix)), None)
+        if bound is None or y.ndim != 2:
+            continue
+        limit, fix = bound
+        i = int(np.argmax(np.abs(y[:, j])))
+        if abs(y[i, j]) > limit:
+            raise ValueError(f"the record's {name} reaches {y[i, j]:.4g} at sample {i} "
+                             f"(t={float(np.asarray(record.t)[i]):.6g} s), beyond what a bench "
+                             f"gives ({limit:g} in SI): {fix}, or remove the corrupt sample")
+
+
 def _check_channels(channels, expected, source):
     if expected is None:
         return

@@ -468,3 +468,31 @@ def test_records_no_bench_could_give_are_refused_on_the_physics(tmp_path, record
                          "55.75"]) == 2
             err = capsys.readouterr().err.strip()
             assert len(err.splitlines()) == 1 and match in err, (name, command, err)
+
+
+@pytest.mark.parametrize("rig, channels, value, match", [
+    ("imu", ("wx", "wy", "wz", "ax", "ay", "az"), 1e300, "the record's wx reaches 1e+300 at "
+     "sample 4 (t=4 s), beyond what a bench gives (100 in SI): gyro rates are in rad/s"),
+    ("imu", ("wx", "wy", "wz", "ax", "ay", "az"), 57.3 * 20, "gyro rates are in rad/s (from "
+     "deg/s: x 0.0174533)"),
+    ("schuler", ("V1", "V2", "rot1", "rot2", "rot3"), -1e300, "the record's V1 reaches -1e+300"),
+])
+def test_channels_beyond_any_bench_are_refused_before_the_work(tmp_path, capsys, rig, channels,
+                                                              value, match):
+    """A cell no bench gives (a corrupt 1e300, a rate table at 1146 "rad/s" that is deg/s) is
+    refused by the diagnosis and by the command line, naming the channel, the sample and the
+    fix, before any fit (they ran to NaN estimates or 'SVD did not converge')."""
+    from gyrojax.diagnose import diagnose
+    from gyrojax.record import BenchRecord
+
+    t = np.arange(40.0)
+    y = 1e-3 * np.random.default_rng(0).standard_normal((40, len(channels)))
+    y[4, 0] = value
+    rec = BenchRecord(t, y, channels, {"latitude_deg": 45.0})
+    with pytest.raises(ValueError, match=match.replace("(", r"\(").replace(")", r"\)")
+                       .replace("+", r"\+")):
+        diagnose(rec, rig=rig)
+    save_record(rec, tmp_path / "r.csv")
+    assert main(["diagnose", str(tmp_path / "r.csv"), "--rig", rig, "--latitude", "45"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and match in err, err

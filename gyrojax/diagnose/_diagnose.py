@@ -42,6 +42,7 @@ import zlib
 import numpy as np
 
 from .. import rigs
+from ..io import check_channel_bounds
 from ..record import BenchRecord
 from ._advice import _design_advice
 from ._bayes import PRIORS
@@ -242,6 +243,7 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
     t_start = time.perf_counter()
     if conditions:
         record = record.with_conditions(**dict(conditions))
+    check_channel_bounds(record, rigs.get(rig).model_class.CHANNEL_BOUNDS)
     _check_record(record, holdout)
     prob = rigs.get(rig).problem_for(record, holdout=holdout, noise_std=noise_std,
                                      effects=effects, **options)

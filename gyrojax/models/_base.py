@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import abc
+from typing import ClassVar
 
 import equinox as eqx
 
@@ -19,6 +20,11 @@ class AbstractRig(eqx.Module):
 
     Time inside a rig may be normalized: ``internal_time = t_seconds * rig.time_scale``.
     """
+
+    # the largest magnitude a channel reaches on any bench this rig models, in SI, and the fix
+    # for a record beyond it: {channel prefix: (limit, "fix")}; beyond it a record is in other
+    # units or holds a corrupt cell (gyrojax.io.check_channel_bounds, before any fit)
+    CHANNEL_BOUNDS: ClassVar[dict[str, tuple[float, str]]] = {}
 
     @property
     @abc.abstractmethod

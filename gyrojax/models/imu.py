@@ -33,6 +33,8 @@ pose may also turn at a constant rate-table rate about the vertical (:class:`Pos
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -168,6 +170,11 @@ class IMUConditions(eqx.Module):
 
 class IMURig(eqx.Module):
     """The strapdown IMU rig's parameter catalogue and measurement model (see module docstring)."""
+
+    # a rate table turns at most a few hundred deg/s; an accelerometer on a stand reads ~1 g
+    CHANNEL_BOUNDS: ClassVar[dict] = {
+        "w": (100.0, "gyro rates are in rad/s (from deg/s: x 0.0174533)"),
+        "a": (1000.0, "specific forces are in m/s^2 (from g: x 9.80665; from mg: x 0.00980665)")}
 
     @property
     def param_space(self) -> ParameterSpace:

@@ -23,6 +23,8 @@ angles give on a stand of unknown attitude (spec §8).
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import diffrax
 import equinox as eqx
 import jax
@@ -148,6 +150,10 @@ def platform_matrix(alpha1, alpha2, azimuth):
 
 class SchulerRig(AbstractRig):
     """The platform INS of the Schuler test on a fixed stand (full nonlinear model (S7))."""
+
+    # the velocity errors of a platform INS on a stand: metres per second, not thousands
+    CHANNEL_BOUNDS: ClassVar[dict] = {
+        "V": (1000.0, "velocities are in m/s (from km/h: x 0.277778; from knots: x 0.514444)")}
 
     @property
     def param_space(self) -> ParameterSpace:
