@@ -118,9 +118,8 @@ def cmd_effects(args):
     if lib:
         print(f"diagnosis catalogue (gyrojax diagnose --rig {args.rig}): "
               + ", ".join(f"{k} ({v})" for k, v in lib.items()))
-    if args.rig == "imu":
-        print("with --per-coefficient every parameter of a mean effect above is an effect of its "
-              "own, named effect:parameter (e.g. g_sensitivity:gsxy)")
+    if entry.problem and entry.problem_class.CATALOGUE_NOTE:
+        print(entry.problem_class.CATALOGUE_NOTE)
     emit_json({"rig": args.rig, "nominal": list(space.nominal_names()),
                 "effects": {e: list(space.effect_names(e)) for e in space.effects},
                 "diagnosis_catalogue": lib}, args.json)

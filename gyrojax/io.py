@@ -185,9 +185,10 @@ def _checked_conditions(attrs: dict, src: str) -> dict:
                                   f"({key} in the units its name gives, e.g. latitude_deg = "
                                   "55.75)")
         x = float(arr)
-        if not np.isfinite(x):
-            raise RecordFileError(f"{src}: attribute {key} is {x}; set it to a finite number")
-        if key == "latitude_deg" and not -90.0 <= x <= 90.0:
+        if np.isinf(x):  # NaN is "not known" (an IMU record's latitude without --latitude)
+            raise RecordFileError(f"{src}: attribute {key} is {x}; set it to a finite number "
+                                  "(or leave it out where it is not known)")
+        if key == "latitude_deg" and abs(x) > 90.0:
             raise RecordFileError(f"{src}: attribute latitude_deg = {x:g} is outside [-90, 90]; "
                                   "set the test site's latitude in deg")
         attrs[key] = x

@@ -365,6 +365,7 @@ def _record(extra, seed=1):
                         vrw=1e-3, key=jax.random.PRNGKey(seed), latitude_deg=45.0)
 
 
+@pytest.mark.slow  # two whole IMU diagnoses (~35 s); the default suite has the IMU's others
 def test_imu_diagnosis_null_and_hidden_scale_factor(tmp_path, capsys):
     """No effect -> no-gap (mean and noise model); accelerometer scale errors of 1000-3000 ppm,
     through the CLI on a CSV record -> scale_factor attributed, its refit recovers them within

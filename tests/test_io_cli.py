@@ -176,17 +176,23 @@ def test_cli_simulate_fit_observability_effects(tmp_path, capsys):
     # the record's own noise from third differences, read against the residual: 1 arcsec
     assert fit["sample_noise_arcsec"] == pytest.approx(1.0, rel=0.1)
     assert "note: the residual RMS" not in capsys.readouterr().out
-    # the same record with its times in hours: the fit "converges" to a residual of thousands
-    # of arcsec, which the note names against the noise, with the checks to make (stop 68)
+    # the same record with its times in hours: its gimbals would turn at hundreds of Earth
+    # rates, which no bench gives; refused before the fit, naming t's unit
+    from gyrojax._cli_base import misfit_note
     from gyrojax.io import load_record, save_record
     from gyrojax.record import BenchRecord
 
     r = load_record(rec)
     save_record(BenchRecord(r.t / 3600, r.y, r.channels, r.attrs), tmp_path / "hours.nc")
-    assert main(["fit", str(tmp_path / "hours.nc")]) == 0
-    note = capsys.readouterr().out.splitlines()[-1]
-    ratio = float(note.split("RMS is ")[1].split(" times")[0])
-    assert ratio > 300 and "check its units (SI: s, rad), --scheme and --latitude" in note
+    assert main(["fit", str(tmp_path / "hours.nc")]) == 2
+    err = capsys.readouterr().err
+    assert "times the Earth rate" in err and "check t's unit (s: a record in hours" in err
+    # a fit the model does not describe (beyond 10x the record's own noise) says what to check
+    note = misfit_note(489.0, "1.01 arcsec", "its units (SI: s, rad), --scheme and --latitude",
+                       "r.nc", "esg")
+    assert note.startswith("note: the residual RMS is 489 times the record's sample-to-sample "
+                           "noise (1.01 arcsec") and "gyrojax diagnose r.nc --rig esg" in note
+    assert misfit_note(9.9, "1 arcsec", "-", "r.nc", "esg") is None
     # a known noise sets Gauss-Newton's standard errors: sigma (J^T J)^-1/2 at 2 arcsec is the
     # residual estimate's times 2 / sigma_hat, and the estimates are the same fit's
     gout = tmp_path / "fit2.json"

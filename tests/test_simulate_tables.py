@@ -51,6 +51,7 @@ def test_equatorial_is_least_sensitive(tables):
     assert min(worst, key=worst.get) == "equatorial"
 
 
+@pytest.mark.slow  # compiles the batched simulation at three sizes (~20 s)
 def test_simulate_noise_batching_and_no_retrace():
     rig, cond, p = design("equatorial", alpha0_deg=(0, 30))
     ts = TS_24H[:241]

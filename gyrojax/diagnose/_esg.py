@@ -143,6 +143,7 @@ class ESGProblem(AbstractGapProblem):
     implies ``"white+flicker"``). The record's conditions must give ``scheme`` and
     ``latitude_deg``."""
 
+    NOISE_UNITS = {"alpha": (units.ARCSEC, "arcsec")}
     OPTIONS = {"order": "'exact' (model 5.1) or 'first' (the paper's 3.1)",
                "noise_model": "'white' or 'white+flicker'",
                "flicker_b": "the flicker's bias-instability coefficient B (rad)"}

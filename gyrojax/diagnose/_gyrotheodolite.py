@@ -30,6 +30,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .. import units
 from ..estimate import convergence_note, solve_least_squares
 from ..io import check_radians
 from ..models.gyrotheodolite import (
@@ -103,6 +104,8 @@ _MAX_STEPS = 40  # optimistix steps of the nominal fit and each refit
 
 class GyrotheodoliteProblem(AbstractGapProblem):
     """One north-seeking run split by time into train / held-out."""
+
+    NOISE_UNITS = {"": (units.ARCSEC, "arcsec")}
 
     @classmethod
     def catalogue(cls, **options) -> dict:

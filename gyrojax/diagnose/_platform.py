@@ -202,6 +202,7 @@ class PlatformProblem(AbstractGapProblem):
     (default all but ``oo``; each coefficient left out is screened as an effect of its own);
     `blocks`: block means per dwell."""
 
+    NOISE_UNITS = {"": (units.ARCSEC, "arcsec")}
     OPTIONS = {"split": "'same-design' (default) or 'design-shift'",
                "nominal_terms": "the drift-law terms of the nominal model, e.g. ('f', 'i', 'o', "
                                 "'s')",

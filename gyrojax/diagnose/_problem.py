@@ -44,10 +44,22 @@ class AbstractGapProblem(abc.ABC):
 
     **Class attributes:** `OPTIONS`: the rig options the constructor takes beyond ``holdout``,
     ``noise_std`` and ``effects``, ``{name: one-line help}``. `SPLITS`: the held-out plans,
-    ``{name: description}`` (one for most rigs).
+    ``{name: description}`` (one for most rigs). `CATALOGUE_NOTE`: a line ``gyrojax effects``
+    prints under the catalogue (empty: none). `NOISE_UNITS`: how the report shows a channel's
+    noise level, ``{channel prefix: (scale in SI, unit)}`` (the first prefix a channel starts
+    with; none: SI).
     """
 
     OPTIONS: ClassVar[Mapping[str, str]] = {}
+    CATALOGUE_NOTE: ClassVar[str] = ""
+    NOISE_UNITS: ClassVar[Mapping[str, tuple[float, str]]] = {}
+
+    @classmethod
+    def noise_text(cls, channel: str, std: float) -> str:
+        """A channel's noise level ``std`` (SI) in its engineering unit (:attr:`NOISE_UNITS`)."""
+        scale, unit = next((u for prefix, u in cls.NOISE_UNITS.items()
+                            if channel.startswith(prefix)), (1.0, "(SI)"))
+        return f"{std / scale:.3g} {unit}"
     SPLITS: ClassVar[Mapping[str, str]] = {
         "time-ordered": "time-ordered (held-out = the record's end)"}
 

@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 
-from .. import units
 from ._records import Candidate, Refit, Verdict, json_clean
 
 __all__ = ["GapReport"]
@@ -166,8 +165,7 @@ class GapReport:
                              f"{', '.join(sep['do_not_transfer'])} fits the train part only "
                              "(the verdict stays ambiguous: the held-out gap checks an "
                              "attribution, it does not make one)")
-        sig = ", ".join(f"{ch} {_noise_text(self.rig, ch, s)}"
-                        for ch, s in zip(self.channels, self.noise["std"]))
+        sig = ", ".join(f"{ch} {shown}" for ch, shown in zip(self.channels, self.noise["shown"]))
         lines.append(f"Noise level: {sig} ({self.noise['source']}); train gap {self.gap['train']:.3g}")
         ratio = math.sqrt(max(1.0 + self.gap["train"], 0.0))
         if ratio > UNITS_CHECK_RATIO:
@@ -384,14 +382,3 @@ def _grid_text(r) -> str:
     return (f"{r.name} {g['name']} {located}{g['best']:.3g}{unit} at the largest score, "
             f"posterior {g['posterior'][mode]:.2f} at {g['values'][mode]:.3g}{unit}, 90 % within "
             f"{lo:.3g}-{hi:.3g}{unit} (mass {held:.2f}), flag taken at {g['flag_at']:.3g}{unit}")
-
-
-def _noise_text(rig: str, channel: str, s: float) -> str:
-    """A channel's noise level in its engineering unit."""
-    if rig in ("esg", "platform", "gyrotheodolite"):
-        return f"{s / units.ARCSEC:.3g} arcsec"
-    if rig == "schuler":
-        return f"{s:.3g} m/s" if channel.startswith("V") else f"{s / units.ARCMIN:.3g} arcmin"
-    if channel.startswith("w"):
-        return f"{s:.3g} rad/s"
-    return f"{s:.3g} m/s^2" if channel.startswith("a") else f"{s:.3g}"

@@ -76,6 +76,8 @@ def _residual(rig, cond, ts, y, params):
 class SchulerProblem(AbstractGapProblem):
     """One Schuler-test record split by time into train / held-out."""
 
+    NOISE_UNITS = {"V": (1.0, "m/s"), "": (units.ARCMIN, "arcmin")}
+
     @classmethod
     def catalogue(cls, **options) -> dict:
         """The catalogue: effect name -> family."""
