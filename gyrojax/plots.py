@@ -8,9 +8,9 @@ from . import units
 
 
 def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
+    """pyplot, on whatever backend the session has: none is chosen or switched here (a
+    notebook's inline figures keep showing; with no display, matplotlib itself falls back to
+    Agg)."""
     import matplotlib.pyplot as plt
 
     return plt
@@ -38,9 +38,12 @@ def figure_writer(fig, path):
 
 
 def _save(fig, path):
+    """Save ``fig`` to ``path`` and close it in pyplot (a figure written to a file is not
+    shown again, and a loop of saved plots keeps no figure open); it stays a figure to use."""
     from .io import atomic_write
 
     atomic_write(path, figure_writer(fig, path))
+    _plt().close(fig)
 
 
 def plot_fit(rig, record, conditions, report, path=None):

@@ -502,3 +502,24 @@ def test_channels_beyond_any_bench_are_refused_before_the_work(tmp_path, capsys,
     assert main(["diagnose", str(tmp_path / "r.csv"), "--rig", rig, "--latitude", "45"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and match in err, err
+
+
+def test_a_plot_keeps_the_sessions_matplotlib_backend(tmp_path):
+    """A notebook's backend (here svg) is the same after gyrojax draws and saves a figure (it
+    was switched to Agg, and later inline figures stopped showing), and a saved figure is
+    closed in pyplot (none left open)."""
+    import subprocess
+    import sys
+
+    code = ("import matplotlib, numpy as np\n"
+            "import gyrojax.plots as P\n"
+            "plt = P._plt()\n"
+            "fig, ax = plt.subplots()\n"
+            "ax.plot(np.arange(3.0))\n"
+            f"P._save(fig, {str(tmp_path / 'f.png')!r})\n"
+            "print(matplotlib.get_backend(), plt.get_fignums())\n")
+    env = dict(os.environ, MPLBACKEND="svg")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["svg", "[]"]
+    assert (tmp_path / "f.png").read_bytes()[:4] == b"\x89PNG"
