@@ -141,7 +141,7 @@ class ESGCommands(AbstractRigCommands):
         if not np.all(np.isfinite(np.asarray(rec.y))):
             raise UsageError("the simulation left the model's domain (gimbal lock, cos alpha2 = "
                              "0); shorten --hours or change --alpha0/--scheme")
-        save_record(rec, out)
+        save_record(rec, out, units=rig.CHANNEL_UNITS)
         print(f"wrote {out}: {ts.size} samples over {hours} h, scheme {scheme}, latitude "
               f"{lat} deg")
         print(space.table(params, names=[k for k in space.names

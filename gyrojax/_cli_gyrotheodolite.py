@@ -54,7 +54,7 @@ def simulate(args):
               noise_std=noise * units.ARCSEC,
               attrs={"rig": "gyrotheodolite", "latitude_deg": lat,
                      "noise_arcsec": noise, "seed": args.seed}, **ODE_OPTIONS)
-    save_record(rec, out)
+    save_record(rec, out, units=rig.CHANNEL_UNITS)
     shown = [k for k in space.names if float(params[k]) != space[k].null or k in sets]
     print(f"wrote {out}: {ts.size} samples over {hours * 60:.1f} min, latitude {lat} deg, "
           f"pick-off noise {noise} arcsec")

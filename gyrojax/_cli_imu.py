@@ -90,7 +90,7 @@ def simulate(args):
                        key=jax.random.key(args.seed))
     rec = rec.with_conditions(rig="imu", arw_deg_per_sqrt_h=args.arw,
                               vrw_mps_per_sqrt_h=args.vrw, seed=args.seed)
-    save_record(rec, out)
+    save_record(rec, out, units=IMURig.CHANNEL_UNITS)
     shown = [k for k in space.names if float(params[k]) != space[k].null or k in sets]
     print(f"wrote {out}: {rec.n_samples} samples, {args.poses} poses of {args.dwell:g} s at "
           f"{rate_hz:g} Hz, ARW {args.arw:g} deg/sqrt(h), VRW {args.vrw:g} m/s/sqrt(h)"

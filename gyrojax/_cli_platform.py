@@ -30,7 +30,7 @@ def simulate(args):
     params = space.make(TRUE_TABLE2, display=True) | parse_sets(args.set, space)
     rec = simulate_schedule(params, s, jax.random.key(args.seed), noise_arcsec=args.noise_arcsec)
     ts = dwell_times(s)
-    save_record(rec, out)
+    save_record(rec, out, units=PlatformRig.CHANNEL_UNITS)
     print(f"wrote {out}: {len(s['positions_deg'])} positions x "
           f"{len(s['table_amplitudes_g'])} amplitudes ({s['table_amplitudes_g']} g), "
           f"{len(ts)} samples per dwell")

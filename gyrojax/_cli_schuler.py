@@ -83,7 +83,7 @@ def simulate(args):
     attrs = {"rig": "schuler", "latitude_deg": lat, "v10": float(cond.v10),
              "v20": float(cond.v20), "azimuth0_deg": 0.0, "g": float(cond.g),
              "sigma_v": sigma_v, "sigma_arcmin": args.sigma_arcmin, "seed": args.seed}
-    save_record(BenchRecord(ts, y, CHANNELS, freeze(attrs)), out)
+    save_record(BenchRecord(ts, y, CHANNELS, freeze(attrs)), out, units=rig.CHANNEL_UNITS)
     print(f"wrote {out}: {ts.size} samples over {span / 60:.1f} min ({args.periods} Schuler "
           f"periods of {float(cond.schuler_period) / 60:.3f} min), latitude {lat} deg")
     print(space.table(params, names=shown))

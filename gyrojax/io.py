@@ -399,8 +399,12 @@ def record_path(path, option: str = "--out") -> Path:
     return out
 
 
-def save_record(record: BenchRecord, path) -> Path:
-    """Write a (single, unbatched) record to ``.nc`` or ``.csv`` atomically."""
+def save_record(record: BenchRecord, path, *, units: Mapping[str, str] | None = None) -> Path:
+    """Write a (single, unbatched) record to ``.nc`` or ``.csv`` atomically.
+
+    ``units``: each channel's unit in CF notation, ``{channel prefix: unit}`` (a rig's
+    ``CHANNEL_UNITS``, e.g. ``{"w": "rad s-1", "a": "m s-2"}``), written as the NetCDF
+    channels' ``units`` attribute; a channel it does not name is written ``"SI"``."""
     path = Path(path)
     if record.t.ndim != 1:
         raise ValueError(f"save_record: record is batched (t.shape={record.t.shape}); save one "
@@ -421,7 +425,8 @@ def save_record(record: BenchRecord, path) -> Path:
         ds = xr.Dataset({c: ("t", y[:, j]) for j, c in enumerate(record.channels)},
                         coords={"t": ("t", t, {"units": "s"})})
         for c in record.channels:
-            ds[c].attrs["units"] = "SI"
+            ds[c].attrs["units"] = next((u for prefix, u in (units or {}).items()
+                                         if c.startswith(prefix)), "SI")
         ds.attrs.update({k: (v if isinstance(v, (int, float, str)) else json.dumps(v))
                          for k, v in record.conditions.items()})
 

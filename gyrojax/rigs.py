@@ -30,7 +30,9 @@ class RigEntry:
     """One rig.
 
     - `name`: the ``--rig`` name; `summary`: one line for ``--help``.
-    - `model`: its model class (an :class:`~gyrojax.models.AbstractRig`), ``"module:Class"``.
+    - `model`: its model class (an :class:`~gyrojax.models.AbstractRig`), ``"module:Class"``:
+      its record channels (``channels``) with their SI units (``CHANNEL_UNITS``, read by
+      :meth:`channel_units`) and bounds (``CHANNEL_BOUNDS``).
     - `conditions`: its test-conditions class (``create(...)`` from values, ``from_record``
       from a record's attributes).
     - `problem`: its diagnosis problem class, or ``None`` (no ``gyrojax diagnose --rig``).
@@ -48,6 +50,14 @@ class RigEntry:
     @property
     def model_class(self):
         return _resolve(self.model)
+
+    def channel_units(self, channels=None) -> dict:
+        """Each record channel's SI unit in CF notation (the model's ``CHANNEL_UNITS``):
+        ``{channel: unit}`` over ``channels`` (default: the model's own)."""
+        table = self.model_class.CHANNEL_UNITS
+        channels = self.model_class().channels if channels is None else channels
+        return {c: next((u for p, u in table.items() if c.startswith(p)), "SI")
+                for c in channels}
 
     @property
     def conditions_class(self):

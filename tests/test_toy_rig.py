@@ -28,6 +28,10 @@ def test_a_registered_sixth_rig_runs_every_command(turntable, tmp_path, capsys):
     for path, ramp in ((clean, "0"), (rec, "3")):
         assert main(["simulate", "--rig", "turntable", "--out", str(path), "--set", "b=2",
                      "--set", "k=500", "--set", f"r={ramp}", "--seed", "1"]) == 0
+    import xarray as xr
+
+    with xr.open_dataset(rec, engine="h5netcdf") as ds:  # the channel's unit, as CF writes it
+        assert ds["angle"].attrs["units"] == "rad" and ds["t"].attrs["units"] == "s"
     out = tmp_path / "fit.json"
     assert main(["fit", str(clean), "--rig", "turntable", "--json", str(out)]) == 0
     fit = json.loads(out.read_text())["parameters"]
@@ -69,6 +73,12 @@ def test_the_registry_names_the_rig_and_refuses_an_unknown_one(turntable):
     from gyrojax.models import AbstractRig
 
     assert rigs.get(toy_rig.TurntableRig()) is rigs.get("turntable")
+    # the record channels with their SI units, named by the rig (CF notation)
+    assert rigs.get("turntable").channel_units() == {"angle": "rad"}
+    assert rigs.get("imu").channel_units() == {"wx": "rad s-1", "wy": "rad s-1", "wz": "rad s-1",
+                                                "ax": "m s-2", "ay": "m s-2", "az": "m s-2"}
+    assert rigs.get("schuler").channel_units(("V1", "rot3", "temp")) == {
+        "V1": "m s-1", "rot3": "rad", "temp": "SI"}
     assert rigs.get(ESGRig).name == "esg"
 
     class Carousel(AbstractRig):

@@ -45,6 +45,7 @@ class TurntableConditions(eqx.Module):
 
 
 class TurntableRig(AbstractRig):
+    CHANNEL_UNITS = {"angle": "rad"}
     param_space = SPACE
     channels = CHANNELS
     time_scale = 1.0
@@ -142,7 +143,7 @@ class TurntableCommands(AbstractRigCommands):
                        key=jax.random.key(args.seed),
                        noise_std=(args.noise_arcsec or 1.0) * units.ARCSEC,
                        attrs={"rig": "turntable", "omega0_dps": args.omega0})
-        save_record(rec, args.out)
+        save_record(rec, args.out, units=TurntableRig.CHANNEL_UNITS)
         emit_json({"record": args.out}, args.json)
 
     def fit(self, args):

@@ -25,6 +25,9 @@ class AbstractRig(eqx.Module):
     # for a record beyond it: {channel prefix: (limit, "fix")}; beyond it a record is in other
     # units or holds a corrupt cell (gyrojax.io.check_channel_bounds, before any fit)
     CHANNEL_BOUNDS: ClassVar[dict[str, tuple[float, str]]] = {}
+    # each record channel's SI unit in CF notation ({channel prefix: unit}, e.g. "rad s-1"),
+    # written into a NetCDF record's channel attributes
+    CHANNEL_UNITS: ClassVar[dict[str, str]] = {}
 
     @property
     @abc.abstractmethod

@@ -34,7 +34,7 @@ mounting errors (``theta`` and the base parameters) with the ``O(m dchi)`` effec
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 import equinox as eqx
 import jax
@@ -122,6 +122,8 @@ class ESGRig(AbstractRig):
       ``eps . u = 0``; build with :meth:`for_scheme` to choose it from the scheme.
     - `order`: ``"exact"`` (model 5.1) or ``"first"`` (model 3.1).
     """
+
+    CHANNEL_UNITS: ClassVar[dict] = {"alpha": "rad"}
 
     base_param: Literal["eps", "eps_free", "rotvec", "euler"] = eqx.field(static=True,
                                                                         default="eps")

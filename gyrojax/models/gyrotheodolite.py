@@ -42,6 +42,8 @@ in a single run: only a second run at another rotor momentum ``H`` separates the
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import diffrax
 import equinox as eqx
 import jax
@@ -152,6 +154,8 @@ class GyrotheodoliteRig(AbstractRig):
     docstring). ``vibration_torque``: include the pendulous products ``mgl (gamma n_X + beta n_Z)``
     of (1); switching it off leaves only the mechanism the §9 compensation formula describes.
     """
+
+    CHANNEL_UNITS: ClassVar[dict] = {"alpha": "rad"}
 
     roll_rate_coupling: bool = eqx.field(static=True, default=True)
     vibration_torque: bool = eqx.field(static=True, default=True)

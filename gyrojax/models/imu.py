@@ -175,6 +175,7 @@ class IMURig(eqx.Module):
     CHANNEL_BOUNDS: ClassVar[dict] = {
         "w": (100.0, "gyro rates are in rad/s (from deg/s: x 0.0174533)"),
         "a": (1000.0, "specific forces are in m/s^2 (from g: x 9.80665; from mg: x 0.00980665)")}
+    CHANNEL_UNITS: ClassVar[dict] = {"w": "rad s-1", "a": "m s-2"}
 
     @property
     def param_space(self) -> ParameterSpace:

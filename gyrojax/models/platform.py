@@ -32,7 +32,7 @@ Channels: ``alpha beta gamma`` (rad) and ``ax ay az`` (specific force on the pla
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 import equinox as eqx
 import jax
@@ -231,6 +231,9 @@ class PlatformConditions(eqx.Module):
 
 class PlatformRig(AbstractRig):
     """The platform rig. ``drift_model``: ``"averaged"`` (S14) or ``"instantaneous"`` (S10)."""
+
+    CHANNEL_UNITS: ClassVar[dict] = {"alpha": "rad", "beta": "rad", "gamma": "rad", "ax": "m s-2",
+                                     "ay": "m s-2", "az": "m s-2", "position": "1", "amplitude": "1"}
 
     drift_model: Literal["averaged", "instantaneous"] = eqx.field(static=True,
                                                                    default="averaged")

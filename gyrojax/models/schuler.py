@@ -154,6 +154,7 @@ class SchulerRig(AbstractRig):
     # the velocity errors of a platform INS on a stand: metres per second, not thousands
     CHANNEL_BOUNDS: ClassVar[dict] = {
         "V": (1000.0, "velocities are in m/s (from km/h: x 0.277778; from knots: x 0.514444)")}
+    CHANNEL_UNITS: ClassVar[dict] = {"V": "m s-1", "rot": "rad"}
 
     @property
     def param_space(self) -> ParameterSpace:
