@@ -488,6 +488,7 @@ def test_channels_beyond_any_bench_are_refused_before_the_work(tmp_path, capsys,
     """A cell no bench gives (a corrupt 1e300, a rate table at 1146 "rad/s" that is deg/s) is
     refused by the diagnosis and by the command line, naming the channel, the sample and the
     fix, before any fit (they ran to NaN estimates or 'SVD did not converge')."""
+    from gyrojax import rigs
     from gyrojax.diagnose import diagnose
     from gyrojax.record import BenchRecord
 
@@ -495,6 +496,11 @@ def test_channels_beyond_any_bench_are_refused_before_the_work(tmp_path, capsys,
     y = 1e-3 * np.random.default_rng(0).standard_normal((40, len(channels)))
     y[4, 0] = value
     rec = BenchRecord(t, y, channels, {"latitude_deg": 45.0})
+    # an auxiliary channel (a supply in mV) is not bounded as the specific forces are
+    from gyrojax.io import check_channel_bounds
+
+    check_channel_bounds(BenchRecord(t, np.full((40, 1), 5000.0), ("aux1",), {}),
+                         rigs.get(rig).model_class.CHANNEL_BOUNDS)
     with pytest.raises(ValueError, match=match.replace("(", r"\(").replace(")", r"\)")
                        .replace("+", r"\+")):
         diagnose(rec, rig=rig)

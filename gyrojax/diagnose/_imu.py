@@ -108,7 +108,8 @@ class IMUProblem(AbstractGapProblem):
                                   "its own (family:parameter)",
                "block_s": "block-mean length in s (default: at most max_rows rows)",
                "max_rows": "the most block-mean rows (default 1500)"}
-    NOISE_UNITS = {"w": (1.0, "rad/s"), "a": (1.0, "m/s^2")}
+    NOISE_UNITS = {"wx": (1.0, "rad/s"), "wy": (1.0, "rad/s"), "wz": (1.0, "rad/s"),
+                   "ax": (1.0, "m/s^2"), "ay": (1.0, "m/s^2"), "az": (1.0, "m/s^2")}
     CATALOGUE_NOTE = ("with --per-coefficient every parameter of a mean effect above is an effect "
                       "of its own, named effect:parameter (e.g. g_sensitivity:gsxy)")
 

@@ -172,10 +172,14 @@ class IMURig(eqx.Module):
     """The strapdown IMU rig's parameter catalogue and measurement model (see module docstring)."""
 
     # a rate table turns at most a few hundred deg/s; an accelerometer on a stand reads ~1 g
+    # (the names in full: an auxiliary channel such as aux1 or a supply voltage is not bounded)
     CHANNEL_BOUNDS: ClassVar[dict] = {
-        "w": (100.0, "gyro rates are in rad/s (from deg/s: x 0.0174533)"),
-        "a": (1000.0, "specific forces are in m/s^2 (from g: x 9.80665; from mg: x 0.00980665)")}
-    CHANNEL_UNITS: ClassVar[dict] = {"w": "rad s-1", "a": "m s-2"}
+        **{c: (100.0, "gyro rates are in rad/s (from deg/s: x 0.0174533)")
+           for c in ("wx", "wy", "wz")},
+        **{c: (1000.0, "specific forces are in m/s^2 (from g: x 9.80665; from mg: x "
+                       "0.00980665)") for c in ("ax", "ay", "az")}}
+    CHANNEL_UNITS: ClassVar[dict] = {"wx": "rad s-1", "wy": "rad s-1", "wz": "rad s-1",
+                                     "ax": "m s-2", "ay": "m s-2", "az": "m s-2"}
 
     @property
     def param_space(self) -> ParameterSpace:
