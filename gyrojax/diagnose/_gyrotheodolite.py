@@ -158,8 +158,8 @@ class GyrotheodoliteProblem(AbstractGapProblem):
                                          for k in sp.effect_names(e)
                                          if k != GYROTHEODOLITE_LIBRARY[e][1])
         self.all_scales = sp.scales(self.all_names)
-        # one onset every 5 % of the record over the train span (14 on the 40-min design; 8,
-        # 11 % of the span apart, before stop 44; a torque step's visible fraction rises from
+        # one onset every 5 % of the record over the train span (14 on the 40-min design; a
+        # grid 11 % of the span apart is too coarse: a torque step's visible fraction rises from
         # 0.003 at 11 % of the span through 0.05 at ~19 % to 0.09 at 22 %)
         self.step_grid_s = tuple(float(x) for x in onset_grid(self.t, self.n_train))
         self.lines = {"north-seeking period": period}

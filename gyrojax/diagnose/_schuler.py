@@ -116,7 +116,7 @@ class SchulerProblem(AbstractGapProblem):
             [sp[k].display_factor for k in self.nominal_names])
         self.effect_names = {e: tuple(k for k in sp.effect_names(e)
                                       if k != SCHULER_LIBRARY[e][1]) for e in self.effects}
-        # one onset every 5 % of the record over the train span (14 on D5; 8 before stop 44)
+        # one onset every 5 % of the record over the train span (14 on D5)
         self.step_grid_s = tuple(float(x) for x in onset_grid(self.t, self.n_train))
         self.lines = {"Schuler period": period, "half Schuler period": period / 2}
         self.notes: list[str] = []

@@ -389,7 +389,7 @@ def _posteriors(rows, prior_none):
     not a candidate cause of one, and gets posterior 0. Given the prior share, its factor of 1
     took mass from every visible effect: on the IMU's still stand, whose nine gyro scale
     factors and misalignments have no signature, the top posterior's ECE went 0.095 -> 0.057
-    and the 90 % sets shrank (docs/notes.md, stop 72)."""
+    and the 90 % sets shrank (benchmarks/RESULTS.md)."""
     for r in rows:
         r.posterior = 0.0
     seen = [r for r in rows if has_signature(r)]

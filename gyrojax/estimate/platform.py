@@ -139,7 +139,7 @@ def cumulative_trapezoid(f, ts):
 
     A ``lax.scan`` adds the increments in time order, as ``numpy.cumsum`` does; ``jnp.cumsum``
     lowers to a ``reduce_window`` as long as the axis, which XLA's CPU backend runs ~4x slower
-    on a dwell's 4,000 x 90 columns (docs/notes.md, stop 61)."""
+    on a dwell's 4,000 x 90 columns."""
     dt = jnp.diff(ts).reshape((-1,) + (1,) * (f.ndim - 1))
     inc = 0.5 * (f[1:] + f[:-1]) * dt
 

@@ -16,7 +16,7 @@ errors projected out, computed here from the truth model (the test's residuals o
 the manifest's ``lambda_signal`` is the energy of the integrated signal itself, projected the
 same way. They agree to ~1e-4 except for ``accelerometer_cross_axis``, whose signal is a product
 of the cross-axis terms with the Schuler oscillation's own tilts: at arcminute coefficients it
-is 0.74-1.19 of ``lambda`` (median 1.00, stop 67).
+is 0.74-1.19 of ``lambda`` (median 1.00; ``tests/test_bench_truth.py``).
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ CHANNELS = ("V1", "V2", "rot1", "rot2", "rot3")
 @dataclasses.dataclass(frozen=True)
 class SchulerDesign:
     """D5: the Schuler test on a fixed stand, ``hours`` long (the spec's 4 h, ~2.84 Schuler
-    periods; 2 periods before stop 54) at ``sample_s``."""
+    periods) at ``sample_s``."""
 
     hours: float = 4.0
     sample_s: float = 10.0
