@@ -93,6 +93,13 @@ def check_radians(y, channels: Sequence[str], limit: float, why: str, convert=No
                          "arcsec: x 4.84814e-6)")
 
 
+def by_channel(table, channel: str, default=None):
+    """The entry of ``table`` (``{channel prefix: value}``, a rig's ``CHANNEL_BOUNDS``,
+    ``CHANNEL_UNITS`` or ``NOISE_UNITS``) for ``channel``: the first prefix it starts with, or
+    ``default``."""
+    return next((v for prefix, v in table.items() if channel.startswith(prefix)), default)
+
+
 def check_channel_bounds(record, bounds) -> None:
     """Refuse a record whose channels reach beyond ``bounds`` (a rig's ``CHANNEL_BOUNDS``:
     ``{channel prefix: (largest magnitude in SI, the fix)}``).
@@ -100,7 +107,7 @@ def check_channel_bounds(record, bounds) -> None:
     **Raises:** `ValueError` naming the channel, the sample, its value, the bound and the fix."""
     y = np.asarray(record.y, float)
     for j, name in enumerate(record.channels):
-        bound = next((b for prefix, b in bounds.items() if name.startswith(prefix)), None)
+        bound = by_channel(bounds, name)
         if bound is None or y.ndim != 2:
             continue
         limit, fix = bound
@@ -425,8 +432,7 @@ def save_record(record: BenchRecord, path, *, units: Mapping[str, str] | None = 
         ds = xr.Dataset({c: ("t", y[:, j]) for j, c in enumerate(record.channels)},
                         coords={"t": ("t", t, {"units": "s"})})
         for c in record.channels:
-            ds[c].attrs["units"] = next((u for prefix, u in (units or {}).items()
-                                         if c.startswith(prefix)), "SI")
+            ds[c].attrs["units"] = by_channel(units or {}, c, "SI")
         ds.attrs.update({k: (v if isinstance(v, (int, float, str)) else json.dumps(v))
                          for k, v in record.conditions.items()})
 

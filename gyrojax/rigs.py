@@ -56,8 +56,9 @@ class RigEntry:
         ``{channel: unit}`` over ``channels`` (default: the model's own)."""
         table = self.model_class.CHANNEL_UNITS
         channels = self.model_class().channels if channels is None else channels
-        return {c: next((u for p, u in table.items() if c.startswith(p)), "SI")
-                for c in channels}
+        from .io import by_channel
+
+        return {c: by_channel(table, c, "SI") for c in channels}
 
     @property
     def conditions_class(self):

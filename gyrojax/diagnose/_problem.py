@@ -57,8 +57,9 @@ class AbstractGapProblem(abc.ABC):
     @classmethod
     def noise_text(cls, channel: str, std: float) -> str:
         """A channel's noise level ``std`` (SI) in its engineering unit (:attr:`NOISE_UNITS`)."""
-        scale, unit = next((u for prefix, u in cls.NOISE_UNITS.items()
-                            if channel.startswith(prefix)), (1.0, "(SI)"))
+        from ..io import by_channel
+
+        scale, unit = by_channel(cls.NOISE_UNITS, channel, (1.0, "(SI)"))
         return f"{std / scale:.3g} {unit}"
     SPLITS: ClassVar[Mapping[str, str]] = {
         "time-ordered": "time-ordered (held-out = the record's end)"}
