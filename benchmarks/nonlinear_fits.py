@@ -9,7 +9,7 @@ kept the speed of the hand-written loops it replaced. The records are simulated 
 compiles (reported apart).
 
     python benchmarks/nonlinear_fits.py [--repeat 3] [--out benchmarks/RESULTS.md]
-        [--label after] [--json times.json]
+        [--label after] [--json times.json] [--compilation-cache DIR]
 """
 
 from __future__ import annotations
@@ -96,7 +96,17 @@ def main(argv=None):
                     help="--json files of earlier runs of this commit: each figure is the "
                          "smallest over them and this run (runs interleaved with the other "
                          "commit's take the machine's drift out of the ratio)")
+    ap.add_argument("--compilation-cache", metavar="DIR",
+                    help="JAX's persistent compilation cache in DIR (set directly, so any "
+                         "commit can use it): a second run's first calls load what the first "
+                         "compiled")
     a = ap.parse_args(argv)
+    if a.compilation_cache:
+        import jax
+
+        jax.config.update("jax_compilation_cache_dir", a.compilation_cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         for rig in a.rigs.split(","):

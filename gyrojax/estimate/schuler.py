@@ -185,12 +185,13 @@ class _FitOutcome(NamedTuple):
 
 
 def _fit_prior(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names=THETA_NAMES,
-               fixed=None, mask=None):
+               fixed=None, mask=None, step_se_tol=1e-2):
     """Prior-regularised least squares over ``names`` (prior sd ``sig``, start ``u0`` in prior
     units) by :func:`~gyrojax.estimate.solve_least_squares` (optimistix, trust-region
     Levenberg-Marquardt); ``fixed``: other parameters held at given values (an effect's decay
     time...); ``mask`` (per name, default all 1): a name with 0 is held at its start (its
-    Jacobian column and prior row zeroed, so the damped step leaves it).
+    Jacobian column and prior row zeroed, so the damped step leaves it); ``step_se_tol``: the
+    fit stops when the Gauss-Newton step left is under this many standard errors.
 
     ``weights`` broadcast to per-sample (N, 5), the mask and the step budget ``max_iter``
     passed as arrays before the jit boundary, so every caller (a staged first pass, refits of
@@ -208,14 +209,17 @@ def _fit_prior(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names=TH
         raise ValueError(f"max_iter={max_iter}: give 1 to {_MAX_STEPS} optimistix steps")
     return _fit_prior_jit(rig, conditions, jnp.asarray(ts, dtype=float), y, weights,
                           jnp.asarray(sig, dtype=float), jnp.asarray(u0, dtype=float),
-                          jnp.asarray(int(max_iter)), jnp.asarray(float(tol)), names, fixed, mask)
+                          jnp.asarray(int(max_iter)), jnp.asarray(float(tol)), names, fixed, mask,
+                          jnp.asarray(float(step_se_tol)))
 
 
+_START_SE = 0.5  # the staged first pass's stop, in standard errors of its own fit
 _MAX_STEPS = 200  # the compiled bound; each call's budget is a traced max_iter below it
 
 
 @eqx.filter_jit
-def _fit_prior_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names, fixed, mask):
+def _fit_prior_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, names, fixed, mask,
+                   step_se_tol):
     def resid(u, _):
         params = fixed | dict(zip(names, u * mask * sig, strict=True))
         # a trial step that leaves the solver's reach gives a non-finite cost: it is rejected
@@ -224,7 +228,7 @@ def _fit_prior_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, name
         return jnp.concatenate([(r * weights).ravel(), u * mask])
 
     sol = solve_least_squares(resid, u0 * mask, max_steps=_MAX_STEPS, budget=max_iter,
-                              solver=ScaledLevenbergMarquardt(atol=tol))
+                              step_se_tol=step_se_tol, solver=ScaledLevenbergMarquardt(atol=tol))
     u = sol.value * mask
     _, cov, _ = scaled_lstsq(sol.jacobian, sol.residual)
     params = fixed | dict(zip(names, u * sig, strict=True))
@@ -265,7 +269,10 @@ def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_
     if staged and float(ts[-1] - ts[0]) > 1.2 * period:
         n1 = int(np.searchsorted(np.asarray(ts), float(ts[0]) + period)) + 1
         first = (jnp.arange(y.shape[0]) < n1)[:, None]
-        u = _fit_prior(rig, conditions, ts, y, w * first, sig, u, max_iter, tol).theta / sig
+        # the first pass is the full fit's start: within half a standard error of its own
+        # optimum is close enough (the full fit takes it from there)
+        u = _fit_prior(rig, conditions, ts, y, w * first, sig, u, max_iter, tol,
+                       step_se_tol=_START_SE).theta / sig
     gn = _fit_prior(rig, conditions, ts, y, w, sig, u, max_iter, tol)
     return SchulerEstimate(names=THETA_NAMES, values=gn.theta,
                            stderr=jnp.sqrt(jnp.diagonal(gn.covariance)),
