@@ -13,6 +13,7 @@ from . import earth as earth
 from . import rigs as rigs
 from . import rotations as rotations
 from . import units as units
+from ._cache import enable_compilation_cache as enable_compilation_cache  # noqa: E402
 from .analysis.observability import observability as observability  # noqa: E402
 from .estimate import fit as fit  # noqa: E402
 from .estimate import fit_trajectory as fit_trajectory
@@ -42,4 +43,4 @@ from .simulate import grid_steps as grid_steps  # noqa: E402
 from .simulate import integrate as integrate  # noqa: E402
 from .simulate import simulate as simulate
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

@@ -482,6 +482,9 @@ def _foreign_options(parser, args) -> None:
 
 
 def main(argv=None) -> int:
+    from ._cache import enable_compilation_cache
+
+    enable_compilation_cache()  # a later run loads its compiled fits ($GYROJAX_COMPILATION_CACHE)
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     if extra:  # named by the command whose options they are not, with its usage
