@@ -1,6 +1,7 @@
-"""BenchRecord <-> NetCDF / CSV files, validated at the boundary, written atomically.
+"""BenchRecord <-> NetCDF / CSV files, xarray data sets and pandas data frames, validated at the
+boundary, written atomically.
 
-Contract (DESIGN.md): time ``t`` in s, strictly increasing (first CSV column); one column or
+Contract: time ``t`` in s, strictly increasing (first CSV column); one column or
 variable per channel in SI units; test conditions as NetCDF attributes (CSV: command-line options).
 Every problem raises :class:`RecordFileError` naming the file, the field or line, the value and the
 fix. Files are written to a temporary file in the target folder and renamed, so a failed write never
@@ -22,7 +23,8 @@ import numpy as np
 from .record import BenchRecord, freeze
 
 __all__ = ["RecordFileError", "load_record", "save_record", "validate_samples", "atomic_write",
-           "write_json", "json_text", "check_times"]
+           "write_json", "json_text", "check_times", "to_xarray", "from_xarray", "to_pandas",
+           "from_pandas"]
 
 MIN_SAMPLES = 3
 MAX_SPAN_S = 1e9  # s (~32 years): no bench record spans more (epoch times are fine: t0 is free)
@@ -127,19 +129,29 @@ def _check_channels(channels, expected, source):
                               f"This rig needs columns {list(expected)} (SI units)")
 
 
-def load_record(path, *, channels: Sequence[str] | None = None,
+def load_record(source, *, channels: Sequence[str] | None = None,
                 conditions: Mapping | None = None) -> BenchRecord:
-    """Read a BenchRecord from ``.nc`` or ``.csv``.
+    """Read a BenchRecord from a ``.nc`` or ``.csv`` file, an ``xarray.Dataset`` or a
+    ``pandas.DataFrame`` (:func:`from_xarray`, :func:`from_pandas`).
 
     **Arguments:**
-    - `path`: the file.
+    - `source`: the file's path, or the data set / data frame.
     - `channels`: channel names the caller needs (e.g. ``rig.channels``); others are ignored,
       missing ones are an error. ``None`` keeps every column after ``t``.
     - `conditions`: test conditions to set or override (CSV files carry none).
 
-    **Raises:** :class:`RecordFileError` with the file, the problem and the fix.
+    **Raises:** :class:`RecordFileError` with the file, the problem and the fix; ``TypeError``
+    for a source of another kind.
     """
-    path = Path(path)
+    kind = _in_memory_kind(source)
+    if kind == "xarray":
+        return from_xarray(source, channels=channels, conditions=conditions)
+    if kind == "pandas":
+        return from_pandas(source, channels=channels, conditions=conditions)
+    if not isinstance(source, (str, os.PathLike)):
+        raise TypeError(f"load_record: got a {type(source).__name__}; give a .nc or .csv file's "
+                        "path, an xarray.Dataset or a pandas.DataFrame")
+    path = Path(source)
     src = str(path)
     if not path.exists():
         raise RecordFileError(f"{src}: no such file; check the path (relative paths are taken from "
@@ -154,6 +166,23 @@ def load_record(path, *, channels: Sequence[str] | None = None,
         t, cols, names, attrs = _read_netcdf(path)
     else:
         raise RecordFileError(f"{src}: unknown file type {suffix!r}; use .nc (NetCDF) or .csv")
+    return _record(t, cols, names, attrs, src, channels, conditions)
+
+
+def _in_memory_kind(source) -> str | None:
+    """``"xarray"`` or ``"pandas"`` for a data set or data frame (checked by module, so neither
+    library is imported for a path)."""
+    mod = type(source).__module__
+    if mod.startswith("xarray") and type(source).__name__ == "Dataset":
+        return "xarray"
+    if mod.startswith("pandas") and type(source).__name__ == "DataFrame":
+        return "pandas"
+    return None
+
+
+def _record(t, cols, names, attrs, src, channels, conditions) -> BenchRecord:
+    """The record from a source's time, channel columns, names and attributes: every check a
+    file gets, whatever it was read from."""
     if not names:
         raise RecordFileError(f"{src}: no channel after t; a record holds t and at least one "
                               "channel (e.g. t,alpha1,alpha2)")
@@ -170,6 +199,78 @@ def load_record(path, *, channels: Sequence[str] | None = None,
     t, y = validate_samples(t, y, keep, source=src)
     attrs = _checked_conditions(dict(attrs), src) | dict(conditions or {})
     return BenchRecord(t, y, tuple(keep), freeze(attrs))
+
+
+def to_xarray(record: BenchRecord, *, units: Mapping[str, str] | None = None):
+    """The (single) record as an ``xarray.Dataset``: one variable per channel over the time
+    coordinate ``t`` (``units = "s"``), each channel's CF ``units`` from `units` (``{channel
+    prefix: unit}``, a rig's ``CHANNEL_UNITS``; ``"SI"`` where it names none), the test
+    conditions as attributes (a tuple as a JSON list). What :func:`save_record` writes."""
+    import xarray as xr
+
+    if record.t.ndim != 1:
+        raise ValueError(f"to_xarray: record is batched (t.shape={record.t.shape}); convert one "
+                         "record at a time (record[i])")
+    t, y = np.asarray(record.t), np.asarray(record.y)
+    ds = xr.Dataset({c: ("t", y[:, j]) for j, c in enumerate(record.channels)},
+                    coords={"t": ("t", t, {"units": "s"})})
+    for c in record.channels:
+        ds[c].attrs["units"] = by_channel(units or {}, c, "SI")
+    ds.attrs.update({k: (v if isinstance(v, (int, float, str)) else json.dumps(v))
+                     for k, v in record.conditions.items()})
+    return ds
+
+
+def from_xarray(ds, *, channels: Sequence[str] | None = None,
+                conditions: Mapping | None = None) -> BenchRecord:
+    """A record from an ``xarray.Dataset`` with a time coordinate ``t`` (s) and one variable per
+    channel over it (SI units), its attributes the test conditions; checked as a NetCDF file is
+    (:func:`load_record`'s arguments and errors)."""
+    src = "xarray.Dataset"
+    return _record(*_dataset_columns(ds, src), src, channels, conditions)
+
+
+def to_pandas(record: BenchRecord):
+    """The (single) record as a ``pandas.DataFrame``: index ``t`` (s), one column per channel
+    (SI units), the test conditions in ``DataFrame.attrs``."""
+    import pandas as pd
+
+    if record.t.ndim != 1:
+        raise ValueError(f"to_pandas: record is batched (t.shape={record.t.shape}); convert one "
+                         "record at a time (record[i])")
+    df = pd.DataFrame(np.asarray(record.y), columns=list(record.channels),
+                      index=pd.Index(np.asarray(record.t), name="t"))
+    df.attrs.update(record.conditions)
+    return df
+
+
+def from_pandas(df, *, channels: Sequence[str] | None = None,
+                conditions: Mapping | None = None) -> BenchRecord:
+    """A record from a ``pandas.DataFrame``: the times (s) in a column ``t`` or an index named
+    ``t``, one column per channel (SI units), the test conditions from ``DataFrame.attrs``;
+    checked as a CSV file is (:func:`load_record`'s arguments and errors)."""
+    src = "pandas.DataFrame"
+    if "t" in df.columns:
+        t, data = df["t"], df.drop(columns="t")
+    elif df.index.name == "t":
+        t, data = df.index, df
+    else:
+        raise RecordFileError(f"{src}: no time column or index 't'; name the times 't' (s), "
+                              "e.g. df.rename_axis('t')")
+    names = [str(c) for c in data.columns]
+    cols = []
+    for c in data.columns:
+        try:
+            cols.append(np.asarray(data[c], dtype=float))
+        except (TypeError, ValueError):
+            raise RecordFileError(f"{src}: channel {str(c)!r} holds {data[c].dtype} values, "
+                                  "not numbers; give channels as floats in SI units") from None
+    try:
+        t = np.asarray(t, dtype=float)
+    except (TypeError, ValueError):
+        raise RecordFileError(f"{src}: t holds {t.dtype} values, not numbers; give the times "
+                              "in s (from timestamps: (ts - ts[0]).total_seconds())") from None
+    return _record(t, cols, names, dict(df.attrs), src, channels, conditions)
 
 
 # test conditions a record file may carry that must be one finite number each (units in the
@@ -230,6 +331,10 @@ def _read_csv_text(path: Path):
         if not header or header[0] != "t":
             raise RecordFileError(f"{path}: line 1: the first column must be 't' (time in s), "
                                   f"got {header[:1]}; add a header row 't,<channel>,...'")
+        data = _read_csv_fast(path, delimiter, len(header))
+        if data is not None:
+            names = header[1:]
+            return data[:, 0], [data[:, j + 1] for j in range(len(names))], names, {}
         rows = []
         for lineno, row in enumerate(reader, start=2):
             if not row or all(not c.strip() for c in row):
@@ -254,6 +359,27 @@ def _read_csv_text(path: Path):
     return data[:, 0], [data[:, j + 1] for j in range(len(names))], names, {}
 
 
+def _read_csv_fast(path: Path, delimiter: str, n_columns: int):
+    """The data rows of a well-formed CSV as a float array ``(rows, n_columns)`` by pandas'
+    C parser (its default precision reads numbers exactly as Python's ``float`` does;
+    ``tests/test_io_ecosystem.py`` checks it bit for bit), or ``None`` when any row
+    is not plain numbers in ``n_columns`` columns, for the row-by-row reader to name the line
+    and the fix (blank-cell rows, missing or extra cells, words, decimal commas)."""
+    import pandas as pd
+
+    # pandas 3's default parser rounds correctly; pandas 2 needs it asked for
+    exact = {} if int(pd.__version__.split(".")[0]) >= 3 else {"float_precision": "round_trip"}
+    try:
+        df = pd.read_csv(path, sep=delimiter, header=0, dtype=float, encoding="utf-8-sig",
+                         engine="c", **exact)
+    except (ValueError, pd.errors.ParserError, pd.errors.EmptyDataError):
+        return None
+    data = df.to_numpy(dtype=float)
+    if data.ndim != 2 or data.shape[1] != n_columns or data.shape[0] == 0 or np.isnan(data).any():
+        return None
+    return data
+
+
 def _is_float(s) -> bool:
     try:
         float(s)
@@ -276,14 +402,20 @@ def _read_netcdf(path: Path):
         raise RecordFileError(f"{path}: cannot be read as {kind} ({type(exc).__name__}: "
                               f"{str(exc).splitlines()[0] if str(exc) else ''}); is the file "
                               "complete and written by xarray/netCDF4?") from None
+    return _dataset_columns(ds, str(path))
+
+
+def _dataset_columns(ds, src: str):
+    """``(t, columns, names, attributes)`` of a data set holding one variable per channel over
+    ``t``."""
     if "t" not in ds.coords and "t" not in ds.variables:
-        raise RecordFileError(f"{path}: no time coordinate 't'; name the time axis 't' (seconds)")
+        raise RecordFileError(f"{src}: no time coordinate 't'; name the time axis 't' (seconds)")
     t = np.asarray(ds["t"].values, dtype=float)
     wide = {str(v): ds[v].dims for v in ds.data_vars if "t" in ds[v].dims and ds[v].dims != ("t",)}
     if wide:  # not dropped unseen: a record holds one variable per channel
         v, dims = next(iter(wide.items()))
         other = next(d for d in dims if d != "t")
-        raise RecordFileError(f"{path}: variable(s) {sorted(wide)} have dims {dims}, not ('t',); "
+        raise RecordFileError(f"{src}: variable(s) {sorted(wide)} have dims {dims}, not ('t',); "
                               f"a record holds one variable per channel over t: split each "
                               f"(xarray: ds[{v!r}].to_dataset(dim={other!r})) and name the "
                               "channels")
@@ -293,7 +425,7 @@ def _read_netcdf(path: Path):
         try:
             cols.append(np.asarray(ds[v].values, dtype=float))
         except (TypeError, ValueError):
-            raise RecordFileError(f"{path}: channel {v!r} holds {ds[v].dtype} values, not "
+            raise RecordFileError(f"{src}: channel {v!r} holds {ds[v].dtype} values, not "
                                   "numbers; store channels as floats in SI units") from None
     attrs = {k: _attr_value(v) for k, v in ds.attrs.items()}
     return t, cols, names, attrs
@@ -427,14 +559,7 @@ def save_record(record: BenchRecord, path, *, units: Mapping[str, str] | None = 
                 for i in range(t.shape[0]):
                     w.writerow([repr(float(t[i])), *(repr(float(v)) for v in y[i])])
     elif suffix in (".nc", ".nc4", ".netcdf"):
-        import xarray as xr
-
-        ds = xr.Dataset({c: ("t", y[:, j]) for j, c in enumerate(record.channels)},
-                        coords={"t": ("t", t, {"units": "s"})})
-        for c in record.channels:
-            ds[c].attrs["units"] = by_channel(units or {}, c, "SI")
-        ds.attrs.update({k: (v if isinstance(v, (int, float, str)) else json.dumps(v))
-                         for k, v in record.conditions.items()})
+        ds = to_xarray(record, units=units)
 
         def write(tmp):
             ds.to_netcdf(tmp, engine="h5netcdf")

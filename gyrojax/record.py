@@ -104,6 +104,35 @@ class BenchRecord(eqx.Module):
         """Select one record out of a batch (``records[i]``)."""
         return BenchRecord(self.t[index], self.y[index], self.channels, self.attrs)
 
+    def to_xarray(self, *, units: Mapping[str, str] | None = None):
+        """This (single) record as an ``xarray.Dataset`` (:func:`gyrojax.io.to_xarray`)."""
+        from .io import to_xarray
+
+        return to_xarray(self, units=units)
+
+    @staticmethod
+    def from_xarray(ds, *, channels=None, conditions: Mapping | None = None) -> BenchRecord:
+        """A record from an ``xarray.Dataset``, checked as a file is
+        (:func:`gyrojax.io.from_xarray`)."""
+        from .io import from_xarray
+
+        return from_xarray(ds, channels=channels, conditions=conditions)
+
+    def to_pandas(self):
+        """This (single) record as a ``pandas.DataFrame`` indexed by ``t``
+        (:func:`gyrojax.io.to_pandas`)."""
+        from .io import to_pandas
+
+        return to_pandas(self)
+
+    @staticmethod
+    def from_pandas(df, *, channels=None, conditions: Mapping | None = None) -> BenchRecord:
+        """A record from a ``pandas.DataFrame``, checked as a file is
+        (:func:`gyrojax.io.from_pandas`)."""
+        from .io import from_pandas
+
+        return from_pandas(df, channels=channels, conditions=conditions)
+
     def slice(self, start: int, stop: int | None = None) -> BenchRecord:
         """Samples ``start:stop`` along the time axis."""
         return BenchRecord(self.t[..., start:stop], self.y[..., start:stop, :], self.channels,
