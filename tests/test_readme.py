@@ -1,5 +1,6 @@
-"""The README's examples run and say what they claim: every `gyrojax` command line it shows
-parses with the CLI's own parser, and its Python tour runs and prints what its comments say."""
+"""The README's examples run and say what they claim: every `gyrojax` command line it and its
+command-line page (docs/cli.md) show parses with the CLI's own parser, and its Python tour runs
+and prints what its comments say."""
 
 import re
 import shlex
@@ -11,17 +12,19 @@ import pytest
 from gyrojax.cli import build_parser
 
 README = Path(__file__).parent.parent / "README.md"
+CLI_DOC = Path(__file__).parent.parent / "docs" / "cli.md"  # the README's command-line page
 
 
-def _blocks(lang: str) -> list[str]:
-    return re.findall(rf"```{lang}\n(.*?)```", README.read_text(), re.S)
+def _blocks(lang: str, *pages: Path) -> list[str]:
+    return [b for page in pages or (README,)
+            for b in re.findall(rf"```{lang}\n(.*?)```", page.read_text(), re.S)]
 
 
 def _cli_lines() -> list[tuple[str, list[str]]]:
     """(line, argv) of every `gyrojax ...` command in the README's bash blocks (also the
     `.venv/bin/gyrojax` of a chained install line)."""
     out = []
-    for block in _blocks("bash"):
+    for block in _blocks("bash", README, CLI_DOC):
         for line in block.splitlines():
             tokens = shlex.split(line, comments=True)
             segment: list[str] = []
