@@ -201,6 +201,12 @@ def _record(t, cols, names, attrs, src, channels, conditions) -> BenchRecord:
     return BenchRecord(t, y, tuple(keep), freeze(attrs))
 
 
+def _single(record: BenchRecord, what: str) -> None:
+    if record.t.ndim != 1:
+        raise ValueError(f"{what}: record is batched (t.shape={record.t.shape}); convert one "
+                         "record at a time (record[i])")
+
+
 def to_xarray(record: BenchRecord, *, units: Mapping[str, str] | None = None):
     """The (single) record as an ``xarray.Dataset``: one variable per channel over the time
     coordinate ``t`` (``units = "s"``), each channel's CF ``units`` from `units` (``{channel
@@ -208,9 +214,7 @@ def to_xarray(record: BenchRecord, *, units: Mapping[str, str] | None = None):
     conditions as attributes (a tuple as a JSON list). What :func:`save_record` writes."""
     import xarray as xr
 
-    if record.t.ndim != 1:
-        raise ValueError(f"to_xarray: record is batched (t.shape={record.t.shape}); convert one "
-                         "record at a time (record[i])")
+    _single(record, "to_xarray")
     t, y = np.asarray(record.t), np.asarray(record.y)
     ds = xr.Dataset({c: ("t", y[:, j]) for j, c in enumerate(record.channels)},
                     coords={"t": ("t", t, {"units": "s"})})
@@ -235,9 +239,7 @@ def to_pandas(record: BenchRecord):
     (SI units), the test conditions in ``DataFrame.attrs``."""
     import pandas as pd
 
-    if record.t.ndim != 1:
-        raise ValueError(f"to_pandas: record is batched (t.shape={record.t.shape}); convert one "
-                         "record at a time (record[i])")
+    _single(record, "to_pandas")
     df = pd.DataFrame(np.asarray(record.y), columns=list(record.channels),
                       index=pd.Index(np.asarray(record.t), name="t"))
     df.attrs.update(record.conditions)

@@ -43,14 +43,3 @@ def test_a_second_process_loads_what_the_first_compiled(tmp_path):
     assert any(n.endswith("-cache") for n in stored)
     assert run(folder)[1] >= 1
 
-
-def test_the_version_is_the_package_metadata_version():
-    import tomllib
-    from pathlib import Path
-
-    import gyrojax
-
-    meta = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
-    assert gyrojax.__version__ == meta["project"]["version"]
-    assert (Path(gyrojax.__file__).parent / "py.typed").exists()
-    assert f"## {gyrojax.__version__}" in (Path(__file__).parents[1] / "CHANGELOG.md").read_text()

@@ -321,6 +321,18 @@ def test_cli_version_is_the_installed_distribution(capsys):
     assert capsys.readouterr().out.strip() == f"gyrojax {version('gyrojax')}"
 
 
+def test_the_version_is_pyprojects_with_its_changelog_entry():
+    import tomllib
+    from pathlib import Path
+
+    import gyrojax
+
+    meta = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    assert gyrojax.__version__ == meta["project"]["version"]
+    assert (Path(gyrojax.__file__).parent / "py.typed").exists()
+    assert f"## {gyrojax.__version__}" in (Path(__file__).parents[1] / "CHANGELOG.md").read_text()
+
+
 def test_outputs_that_cannot_be_written_are_refused_before_the_work(tmp_path, capsys,
                                                                    monkeypatch):
     """An output path that is a folder, lies under a file, or in a folder that takes no new

@@ -8,12 +8,17 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def value_and_jacfwd(fn):
+def value_and_jacfwd(fn, *, has_aux: bool = False):
     """``x -> (fn(x), jax.jacfwd(fn)(x))`` from one forward-mode pass: the value is the JVP's own
     primal, so a model behind ``fn`` (a diffrax solve) is traced, compiled and run once, not once
-    more for the value."""
+    more for the value. With ``has_aux``, ``fn`` returns ``(out, aux)``: the result is
+    ``((out, aux), d out / d x)``."""
     def both(x):
-        jac, value = jax.jacfwd(lambda v: (lambda out: (out, out))(fn(v)), has_aux=True)(x)
+        if has_aux:
+            jac, value = jax.jacfwd(lambda v: (lambda out, aux: (out, (out, aux)))(*fn(v)),
+                                    has_aux=True)(x)
+        else:
+            jac, value = jax.jacfwd(lambda v: (lambda out: (out, out))(fn(v)), has_aux=True)(x)
         return value, jac
 
     return both

@@ -272,12 +272,8 @@ class TrustRegionDescent(optx.AbstractDescent):
             longer = length(jnp.exp(mid) * lam_max) > radius
             return jnp.where(longer, mid, lo), jnp.where(longer, hi, mid)
 
-        def damping():
-            lo, hi = jax.lax.fori_loop(0, 60, bisect, (jnp.log(1e-16), jnp.asarray(0.0)))
-            return jnp.exp(hi) * lam_max
-
-        # the whole Gauss-Newton step needs no damping (and no bisection)
-        lam = jax.lax.cond(step_size >= 1.0, lambda: jnp.asarray(0.0, lam_max.dtype), damping)
+        lo, hi = jax.lax.fori_loop(0, 60, bisect, (jnp.log(1e-16), jnp.asarray(0.0)))
+        lam = jnp.where(step_size >= 1.0, 0.0, jnp.exp(hi) * lam_max)
         keep = state.s2 > 0
         coef = jnp.where(keep | (lam > 0), state.sb / jnp.maximum(state.s2 + lam, 1e-300), 0.0)
         diff = -(state.v @ coef) / state.scale
@@ -310,17 +306,6 @@ class CappedTrustRegion(optx.AbstractSearch):
         size = jnp.minimum(size, 1.0)
         inner = eqx.tree_at(lambda s: s.step_size, inner, size)
         return size, accept, result, _CappedTrustRegionState(inner)
-
-
-def _value_aux_and_jacfwd(fn, y, args):
-    """``((fn's residual, aux), its Jacobian)`` at ``y`` from one forward-mode pass, for
-    optimistix's ``fn(y, args) -> (residual, aux)``."""
-    def both(v):
-        out, aux = fn(v, args)
-        return out, (out, aux)
-
-    jac, value_aux = jax.jacfwd(both, has_aux=True)(y)
-    return value_aux, jac
 
 
 class _ScaledLMState(eqx.Module):
@@ -392,7 +377,8 @@ class ScaledLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
             state.first_step, y, state.y_eval, state.f_info, trial, state.search_state)
 
         def accepted(descent_state):
-            (value, aux_eval), jac = _value_aux_and_jacfwd(fn, state.y_eval, args)
+            (value, aux_eval), jac = value_and_jacfwd(lambda v: fn(v, args),
+                                                      has_aux=True)(state.y_eval)
             f_info = optx.FunctionInfo.ResidualJac(value, lx.MatrixLinearOperator(jac))
             descent_state = self.descent.query(state.y_eval, f_info, descent_state)
             y_scale = self.atol + self.rtol * jnp.abs(state.y_eval)
