@@ -299,8 +299,8 @@ def shell_note(ranking) -> str:
              + ("s" if n_other != 1 else "")) if n_other else ""
     return ("- The posteriors under `prior=\"shell\"` (the noncentrality log-uniform over 8 to "
             f"2^24: the exact noncentral chi-square factor for the {n_one} one-coefficient "
-            f"effects{other}; docs/notes.md, stop 71); p-values, power and the gap map do not "
-            "depend on the prior. B2's Bayes factors, where run, follow the same prior.")
+            f"effects{other}; docs/decisions/0014-posteriors-and-priors.md); p-values, power and "
+            "the gap map do not depend on the prior. B2's Bayes factors, where run, follow the same prior.")
 
 
 def blind_suite(harness, work, n_cases: int, *, seed: int, design, desc: str,

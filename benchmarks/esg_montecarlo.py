@@ -12,8 +12,8 @@ The Monte Carlo runs on one JAX device, and at N = 10,000 also on every core thr
 library's CPU path, ``monte_carlo(..., processes="all")``: one worker process pinned to each core,
 the chunks handed to whichever is free. (Sharding one process's chunks over the cores as host
 devices, ``XLA_FLAGS=--xla_force_host_platform_device_count``, can deadlock jaxlib 0.10.2's
-batched LAPACK: docs/notes.md.) The scipy loop runs in one process; the table also gives the
-ratio per core against an ideal one-process-per-core scipy pool.
+batched LAPACK: docs/decisions/0007-monte-carlo-worker-processes.md.) The scipy loop runs in
+one process; the table also gives the ratio per core against an ideal one-process-per-core scipy pool.
 
 ``--accelerator`` instead times the same trial on ``jax.devices()[0]`` (a GPU where JAX has one)
 at several chunk sizes, the regression vmapped over the chunk, into the section
@@ -190,7 +190,7 @@ def gyrojax_trial_fn(identify_batch=8, fixed_grid=True):
     def identify(d, y):
         # the noise is drawn here, in the regression's sub-batch, where each record stays in
         # cache: drawn beside the vmapped solves it cost a chunk-sized write and read more
-        # (~15 % of a trial, docs/notes.md); same deviates, same estimates
+        # (~15 % of a trial, docs/decisions/0006-esg-monte-carlo-hot-path.md); same deviates, same estimates
         if "noise" in d:
             y = y + d["noise"]
         else:
@@ -520,8 +520,8 @@ def main(argv=None):
               "with every core as a JAX host device: one process runs a trial's graph on one "
               "core, and sharding the chunks over host devices deadlocks jaxlib 0.10.2 when "
               "several devices run batched LAPACK (the regression's QR) at once "
-              "(docs/notes.md). `mounting_error_budget` and `gyrojax montecarlo --processes all` "
-              "take the same path."]
+              "(docs/decisions/0007-monte-carlo-worker-processes.md). `mounting_error_budget` "
+              "and `gyrojax montecarlo --processes all` take the same path."]
     def spread(r):
         q1, q3 = np.percentile(r, [25, 75])
         return f"median {np.median(r):.0f}x (quartiles {q1:.0f}x-{q3:.0f}x, {len(r)} pairs)"
@@ -571,23 +571,23 @@ def main(argv=None):
               f"QR of each channel's [A_c b_c] on its own nonzero columns (1440 x 10 each, "
               f"LAPACK's Householder) ~{st['qr']:.0f} us; the "
               f"remainder of a trial's time in the Monte Carlo's fastest pass (chunking, "
-              f"transfers, and the VM's drift against the stages' best of 5) ~{rest:.0f} us. Since "
-              "stop 49 the vector field and the regression's design take their sines and cosines "
+              f"transfers, and the VM's drift against the stages' best of 5) ~{rest:.0f} us. The "
+              "vector field and the regression's design take their sines and cosines "
               "from `rotations.sincos` (polynomial float64: XLA's CPU backend evaluates float64 "
               "sin and cos element by element at ~15-20 ns, the polynomial both in ~3 ns) and the "
-              "deviates come from `gaussian_noise` (the gain, measured against the code before "
-              "them: docs/notes.md). Since stop 50 the regression factors each channel's rows on "
+              "deviates come from `gaussian_noise` (Box-Muller with a polynomial logarithm); "
+              "the regression factors each channel's rows on "
               "the columns not zero by construction there and merges the two triangular factors "
-              "(~30 % fewer QR operations than the stacked 2880 x 12), and `gaussian_noise` takes "
-              "a polynomial logarithm. Since stop 51 `monte_carlo` runs BLAS/LAPACK on one thread "
+              "(~30 % fewer QR operations than the stacked 2880 x 12); `monte_carlo` runs "
+              "BLAS/LAPACK on one thread "
               "(OpenBLAS's own threads on top of jaxlib's batch loop doubled the QR's time on one "
               "device; the pinned all-cores processes had one already), `gaussian_noise` hashes "
               "its uniforms once in straight-line code (the same values as `jax.random.uniform`) "
               "and the regression reads its residual sum of squares from the triangular factors "
-              "instead of forming the residuals. Since stop 54 the trial draws its noise in the "
+              "instead of forming the residuals; the trial draws its noise in the "
               "regression's sub-batch (`staged`'s second stage), where the record stays in cache, "
               "instead of beside the vmapped solves (a chunk-sized array written and read back): "
-              "~15 % of a trial.",
+              "~15 % of a trial (docs/decisions/0006-esg-monte-carlo-hot-path.md).",
               "",
               f"The goal of 100x the scipy loop: at N = {big[0]:,} one device runs "
               f"{big[1] / srate:.0f}x the loop's best in this run (one trial ~{1e6 / big[1]:.0f} "

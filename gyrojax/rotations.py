@@ -41,8 +41,8 @@ def sincos(x):
     XLA's CPU backend evaluates float64 ``sin`` / ``cos`` element by element (~15-20 ns each);
     this version is polynomial arithmetic that its loops vectorise (~3 ns for both), which is
     most of the exact ESG model's vector field and of the integral regression's design
-    (docs/notes.md, "Transcendentals on XLA's CPU backend"). Cody-Waite reduction by pi/2 to
-    |r| <= pi/4, minimax polynomials, quadrant swap. Beyond |x| ~ 1.6e6 rad the error grows like
+    (docs/decisions/0006-esg-monte-carlo-hot-path.md). Cody-Waite reduction by pi/2 to |r| <= pi/4, minimax
+    polynomials, quadrant swap. Beyond |x| ~ 1.6e6 rad the error grows like
     |x| 2**-53, the input's own resolution. Other dtypes go to ``jnp.sin`` / ``jnp.cos``.
     Differentiable: the tangents are ``(cos x dx, -sin x dx)``.
     """

@@ -45,8 +45,9 @@ def _uniform64(key, shape):
     scan over two halves of the counters, so the uniforms are materialized once: as plain
     elementwise code XLA would fuse the hash into each of their consumers (four in
     :func:`gaussian_noise`). 2 x 1441 uniforms and their Box-Muller: ~36 us against ~69 us (one
-    core, docs/notes.md). Other key implementations, the non-partitionable threefry stream, raw
-    uint32 keys, or 2**32 or more draws go through ``jax.random.uniform``."""
+    core, docs/decisions/0006-esg-monte-carlo-hot-path.md). Other key implementations, the
+    non-partitionable threefry stream, raw uint32 keys, or 2**32 or more draws go through
+    ``jax.random.uniform``."""
     n = int(np.prod(shape, dtype=np.int64))
     if (not jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key) or n >= 2**32
             or jax.random.key_impl(key) != "threefry2x32"

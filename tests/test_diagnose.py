@@ -384,7 +384,8 @@ def test_shell_prior_is_calibrated_on_effects_of_fixed_noncentrality():
     prior's posteriors (``prior="shell"``: the noncentrality log-uniform over 8 to 2^24) are
     calibrated on 6,000 cases (confidence within 0.012 of the top-1), while the Gaussian design
     prior's are under-confident (it puts most of its mass on effects far smaller than any that
-    is drawn): the cause of the platform K = 22 suite's ECE of 0.074 (docs/notes.md, stop 71).
+    is drawn): the cause of the platform K = 22 suite's ECE of 0.074
+    (docs/decisions/0014-posteriors-and-priors.md).
     The shell's factor is the mixture of the noncentral one over the sizes (quadrature, a
     second method). Through :func:`screen`, a one-coefficient effect gets the shell's factor
     and a three-coefficient one the design prior's averaged over the same sizes."""
@@ -842,7 +843,7 @@ def test_library_pvalues_of_many_residuals_are_the_screens_one_at_a_time():
     (``library_pvalues``); each column must be what ``screen`` gives that residual alone (the
     per-residual code, a second method), a grid effect's at the grid value of the largest
     score. Residuals: pure nulls, and nulls plus a step at one grid point (noncentrality 25),
-    whose p-value must then be the one at that grid point's score (stop 68)."""
+    whose p-value must then be the one at that grid point's score."""
     from gyrojax.diagnose._screening import _grid_lm, _pvalue, library_pvalues, screen_designs
     from gyrojax.diagnose._signatures import nominal_basis
 
@@ -884,7 +885,7 @@ def test_canonical_correlations_are_the_cosines_of_the_principal_angles():
     """The ambiguity report's canonical correlations between two effects' column spans are the
     cosines of the spans' principal angles (scipy's ``subspace_angles``, a second method),
     whatever the columns' scales (1e3 and 1e-3 here: a raw ``a^T b`` would not be); an
-    empty span gives 0 (stop 67)."""
+    empty span gives 0."""
     import scipy.linalg
 
     from gyrojax.diagnose._signatures import canonical_correlation, canonical_correlations
@@ -905,7 +906,7 @@ def test_canonical_correlations_are_the_cosines_of_the_principal_angles():
 
 
 def test_screening_statistics_by_hand():
-    """The screening's small pieces against hand or scipy values (stop 67): the smoothed
+    """The screening's small pieces against hand or scipy values: the smoothed
     bootstrap p-value (``(1 + #{sup >= lm} + f) / (1 + B)``, ``f`` the linear position between
     neighbouring draws; the grid's Bonferroni chi-square tail beyond the largest), the joint null
     scores' covariance ``W^T W``, the weighted median's index, and the g-prior and mixture Bayes

@@ -95,7 +95,7 @@ def test_bad_input_names_the_fix():
     with pytest.raises(ValueError, match="one channel 'alpha'"):
         diagnose(bad, rig="gyrotheodolite")
     # in arcsec the small-angle model fits a scaled copy (no gap, a north offset of hundreds of
-    # "radians") unless refused (stop 68)
+    # "radians") unless refused
     rec = _record()
     with pytest.raises(ValueError, match=r"alpha reaches 20.65\d*, beyond the small-angle model's "
                        r"range \(1 rad\).*from arcsec: x 4.84814e-6"):

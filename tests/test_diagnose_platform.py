@@ -109,8 +109,8 @@ def test_first_order_nominal_screens_each_left_out_coefficient(tmp_path, capsys)
     lib = library("platform", nominal_terms=FIRST_ORDER_TERMS)
     assert len(lib) == 22 and "anisoelastic_oo" not in lib and lib["D_io_z"] == "g2"
     rep = diagnose(rec, rig="platform", nominal_terms=FIRST_ORDER_TERMS)
-    # a catalogue of single coefficients: the default prior is the shell (docs/notes.md, stop
-    # 76); the rig's family catalogue keeps the design prior (stop 75)
+    # a catalogue of single coefficients: the default prior is the shell; the rig's family
+    # catalogue keeps the design prior (docs/decisions/0014-posteriors-and-priors.md)
     assert rep.prior == "shell" == default_prior("platform", nominal_terms=FIRST_ORDER_TERMS)
     assert default_prior("platform") == "design"
     assert len(rep.nominal) == 12 and "D_ii_y" not in rep.nominal
@@ -483,8 +483,8 @@ def test_blind_scripts_diagnose_under_the_prior_they_are_given(tmp_path, monkeyp
     """The blind scripts' shared runner (``benchmarks/_results.diagnose_suite``, as the suites
     and ``gap_confounding.py`` call it) passes no prior unless asked, so the cases are
     diagnosed under the diagnosis' default (the shell, for this catalogue of single
-    coefficients), and each result says so; asked, under the one given (stop 75: the
-    confounding script's runner took no prior at all and failed)."""
+    coefficients), and each result says so; asked, under the one given (the
+    confounding script's runner once took no prior at all and failed)."""
     import sys
 
     from gyrojax.diagnose._platform import FIRST_ORDER_TERMS

@@ -237,7 +237,7 @@ def test_a_refit_holds_the_screened_step_onset(tmp_path):
     """A drift step of 0.1 and of 0.5 deg/h (2x and 10x the catalogue's prior scale) on axis 2 at the
     onset grid's 6th value: the refit with the drift_step effect at that grid index holds that
     onset, measures the step to 5 % (the other axes' steps under 0.01 deg/h), converges (no
-    note) and leaves every effect it was not given at its null. Before stop 65 the 0.5 deg/h
+    note) and leaves every effect it was not given at its null. Without damping the 0.5 deg/h
     refit's undamped Gauss-Newton returned -203 deg/h."""
     from gyrojax.diagnose._schuler import DEFAULT_NOISE, SchulerProblem
 

@@ -135,7 +135,7 @@ def test_fit_refuses_a_record_it_would_misread():
                        r"rig's \['alpha1', 'alpha2'\]"):
         fit(rig, gj.BenchRecord(TS_24H[:10], jnp.zeros((10, 2)), ("alpha2", "alpha1")), cond)
     # angles in arcsec (or in deg, where alpha2 passes 1.57 deg): beyond the gimbal lock at
-    # pi/2 rad they cannot be radians (the fits ended in inf/NaN before stop 68). alpha1 wraps
+    # pi/2 rad they cannot be radians (unchecked, the fits ended in inf/NaN). alpha1 wraps
     # freely (two days on the equatorial scheme: 720 deg); alpha2 reaches 89.5 deg on the
     # vertical scheme at the equator, here 1.51 rad
     from gyrojax.diagnose import diagnose

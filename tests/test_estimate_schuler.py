@@ -154,7 +154,7 @@ def test_bad_records():
         schuler_filter(RIG, uneven, y, COND)
     with pytest.raises(ValueError, match="strictly increasing"):
         fit_schuler(RIG, ts[::-1], y, COND)
-    # attitude in deg: a rotation vector's angle is at most pi rad (stop 68); at pi it passes
+    # attitude in deg: a rotation vector's angle is at most pi rad; at pi it passes
     turned = y.copy()
     turned[:, 2:5] = np.array([2.0, -2.0, 1.0]) / 3 * np.pi
     check_schuler_record(ts, turned, COND)

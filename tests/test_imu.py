@@ -158,7 +158,7 @@ def test_multiposition_calibration_recovers_the_generating_parameters(tmp_path, 
 def test_records_in_other_units_are_refused_with_the_fix(tmp_path, capsys):
     """A record that is not SI is named, with its factor and fix, before a fit turns it into
     values that are no calibration (a gyro in deg/s "converged" with 17-deg turn residuals
-    before stop 68). On a simulated 14-pose record (minimal turns: the integrated rotation is
+    before the check). On a simulated 14-pose record (minimal turns: the integrated rotation is
     the angle between the poses, ratio 1) the accelerometers in g, mg or counts and the gyros in
     deg/s or stuck are refused; ``gyrojax fit`` stops with exit 2 on the accelerometers, and
     reports the accelerometer calibration with the gyros' problem as its gyro note; the
@@ -788,7 +788,8 @@ def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, ca
     assert "g_sensitivity:gsxy" in text and "Cannot be told apart on this design" in text
     rep = json.loads(out.read_text())
     assert len(rep["candidates"]) == 40
-    assert rep["prior"] == "shell"  # a catalogue of single coefficients (docs/notes.md, stop 76)
+    # a catalogue of single coefficients (docs/decisions/0014-posteriors-and-priors.md)
+    assert rep["prior"] == "shell"
     # an accelerometer misalignment's antisymmetric part is a common rotation, which the poses'
     # tilts absorb: maxy and mayx are seen only through their sum (canonical correlation 1)
     pair = {"misalignment:maxy", "misalignment:mayx"}

@@ -84,7 +84,7 @@ def test_frequency_responses_match_closed_forms_and_fig1_bandwidth():
     |W_HY2 / W_IT2 - 1| against the spec's §8 figures: omega0 = 100: 1.2 % at 1 1/s, 120 % at 500;
     omega0 = 1000: < 10 % up to 309 1/s, 32 % at 500. (The spec's "< 10 % below 60 1/s" for
     omega0 = 100 contradicts its own 1.2 % at 1 1/s, since the error grows linearly there; see
-    docs/notes.md.)"""
+    docs/decisions/0008-gyrotheodolite-observer-and-vibration.md.)"""
     a, c, g, _ = RIG.state_space(P, COND)
     w = np.logspace(-2, 3, 400)
     wit = np.asarray(frequency_response(a, g, w))

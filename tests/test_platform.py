@@ -552,7 +552,7 @@ def test_a_records_vibration_phases_travel_with_it():
     back = load_schedule(json.loads(rec.conditions["schedule_json"]))
     assert back["phases_rad"] == phases
     ts = jnp.asarray(np.arange(41) * 0.025)
-    def in_g(rec):  # the file's accelerometers are SI (m/s^2), the model's in g (stop 68)
+    def in_g(rec):  # the file's accelerometers are SI (m/s^2), the model's in g
         y = split_record(rec, back)[..., :6]
         return np.concatenate([y[..., :3], accelerations_g(y)], axis=-1)
 
@@ -580,8 +580,8 @@ def test_a_records_vibration_phases_travel_with_it():
 
 
 def test_platform_records_are_si_and_a_record_in_g_is_refused(tmp_path, capsys):
-    """DESIGN's record files are SI: the platform's accelerometers in m/s^2 (before stop 68 they
-    were written in g, the rig's unit, and a record in m/s^2 made kappa G0^2 = 96x too large
+    """DESIGN's record files are SI: the platform's accelerometers in m/s^2 (they were once
+    written in g, the rig's unit, and a record in m/s^2 made kappa G0^2 = 96x too large
     without a word). The accelerometers read gravity, 1 g or more (kappa = mean |f|^2 = 1 +
     a0^2/2 g^2 over whole cycles, spec S19c), so a record in g is told from one in m/s^2 and
     refused with the fix, by the library and by ``gyrojax fit`` and ``diagnose`` (exit 2)."""
@@ -628,7 +628,7 @@ def test_platform_records_are_si_and_a_record_in_g_is_refused(tmp_path, capsys):
 
 def test_a_record_that_disagrees_with_its_schedule_is_refused_by_name():
     """Every platform reader takes the dwells in the schedule's order, at its ``sample_s``, about
-    its positions. Before stop 69 none of that was checked against the record: gimbal angles in
+    its positions. Once none of that was checked against the record: gimbal angles in
     deg fitted D_ii_z at 15 deg/h/g^2 (truth 0.03), a record in ms and one with two dwells
     swapped gave no word. Now each is refused naming the dwell and the fix; a position recorded
     a turn away (270 deg as -90 deg) reads as the same record."""

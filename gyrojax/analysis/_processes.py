@@ -3,8 +3,8 @@
 One Python process drives JAX's CPU device on one core for the graphs gyrojax's Monte Carlo runs
 (a vmapped ODE solve, then small batched LAPACK least-squares problems): XLA does not split them
 over threads, and sharding over several host devices in one process deadlocks jaxlib 0.10.2's
-batched LAPACK (docs/notes.md). So the CPU's other cores are used by worker processes, each
-pinned to one core and running the chunks it is handed on its one device.
+batched LAPACK (docs/decisions/0007-monte-carlo-worker-processes.md). So the CPU's other cores
+are used by worker processes, each pinned to one core and running the chunks it is handed on its one device.
 
 The pool is started on first use and kept. Each worker is a fresh interpreter (``python -m
 gyrojax.analysis._processes``): no forked JAX state, and unlike ``multiprocessing``'s spawn the

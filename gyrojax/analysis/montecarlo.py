@@ -63,7 +63,7 @@ def staged(first: Callable, second: Callable, *, batch_size: int = 8) -> Callabl
     Work whose output is as large as ``first``'s but cheap to make belongs in ``second``, e.g.
     the measurement noise added to a simulated record: drawn in ``first`` it is written for the
     whole batch and read back, drawn in ``second`` it stays in cache with its sub-batch (the
-    ESG benchmark's trial ~15 % faster, docs/notes.md).
+    ESG benchmark's trial ~15 % faster, docs/decisions/0006-esg-monte-carlo-hot-path.md).
     """
 
     def trials(draws):
@@ -96,7 +96,7 @@ def monte_carlo(fn: Callable, draws, *, chunk_size: int = 1024, devices=None,
       alone). jaxlib's CPU LAPACK kernels (scipy's OpenBLAS) loop over a batch's small problems
       (the ESG regression's 1440 x 11 QRs) spread over XLA's threads; OpenBLAS's own threads on
       top only contend: on 2 cores one thread ran the ESG benchmark's trials 1.45x faster
-      (docs/notes.md). Restored when the call returns.
+      (docs/decisions/0006-esg-monte-carlo-hot-path.md). Restored when the call returns.
 
     - `processes`: run the chunks on this many worker processes instead (CPU only), each
       pinned to one core and running its chunks on its own CPU device; ``"all"``: one per core
@@ -110,8 +110,8 @@ def monte_carlo(fn: Callable, draws, *, chunk_size: int = 1024, devices=None,
 
     With jaxlib 0.10.2 on the CPU and several host devices, a graph with batched LAPACK calls
     (QR, SVD: every least-squares fit) can deadlock: each device's LAPACK call waits on the shared
-    thread pool (docs/notes.md). Run such graphs on one device (``devices=jax.devices()[:1]``),
-    or on several cores with ``processes``.
+    thread pool (docs/decisions/0007-monte-carlo-worker-processes.md). Run such graphs on one
+    device (``devices=jax.devices()[:1]``), or on several cores with ``processes``.
     """
     n = batch_size_of(draws)
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int | np.integer) \

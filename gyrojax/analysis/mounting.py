@@ -208,7 +208,8 @@ def mounting_error_budget(key, n_draws: int, latitude_deg: float = 55.75, *, sch
         rec = BenchRecord(ts, y, rig.channels)
         a, b, _ = regression_design(rig, rec, c, names=joint_names)
         # both fits from one design in one batched solve: two independent LAPACK solves after a
-        # while_loop in one graph can deadlock jaxlib 0.10.2's CPU runtime (see docs/notes.md).
+        # while_loop in one graph can deadlock jaxlib 0.10.2's CPU runtime
+        # (docs/decisions/0007-monte-carlo-worker-processes.md)
         est = jax.vmap(lambda m: scaled_lstsq(a * m, b)[0][:6])(masks)
         err = (est - drift) * units.EARTH_RATE_DEG_PER_HOUR
         return err[0], err[1]

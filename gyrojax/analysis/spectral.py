@@ -315,7 +315,7 @@ def whittle_ml(h, pn, w, c0=None, *, max_iter: int = 1000, tol: float = 1e-7):
     when no step gains ``tol``. Terms absent from the data land exactly on their boundary (0).
     A quasi-Newton fit on log-coefficients (used before) stalled near that boundary: on white
     noise its fits without a term sat above this maximum, which inflated the likelihood
-    ratios (bias instability's mean 0.36 against 0.20, docs/notes.md)."""
+    ratios (bias instability's mean 0.36 against 0.20, docs/decisions/0012-noise-identification.md)."""
     pn = np.atleast_2d(np.asarray(pn, float))
     b, k = pn.shape[0], h.shape[1]
     sc = h.mean(axis=0)
@@ -479,8 +479,9 @@ def fit_noise_likelihood(pieces, rate_hz: float, *, terms=LIK_TERMS,
     without the term, weak nuisance terms set to 0 by :func:`_selected_null`), refitted with
     and without the term, until :data:`MIN_POSITIVE_DRAWS` ratios are positive (at most
     ``10 B``); ``seed`` fixes the draws. That scaled form matches the bootstrap law's
-    tail to within its Monte Carlo error down to 0.005 (docs/notes.md), and resolves p-values
-    below ``1 / B``. On 500 white records the three terms then reject 0.048-0.050 at 0.05.
+    tail to within its Monte Carlo error down to 0.005
+    (docs/decisions/0012-noise-identification.md), and resolves p-values below ``1 / B``. On 500 white
+    records the three terms then reject 0.048-0.050 at 0.05.
 
     ``f_max`` (Hz, default ``rate_hz / 10``) bounds the fitted band: most of the periodogram's
     ordinates lie in the top decade, where real sensors' anti-alias / digital low-pass filters
@@ -593,8 +594,9 @@ def _selected_null(h, pn, w, rest, c_rest, nll_rest):
     and a nuisance inside its range makes the bootstrap law the interior one (``pi`` 1/2,
     ``s`` 1): on white noise the rate random walk's test then rejected 0.010 at 0.05. Setting
     weak nuisances to 0 errs the other way where the nuisance is truly present but weak; the
-    threshold trades the two (docs/notes.md: on 150 tuning records each, rejection at 0.05 of
-    the rate random walk's null test with white noise / with a weak bias instability was
+    threshold trades the two (docs/decisions/0012-noise-identification.md; on 150 tuning
+    records each, rejection at 0.05 of the rate random walk's null test with white noise / with a weak bias
+    instability was
     0.047 / 0.067 at a threshold of 1, 0.053 / 0.107 at 2.71, 0.053 / 0.167 at ``log n``)."""
     white = LIK_TERMS.index("angle_random_walk")
     keep = [i for j, i in enumerate(rest) if c_rest[j] > 0]

@@ -18,7 +18,8 @@ $$\\langle\\alpha\\rangle_{\\rm est} = \\arcsin\\frac{\\langle\\hat{\\dot\\alpha
 
 computed with the true rate or with the observer's estimate; :func:`compensate` is the same
 algorithm on recorded signals. The formula ignores the pendulous mean torque (``pendulous``); in
-the model (1) that part is usually the larger one (docs/notes.md).
+the model (1) that part is usually the larger one
+(docs/decisions/0008-gyrotheodolite-observer-and-vibration.md).
 """
 
 from __future__ import annotations

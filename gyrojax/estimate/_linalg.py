@@ -52,7 +52,8 @@ def scaled_lstsq(a, b, *, rcond: float = 1e-12):
     scale = jnp.concatenate([1.0 / norms, jnp.ones(1, a.dtype)])
     # R of the augmented [A b]: its last column holds Q^T b. Built transposed, the scaled
     # [A b] is the column-major matrix LAPACK factors without a copy. Scaled before the QR: on one
-    # stacked design, scaling R afterwards measured 1.4-2.4x slower (docs/notes.md).
+    # stacked design, scaling R afterwards measured 1.4-2.4x slower
+    # (docs/decisions/0006-esg-monte-carlo-hot-path.md).
     ab_t = jnp.concatenate([a.T, b[None]], axis=0) * scale[:, None]
     return _solve_r(tall_qr_r(ab_t.T), norms, k, rcond)[:3]
 
