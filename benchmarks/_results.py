@@ -83,7 +83,7 @@ def fmt_rate(r) -> str:
 
 def far_text(s) -> str:
     """The null cases' false-alarm rate, and where the BH level was calibrated by null draws
-    (spec §6 G1), what the uncalibrated weighted BH at q < 0.05 gives on the same cases."""
+    (goal G1), what the uncalibrated weighted BH at q < 0.05 gives on the same cases."""
     far = s["far"]
     text = f"false-alarm rate {fmt_rate(far)}" + (
         "" if far is None else f" ({round(far['rate'] * far['n'])} alarms; pooled with other "
@@ -96,13 +96,13 @@ def far_text(s) -> str:
 
 
 def calibration_line(pooled, by_lambda: dict) -> str:
-    """One line on the posteriors' calibration (spec §6 G4: ECE <= 0.05) from
+    """One line on the posteriors' calibration (goal G4: ECE <= 0.05) from
     :func:`gyrojax.validation._scoring.calibration` results, pooled and per lambda."""
     if pooled is None:
         return "- Posterior calibration: no posteriors."
     per = ", ".join(f"lambda {k} {c['ece']:.2f} (calibrated {c['ece_calibrated_median']:.2f}, "
                     f"n={c['n']})" for k, c in by_lambda.items() if c is not None)
-    return ("- Posterior calibration (spec §6 G4: ECE <= 0.05), the posteriors renormalised over "
+    return ("- Posterior calibration (goal G4: ECE <= 0.05), the posteriors renormalised over "
             f"the catalogue, in-library cases: ECE of the top posterior {pooled['ece']:.3f} "
             f"(a calibrated forecaster at these confidences and n: median "
             f"{pooled['ece_calibrated_median']:.3f}, 95 % {pooled['ece_calibrated_95']:.3f}; "
@@ -141,11 +141,11 @@ def suite_lines(s: dict, ool_label: str) -> list[str]:
 
 
 def g10_text(s, refits: str) -> str:
-    """Spec §6 G10 from a score's ``cost`` block and screening/refit agreement (runs with B2
+    """goal G10 from a score's ``cost`` block and screening/refit agreement (runs with B2
     refit-all timed on every record): the library's score tests and the whole screening stage
     against refit-all, per case (median). ``refits``: what each refit is."""
     c = s["cost"]
-    return (f"Cost per case (median, spec §6 G10 with K = {c['n_effects']}): the library's "
+    return (f"Cost per case (median, goal G10 with K = {c['n_effects']}): the library's "
             f"screening (Jacobians and the {c['n_effects']} score tests) "
             f"{c['median_library_scores_s'] * 1e3:.0f} ms against B2 refit-all "
             f"{c['median_refit_all_s'] * 1e3:.0f} ms ({c['n_refits']} refits, {refits}): "
@@ -158,12 +158,12 @@ def g10_text(s, refits: str) -> str:
             f">= 32: {fmt_rate(s['screen_refit_agreement'])} (G10: >= 0.98)"
             + ("" if s.get("screen_refit_agreement_classes") is None else
                f"; up to effects the design cannot tell apart (the report's classes: smallest "
-               f"projected canonical correlation >= 0.98, spec §4.2 stage 3) "
+               f"projected canonical correlation >= 0.98, docs/diagnosis.md stage 3) "
                f"{fmt_rate(s['screen_refit_agreement_classes'])}"))
 
 
 def g9_text(s) -> str:
-    """Spec §6 G9 from a score's ``ool_*`` entries (:func:`gyrojax.validation._scoring.ool_scores`):
+    """goal G9 from a score's ``ool_*`` entries (:func:`gyrojax.validation._scoring.ool_scores`):
     the strong cases, the confident misattributions and how far outside the catalogue's span
     the confidently misattributed cases reached."""
     worst = s.get("ool_confident_remainder_max")
@@ -179,14 +179,14 @@ def g9_text(s) -> str:
                "(the catalogue mimics them on this record)"))
 
 
-ORACLE_NOTE = ("Spec §6 G3: separable = largest projected canonical correlation with another "
+ORACLE_NOTE = ("goal G3: separable = largest projected canonical correlation with another "
                "catalogue effect <= 0.9 on the design; the Bayes oracle is the exact posterior of "
                "the linearised model with equal odds between the effects and the diagnosis' "
                "design prior sized to expect exactly the sealed lambda, read from the blind run's "
                "Bayes factors at every prior size: it knows lambda, the diagnosis assumes 32, "
                "so at lambda = 32 the two differ only where the verdict's first effect is not the "
                "top posterior. top-1 / oracle: delta-method standard error over paired cases. "
-               "Bayes-oracle power (spec §6 G2's reference): the same oracle as a detector, its "
+               "Bayes-oracle power (goal G2's reference): the same oracle as a detector, its "
                "likelihood ratio (mean Bayes factor over the catalogue at the sealed lambda) "
                "above its 95 % quantile under the linearised null (20,000 draws of the "
                "residual in the library's span on one record of the design): the most powerful "
@@ -214,7 +214,7 @@ def blind_parser(doc: str, *, cases: int):
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
     ap.add_argument("--keep", help="directory to keep the cases and results in")
     ap.add_argument("--nulls", type=int, default=0,
-                    help="a separate run of N sealed nulls (spec §6 G1: >= 1000 per design)")
+                    help="a separate run of N sealed nulls (goal G1: >= 1000 per design)")
     return ap
 
 
@@ -328,7 +328,7 @@ def blind_suite(harness, work, n_cases: int, *, seed: int, design, desc: str,
 
 def null_run(harness, work, n_nulls: int, *, seed: int, design, out: str, key: str, title: str,
              label: str, reuse: bool = False) -> dict:
-    """A separate run of ``n_nulls`` sealed nulls of a rig's harness (spec §6 G1 asks for the
+    """A separate run of ``n_nulls`` sealed nulls of a rig's harness (goal G1 asks for the
     false-alarm rate over >= 1000 nulls per design), published as section ``key`` of ``out``.
     ``label`` names the design and what each case draws; ``reuse``: see :func:`blind_suite`.
     Returns the score."""
@@ -340,7 +340,7 @@ def null_run(harness, work, n_nulls: int, *, seed: int, design, out: str, key: s
              f"{n_nulls} sealed nulls on {label} (seed {seed}), {gen}, "
              f"diagnosed in {t_run:.0f} s (median {s['median_diagnose_s']:.2f} s per case): "
              "verdict not no-gap at alpha 0.05 (weighted BH over map + library): "
-             f"{far_text(s)}; spec §6 G1: [0.03, 0.06]."]
+             f"{far_text(s)}; goal G1: [0.03, 0.06]."]
     publish(out, key, lines)
     return s
 
@@ -405,7 +405,7 @@ def onset_text(g8: dict, ts, n_train: int, digits: int = 1) -> str:
 
 def g8_suite(harness, work, n_cases: int, *, seed: int, design, families,
              prior: str | None = None):
-    """Spec §6 G8 on ``n_cases`` more sealed cases of ``families`` (no nulls, lambda 32/64) in
+    """goal G8 on ``n_cases`` more sealed cases of ``families`` (no nulls, lambda 32/64) in
     ``work/g8``: generated, diagnosed (with the Bayes-factor ``prior``) and scored by
     ``harness.localisation_scores``. Returns ``(scores, seconds)``."""
     import time
@@ -419,13 +419,13 @@ def g8_suite(harness, work, n_cases: int, *, seed: int, design, families,
 
 
 def g8_line(harness, args, work, design, *, step: str, decay_grid: str, digits: int = 1) -> str:
-    """Spec §6 G8 on ``args.g8_cases`` more sealed cases (the ``step`` family and the drift
+    """goal G8 on ``args.g8_cases`` more sealed cases (the ``step`` family and the drift
     transient at lambda 32/64, :func:`g8_suite`): onset and decay time at the largest score
     against the truth. ``decay_grid``: the transient's grid in words."""
     g8, secs = g8_suite(harness, work, args.g8_cases, seed=args.seed + 3, design=design,
                         families=(step, "drift_transient"),
                         prior=getattr(args, "prior", None))
-    return (f"- Localisation (spec §6 G8: onsets within 5 % of the record in >= 0.90 at lambda "
+    return (f"- Localisation (goal G8: onsets within 5 % of the record in >= 0.90 at lambda "
             f">= 32; {args.g8_cases} more sealed cases, {step} and drift_transient at "
             f"lambda 32/64, seed {args.seed + 3}, generated and diagnosed in {secs:.0f} s): "
             f"{step} {onset_text(g8, design.ts, design.n_train, digits)}; drift_transient decay "
@@ -436,14 +436,14 @@ def g8_line(harness, args, work, design, *, step: str, decay_grid: str, digits: 
 
 
 def g6_lines(s: dict, hidden: str) -> list[str]:
-    """The closed-loop bullets of spec §6 G6 from :func:`gyrojax.validation._harness.
+    """The closed-loop bullets of goal G6 from :func:`gyrojax.validation._harness.
     closed_loop_scores` (``hidden``: how the text names the hidden effect)."""
     by = "; ".join(f"{e} {fmt_rate(r)}" for e, r in s["resolved_by_effect"].items())
     return [f"- {hidden} flagged (not visible on the record's own design): "
             f"{fmt_rate(s['hidden_flagged'])}; advised design(s) for it: "
             f"{' / '.join(s['advised_designs'])}; the largest predicted MDE there, with the "
             f"closest rival fitted: {s['max_mde_hidden']:.3g} of the prior scale.",
-            f"- Spec §6 G6 (>= 0.90 of flagged effects with a resolving design get an advised "
+            f"- goal G6 (>= 0.90 of flagged effects with a resolving design get an advised "
             f"design with MDE <= prior scale): flagged effects whose first-ranked design "
             f"resolves them (MDE with the closest rival <= prior scale) "
             f"{fmt_rate(s['resolved'])}; by effect: {by}. The ranking puts a resolving design "

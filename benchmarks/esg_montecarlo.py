@@ -1,6 +1,6 @@
 """Benchmark: ESG Monte Carlo "simulate 24 h + identify 11 parameters", and Gauss-Newton fits.
 
-Baselines are what a user would otherwise write: the same exact model (spec esg-drift 5.1) as a
+Baselines are what a user would otherwise write: the same exact model (docs/rigs/esg.md) as a
 numpy vector field integrated by scipy ``solve_ivp`` (DOP853, rtol 1e-10, atol 1e-12), the same
 integral-equation regression assembled in numpy and solved by ``numpy.linalg.lstsq``, in a Python
 loop; and ``scipy.optimize.least_squares`` (trf, finite-difference Jacobian) for the trajectory
@@ -595,8 +595,8 @@ def main(argv=None):
               f"({min(srates):.1f} trials/s) the same run reads {big[1] / min(srates):.0f}x, so "
               f"best against best moves with the VM; the paired ratios much less: {paired_goal}. "
               "The regression is the largest stage; its QR is LAPACK's floor on "
-              "this CPU (a Gram/Cholesky shortcut would be the normal equations the spec rules "
-              "out).", ""]
+              "this CPU (a Gram/Cholesky shortcut would be the normal equations, which square "
+              "the condition number).", ""]
     publish(args.out, "esg", lines)
 
 

@@ -1,4 +1,4 @@
-"""Blind validation of the gap diagnosis on the ESG rig (spec gap-diagnosis §5-6), with baselines.
+"""Blind validation of the gap diagnosis on the ESG rig (docs/diagnosis.md), with baselines.
 
 Generates sealed cases (nulls, each library effect at noncentrality 8/16/32/64, two-effect cases,
 two out-of-library effects), diagnoses them without the manifest, runs the baselines on the same
@@ -55,7 +55,7 @@ G8_FAMILIES = ("drift_step", "drift_transient", "diurnal_line")
 
 
 def g8_text(s) -> str:
-    """Spec §6 G8 from a score's ``g8_*`` entries (:func:`gyrojax.validation._scoring.
+    """goal G8 from a score's ``g8_*`` entries (:func:`gyrojax.validation._scoring.
     localisation_scores`)."""
     return (f"drift_step onset within 5 % of the record (1.2 h, one window of the map's finest "
             f"level) of the truth: located {_fmt(s.get('g8_step_onset_located'))}, at the "
@@ -75,24 +75,24 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
     ap.add_argument("--nulls", type=int, default=1000,
-                    help="extra null cases for the false-alarm rate (spec §6 G1: >= 1000; "
+                    help="extra null cases for the false-alarm rate (goal G1: >= 1000; "
                          "diagnosis and B1 only)")
     ap.add_argument("--ool-cases", type=int, default=40,
-                    help="extra out-of-library cases at lambda 32/64/128 for spec §6 G9 "
+                    help="extra out-of-library cases at lambda 32/64/128 for goal G9 "
                          "(diagnosis only)")
     ap.add_argument("--g8-cases", type=int, default=60,
                     help="extra drift_step / drift_transient / diurnal_line cases at lambda "
-                         "32/64 for the localisation of spec §6 G8 (diagnosis only)")
+                         "32/64 for the localisation of goal G8 (diagnosis only)")
     ap.add_argument("--tau-cases", type=int, default=40,
                     help="sealed angle_random_walk cases (a noise-model effect outside the "
-                         "white-noise model) for the tau band of spec §6 G8; with --rescore "
+                         "white-noise model) for the tau band of goal G8; with --rescore "
                          "DIR run (once) and added to DIR's results")
     ap.add_argument("--calibration-cases", type=int, default=0,
                     help="sealed in-library cases (no nulls) at lambda 8-64 for the posteriors' "
-                         "calibration (spec §6 G4), section gap_blind_calibration; with "
+                         "calibration (goal G4), section gap_blind_calibration; with "
                          "--cases 0 alone")
     ap.add_argument("--g6-cases", type=int, default=0,
-                    help="design-advice closed-loop runs (spec §6 G6): N rotor-tilt cases "
+                    help="design-advice closed-loop runs (goal G6): N rotor-tilt cases "
                          "(equatorial / arbitrary alpha_2 -> theta) and N sidereal-day-line "
                          "cases on 12 h records (>= 24 h -> diurnal vs ramp) over the four "
                          "schemes, each re-run on the design the advisor ranks first and "
@@ -102,7 +102,7 @@ def main(argv=None):
                     help="tilt sizes of the G6 tilt run as fractions of the prior scale (10 arcmin), "
                          "in turn (default: 1, the goal's magnitude, and 0.01)")
     ap.add_argument("--flicker-nulls", type=int, default=0,
-                    help="spec §6 G1's robustness run: N sealed nulls per --flicker-arcsec "
+                    help="goal G1's robustness run: N sealed nulls per --flicker-arcsec "
                          "level with flicker on the gimbal angles that the white nominal noise "
                          "model omits (section gap_blind_nulls_flicker); with --cases 0 alone")
     ap.add_argument("--flicker-arcsec", type=float, nargs="+", default=[0.1, 0.2],
@@ -207,7 +207,7 @@ def main(argv=None):
         with open(os.path.join(work, "run_meta.json"), "w") as fh:
             json.dump(meta, fh)
     # separability of the library on this design (any record of it: the Jacobians barely depend
-    # on the nominal errors), spec §5.6: <= 0.9
+    # on the nominal errors), docs/goals.md: <= 0.9
     first = sorted(Path(work).glob("case_*.nc"))[0]
     sep = separability(load_record(first, channels=("alpha1", "alpha2")), "esg",
                        [design.noise_arcsec * units.ARCSEC] * 2)
@@ -232,7 +232,7 @@ def main(argv=None):
              f"selection {_fmt(s['b2_false_selection'])}." + (
                  f" Separate null run ({meta['nulls']['n']} sealed nulls, seed {meta['seed'] + 1}, "
                  f"{meta['nulls']['t_s']:.0f} s, median {meta['nulls']['median_diagnose_s']:.2f} s "
-                 f"per diagnosis): false-alarm rate {_fmt(meta['nulls']['far'])} (spec §6 G1: "
+                 f"per diagnosis): false-alarm rate {_fmt(meta['nulls']['far'])} (goal G1: "
                  "[0.03, 0.06]); B1 Ljung-Box "
                  f"{_fmt(meta['nulls']['b1_far'])}." + (
                      " Uncalibrated, weighted BH at q < 0.05 on the same nulls: "
@@ -268,7 +268,7 @@ def main(argv=None):
               f"{'-' if med is None else f'{med:.2f}'} over attributed/ambiguous library cases; "
               f"closure (held-out gap within the refitted model's 95 % band) "
               f"{_fmt(s['heldout_closure'])}.",
-              "- Localisation (spec §6 G8, lambda >= 32, from the screened grid values and "
+              "- Localisation (goal G8, lambda >= 32, from the screened grid values and "
               f"the gap map's frequency axis): {g8_text(s)}." + (
                   f" Localisation run ({meta['g8']['n']} more sealed "
                   f"{' / '.join(G8_FAMILIES)} cases at lambda 32/64, seed {meta['seed'] + 3}, "
@@ -277,7 +277,7 @@ def main(argv=None):
               f"- Out-of-library cases (2 h heater square wave, 5 h line) not confidently "
               f"attributed: {_fmt(s['out_of_library_honest'])}. Two-effect cases with both "
               f"effects named or in the set: {_fmt(s['two_effects_both_named'])}.",
-              *([f"- Tau band (spec §6 G8, noise-model effects to the correct band >= 0.90): "
+              *([f"- Tau band (goal G8, noise-model effects to the correct band >= 0.90): "
                  f"{meta['tau']['n']} sealed angle_random_walk cases (a random walk on both "
                  "gimbal angles, outside the white-noise nominal model, its step set for an "
                  "expected Allan excess of 1/2/4 null s.d. at the longest band; seed "
@@ -309,7 +309,7 @@ def main(argv=None):
 
 
 def calibration_run(args, work):
-    """Spec §6 G4 with enough in-library cases to read the ECE against its goal: the suite's
+    """goal G4 with enough in-library cases to read the ECE against its goal: the suite's
     76 give a calibrated forecaster an ECE of ~0.1 by sampling alone."""
     design = bench.Design()
     t0 = time.perf_counter()
@@ -342,7 +342,7 @@ FLICKER_MODELS = {
 
 
 def flicker_null_run(args, work):
-    """Spec §6 G1 under flicker on the gimbal angles: the same sealed nulls per level and
+    """goal G1 under flicker on the gimbal angles: the same sealed nulls per level and
     generator (the GM sum the flicker model assumes, or 1/f by spectral synthesis) diagnosed
     with each noise model of ``--flicker-models``; ``--flicker-power N``: the REML model's cost,
     detection on white-noise records at lambda 16 / 32 against the white model."""
@@ -407,7 +407,7 @@ def flicker_null_run(args, work):
             f"{args.flicker_power} cases): "
             f"{power_line(bench.Design(flicker_arcsec=b), ('given', 'white'), seed + 1)} (the "
             f"white model's detections include its false alarms on these records).")
-    lines += ["", "Spec §6 G1: FAR in [0.03, 0.06] with the correct noise model, <= 0.10 under "
+    lines += ["", "goal G1: FAR in [0.03, 0.06] with the correct noise model, <= 0.10 under "
               "mild misspecification (flicker present, not modelled). The design is the "
               "suite's (vertical scheme, 24 h at 60 s, 1 arcsec white noise per sample); GM-sum "
               "flicker: five Gauss-Markov processes one decade apart from one sample "
@@ -420,13 +420,13 @@ def flicker_null_run(args, work):
 
 
 def g6_run(args, work):
-    """Spec §6 G6 on the ESG: the advisor's first design, closed loop, for the rotor tilt
+    """goal G6 on the ESG: the advisor's first design, closed loop, for the rotor tilt
     (equatorial / arbitrary alpha_2 -> theta; 24 h records) and the sidereal-day line on 12 h
     records (>= 24 h -> diurnal vs ramp)."""
     runs = [("rotor_tilt", bench.Design(), tuple(args.g6_fractions), "gap_blind_g6",
              "rotor tilt", "theta in a random direction, its size a fraction of the prior scale "
              "10 arcmin", "To first order theta is absorbed into mc on the polar and vertical "
-             "schemes and has no signature on the equatorial one (spec esg-drift §8-9): what the "
+             "schemes and has no signature on the equatorial one (docs/rigs/esg.md): what the "
              "records show of it is second order (O(m theta)) or from the large gimbal angles."),
             ("diurnal_line", bench.Design(hours=12.0), (1.0,), "gap_blind_g6_diurnal",
              "sidereal-day line on 12 h records", "the line's four coefficients (sin, cos on "

@@ -1,5 +1,4 @@
-"""Blind validation of the gap diagnosis on gyrotheodolite north-seeking runs (spec gap-diagnosis
-§5-6).
+"""Blind validation of the gap diagnosis on gyrotheodolite north-seeking runs (docs/goals.md).
 
 One sealed suite: 40-min runs at 1 s with 1 arcsec pick-off noise, the test parameters drawn per
 case, nulls, the three visible catalogue effects at noncentrality 8/16/32/64, the structurally
@@ -54,7 +53,7 @@ def main(argv=None):
     ap = blind_parser(__doc__, cases=96)
     ap.add_argument("--g8-cases", type=int, default=60,
                     help="extra torque_step / drift_transient cases at lambda 32/64 for the "
-                         "localisation of spec §6 G8 (onset, decay time)")
+                         "localisation of goal G8 (onset, decay time)")
     add_prior_arg(ap, "gap_blind_gyrotheodolite")
     one_design_main(ap.parse_args(argv), bg, bg.GyrotheodoliteDesign(), suite,
                     name="gyrotheodolite", title="Gap diagnosis, gyrotheodolite null run",

@@ -1,4 +1,4 @@
-"""Blind validation of the gap diagnosis on the strapdown IMU rig (spec gap-diagnosis §5-6).
+"""Blind validation of the gap diagnosis on the strapdown IMU rig (docs/diagnosis.md).
 
 Three sealed suites: the 12-pose multi-position design with the same-design split (last quarter
 held out) and with the design-shift split (six other poses held out), and the 40-min static design
@@ -62,7 +62,7 @@ SUITES = {
     "multi, design-shift": bench_imu.IMUDesign(split="design-shift"),
     "static": bench_imu.IMUDesign(kind="static"),
 }
-# spec D4: the 12-pose stand, then ccw/cw rate-table runs (`--table-cases`, its own section)
+# design D4: the 12-pose stand, then ccw/cw rate-table runs (`--table-cases`, its own section)
 TABLE_SUITES = {"rate table (D4)": bench_imu.IMUDesign(kind="table")}
 # the multi design diagnosed per coefficient (K = 40; `--per-coefficient-cases`, its null run)
 PER_COEFFICIENT = {"multi, per coefficient": bench_imu.IMUDesign(per_coefficient=True)}
@@ -71,15 +71,15 @@ PER_COEFFICIENT = {"multi, per coefficient": bench_imu.IMUDesign(per_coefficient
 def main(argv=None):
     ap = blind_parser(__doc__, cases=60)
     ap.add_argument("--ool-cases", type=int, default=40,
-                    help="extra out-of-library cases per multi-position suite (spec §6 G9)")
+                    help="extra out-of-library cases per multi-position suite (goal G9)")
     ap.add_argument("--null-suite", action="append",
                     choices=list(SUITES | TABLE_SUITES | PER_COEFFICIENT),
                     help="the design(s) of the null run (repeatable; default: every suite)")
     ap.add_argument("--calibration-cases", type=int, default=0,
                     help="a separate run of N static-design time_drift / warmup_transient "
-                         "cases at lambda 8-64 for the posteriors' calibration (spec §6 G4)")
+                         "cases at lambda 8-64 for the posteriors' calibration (goal G4)")
     ap.add_argument("--g8-cases", type=int, default=0,
-                    help="a localisation run (spec §6 G8): N pose_step cases on the multi "
+                    help="a localisation run (goal G8): N pose_step cases on the multi "
                          "design (per-position signature) and N noise-model cases on the static "
                          "design (tau band)")
     ap.add_argument("--aux-cases", type=int, default=0,
@@ -90,14 +90,14 @@ def main(argv=None):
                     help="a blind suite of N cases on the rate-table design D4 (the 12 poses, "
                          "then ccw/cw table runs), section gap_blind_imu_table")
     ap.add_argument("--g6-cases", type=int, default=0,
-                    help="design-advice closed loop (spec §6 G6: cw/ccw rotation -> sf vs "
+                    help="design-advice closed loop (goal G6: cw/ccw rotation -> sf vs "
                          "misalignment; a temperature cycle -> temperature vs drift): N "
                          "multi-position records per family with the gyro scale factors, "
                          "misalignments or temperature coefficients (on a temperature ramp) "
                          "hidden at their prior scale, diagnosed, run again on the advised "
                          "design and diagnosed again")
     ap.add_argument("--per-coefficient-cases", type=int, default=0,
-                    help="spec §6 G10 at K >= 20: N multi-design cases diagnosed with every "
+                    help="goal G10 at K >= 20: N multi-design cases diagnosed with every "
                          "coefficient an effect of its own (K = 40), each hiding one "
                          "coefficient; B2 refit-all timed on every record; section "
                          "gap_blind_imu_per_coefficient")
@@ -152,7 +152,7 @@ G6_WHY = {
 
 
 def g6_run(args, work):
-    """Spec §6 G6 on the IMU: cw/ccw rotation -> scale factor vs misalignment (a still stand's
+    """goal G6 on the IMU: cw/ccw rotation -> scale factor vs misalignment (a still stand's
     nominal model carries no Earth rate, so the gyro triad's scale factors and misalignments
     have no signature there; the advisor's rate-table design drives them) and a temperature
     cycle instead of a ramp -> temperature vs drift."""
@@ -199,7 +199,7 @@ REFITS = ("Levenberg-Marquardt on the nominal biases, the pose terms and the eff
 
 
 def per_coefficient(args, work):
-    """Spec §6 G10 with K >= 20 effects and nonlinear refits: the 12-pose multi design diagnosed
+    """goal G10 with K >= 20 effects and nonlinear refits: the 12-pose multi design diagnosed
     with ``per_coefficient=True`` (every coefficient of the catalogue's error model an effect
     of its own: K = 40 on six channels), each case hiding one coefficient at lambda 8-64;
     B2 refit-all (Levenberg-Marquardt over the biases, the 24 pose terms and the effect, per
@@ -243,7 +243,7 @@ def per_coefficient(args, work):
              "last quarter held out) diagnosed with every coefficient of the catalogue's error "
              "model an effect of its own (`diagnose(..., per_coefficient=True)`, CLI "
              "`--per-coefficient`: g_sensitivity:gsxy, misalignment:mgxy, warmup_transient:wgx "
-             "with its decay-time grid, ...; spec D1's question, which term). "
+             "with its decay-time grid, ...; design D1's question, which term). "
              f"{n} sealed cases (seed {args.seed + 80}, 30 % nulls; one of the {len(fams)} "
              "coefficients a still stand can see hidden at lambda 8/16/32/64), generated in "
              f"{t_gen:.0f} s, diagnosed and B2 run in {t_run:.0f} s (median diagnosis "
@@ -265,7 +265,7 @@ def per_coefficient(args, work):
 
 
 def static_calibration(args, work):
-    """Spec §6 G4 on the static design with enough in-library cases to read the ECE: the two
+    """goal G4 on the static design with enough in-library cases to read the ECE: the two
     mean effects it can see (time_drift, warmup_transient) at every lambda, no nulls."""
     design = SUITES["static"]
     t0 = time.perf_counter()
@@ -305,7 +305,7 @@ def _share(flags):
 
 
 def localisation(args, work):
-    """Spec §6 G8 on the IMU's new map axes: the per-position signature of an out-of-library
+    """goal G8 on the IMU's new map axes: the per-position signature of an out-of-library
     pose_step (cosine of the map's per-position Wald z with its expectation on the record's own
     design) and the tau band of the static design's noise-model effects."""
     import numpy as np
@@ -381,8 +381,8 @@ def localisation(args, work):
 
 
 def aux_localisation(args, work):
-    """The aux axis and the temperature effect (spec §4.2 stage 1, §5.3 family 5): records with
-    a temperature channel, nulls and a bias that follows the temperature on one channel (the
+    """The aux axis and the temperature effect (the gap map's aux axis and the temperature family): records
+    with a temperature channel, nulls and a bias that follows the temperature on one channel (the
     catalogue's ``temperature`` effect with one coefficient)."""
     design = SUITES["multi, same-design"]
     lams = (32.0, 64.0, 128.0)

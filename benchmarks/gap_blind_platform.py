@@ -1,18 +1,18 @@
-"""Blind validation of the gap diagnosis on the three-gimbal platform (spec gap-diagnosis §5-6,
+"""Blind validation of the gap diagnosis on the three-gimbal platform (docs/diagnosis.md,
 design D2).
 
-One sealed suite: the 14 positions of seed 001 at a static run and two vibration amplitudes
+One sealed suite: the 14 positions of the source at a static run and two vibration amplitudes
 (table 0, 9, 7 g; 100 s dwells at 40 Hz, 1 arcsec angle noise), the 27 nominal drift
 coefficients drawn per case, nulls, the five catalogue effects at noncentrality 8/16/32/64, the
-seed-001 structural case (hidden D_oo on a single-amplitude test) and two out-of-library pick-off
+the source structural case (hidden D_oo on a single-amplitude test) and two out-of-library pick-off
 effects. Also reports how separable the catalogue is on D2 (largest projected canonical
 correlation of each effect with another one). Every case is diagnosed twice, with the
 same-design split (the end of every dwell held out) and the design-shift split (the 7 g run
-held out whole), side by side (spec §6 G7), with the oracle (the hidden effect's own refit).
+held out whole), side by side (goal G7), with the oracle (the hidden effect's own refit).
 ``--g7-cases N`` adds N cases at the larger noncentralities 256 and 1024, where the held-out gap
 stands clear of its null band (at lambda <= 64 spread over ~3,000 train rows it mostly does
 not). Writes the section ``gap_blind_platform`` of RESULTS.md; ``--nulls N`` adds a separate run
-of N sealed nulls (spec §6 G1 asks for >= 1000 per design) as the section
+of N sealed nulls (goal G1 asks for >= 1000 per design) as the section
 ``gap_blind_platform_nulls``.
 
     python benchmarks/gap_blind_platform.py                      # 400 + 120 cases (~20 min)
@@ -25,7 +25,7 @@ of N sealed nulls (spec §6 G1 asks for >= 1000 per design) as the section
 
 ``--nominal-terms f,i,o,s`` runs a separate suite on the first-order nominal model (bias and g
 terms, 12 coefficients): each of the 18 g^2 coefficients it leaves out is a catalogue effect of
-its own, so the diagnosis screens 22 effects (spec §6 G10's K >= 20), with B2 refit-all + BIC
+its own, so the diagnosis screens 22 effects (goal G10's K >= 20), with B2 refit-all + BIC
 timed on every record beside the screening. Its catalogue is one of single coefficients, so
 the diagnosis' default prior there is the shell (section ``gap_blind_platform_first_order_shell``;
 ``--prior design``: ``gap_blind_platform_first_order``).
@@ -82,7 +82,7 @@ def main(argv=None):
                     help="the held-out split of the null run (design-shift: the 7 g run held "
                          "out; its own section gap_blind_platform_nulls_shift)")
     ap.add_argument("--g6-cases", type=int, default=0,
-                    help="a design-advice closed-loop run (spec §6 G6): N seed-001 structural "
+                    help="a design-advice closed-loop run (goal G6): N the source structural "
                          "cases (hidden D_oo on one amplitude), each re-run on the design the "
                          "advisor ranks first and diagnosed again")
     ap.add_argument("--nominal-terms", metavar="TERMS",
@@ -121,7 +121,7 @@ def main(argv=None):
 
 
 def many_effects(args, work, design):
-    """Spec §6 G10 with K >= 20: the suite on a smaller nominal (every coefficient it leaves
+    """goal G10 with K >= 20: the suite on a smaller nominal (every coefficient it leaves
     out an effect of its own), B2 refit-all timed on every record beside the screening."""
     import functools
     import time
@@ -190,7 +190,7 @@ def many_effects(args, work, design):
 
 
 def closed_loop(args, work, design):
-    """Spec §6 G6: the advisor's first design for the seed-001 structural case, closed loop."""
+    """goal G6: the advisor's first design for the the source structural case, closed loop."""
     import time
 
     from tqdm import tqdm
@@ -206,7 +206,7 @@ def closed_loop(args, work, design):
     s = closed_loop_scores(rows, "anisoelastic_oo")
     lines = ["## Gap diagnosis, platform design advice closed loop (`benchmarks/gap_blind_platform.py "
              "--g6-cases`)", "", machine_line(), "",
-             f"{args.g6_cases} sealed seed-001 structural cases (hidden D_oo at its prior scale "
+             f"{args.g6_cases} sealed the source structural cases (hidden D_oo at its prior scale "
              f"on a single 9 g test; seed {args.seed + 60}; generated in {t_gen:.0f} s, "
              f"diagnosed, re-run and diagnosed again in {time.perf_counter() - t0 - t_gen:.0f} "
              "s). Each record is diagnosed blind with the design advisor on; the advisor ranks "
@@ -246,7 +246,7 @@ def both_splits(work, design, separable, desc, thresholds=None, prior=None):
 
 
 def split_table(same, shift) -> list[str]:
-    """Same-design and design-shift splits side by side (spec §6 G7)."""
+    """Same-design and design-shift splits side by side (goal G7)."""
     def med(x):
         return "-" if x is None else f"{x:.2f}"
 
@@ -310,7 +310,7 @@ def suite(args, work, design):
              "top posterior) is the hidden one; named = the hidden effect is in the verdict or "
              "the 90 % ambiguity set.", "",
              f"- Nulls: {far_text(s)}.",
-             "- Structural (seed 001): hidden D_oo at its prior scale (0.03 deg/h/g^2) on a "
+             "- Structural (the source): hidden D_oo at its prior scale (0.03 deg/h/g^2) on a "
              "single-amplitude test left unattributed (no-gap or confounded): "
              f"{_fmt(s['structural_silent'])}; the aliases D_f + kappa D_oo, D_ii - D_oo, "
              "D_ss - D_oo are checked to 1e-6 by the tests.",
@@ -319,7 +319,7 @@ def suite(args, work, design):
              + ", ".join(f"{e} {v:.4f}" for e, v in sorted(sep.items()))
              + f". Separable (<= 0.9): {', '.join(separable) or 'none'}.", ""]
     lines += [ORACLE_NOTE, ""] + suite_lines(same, "readout_line, readout_step")
-    lines += ["### Same-design and design-shift held-out splits (spec §6 G7)", "",
+    lines += ["### Same-design and design-shift held-out splits (goal G7)", "",
               "The same cases diagnosed again with the design-shift split (the 7 g run held "
               f"out whole, trained on the 0 and 9 g runs; {t_shift:.0f} s). Oracle: the hidden "
               "effect's own refit on the same split (every catalogue effect is refitted, "

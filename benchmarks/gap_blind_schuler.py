@@ -1,10 +1,10 @@
-"""Blind validation of the gap diagnosis on the Schuler test (spec gap-diagnosis §5-6, design D5).
+"""Blind validation of the gap diagnosis on the Schuler test (docs/diagnosis.md, design D5).
 
 One sealed suite: D5's 4 h (~2.84 Schuler periods) at 10 s, the 12 nominal errors drawn from
 the prior, nulls, the six visible catalogue effects at noncentrality 8/16/32/64 and two
 out-of-library effects.
 Also reports how separable the catalogue is on this design (largest projected canonical
-correlation of each effect with another one, spec §5.6 "separable": <= 0.9). Writes the section
+correlation of each effect with another one, docs/goals.md "separable": <= 0.9). Writes the section
 ``gap_blind_schuler`` of RESULTS.md.
 
     python benchmarks/gap_blind_schuler.py              # 60 cases + 60 G8 cases
@@ -49,7 +49,7 @@ def main(argv=None):
     ap = blind_parser(__doc__, cases=60)
     ap.add_argument("--g8-cases", type=int, default=60,
                     help="extra drift_step / drift_transient cases at lambda 32/64 for the "
-                         "localisation of spec §6 G8 (onset, decay time)")
+                         "localisation of goal G8 (onset, decay time)")
     ap.add_argument("--g8-periods", type=float, nargs="*", default=[],
                     help="also localise drift steps on records of these many Schuler periods "
                          "(D5's 4 h are ~2.84): --g8-cases / 2 drift_step cases each, same seed")

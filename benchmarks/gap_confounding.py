@@ -1,5 +1,5 @@
-"""Confounding recall and precision of the gap diagnosis on every rig (spec gap-diagnosis §5.6,
-§6 G5's "practical confounding (v < 0.05)").
+"""Confounding recall and precision of the gap diagnosis on every rig (docs/diagnosis.md,
+goal G5's "practical confounding (v < 0.05)").
 
 For each design: sealed in-library cases (no nulls; each catalogue family at noncentrality
 8/16/32/64). The generator records, truth side, the hidden effect's visible fraction on the train
@@ -181,11 +181,11 @@ def main(argv=None):
              "at lambda 8/16/32/64). Truth side: the hidden effect's visible fraction on the train "
              "rows (the smallest 1 - rho^2 over its coefficient directions; Jacobians at the "
              "generating parameters and the sealed grid value), confounded when < 0.05 or "
-             "without signature (spec §5.6: practical confounding; structural cases are G5's "
+             "without signature (docs/goals.md: practical confounding; structural cases are G5's "
              "`structural_silent` rows of the rig sections). Diagnosis: the flag on the hidden "
              "effect's row of the report (practically / structurally confounded, no signature), "
              "from its own nominal fit and the grid value its screening chose. Recall: truth "
-             "confounded -> flagged; precision: flagged -> truth confounded (spec §6 G5: >= 0.95 "
+             "confounded -> flagged; precision: flagged -> truth confounded (goal G5: >= 0.95 "
              "/ >= 0.90); agreement: the two flags equal, over every case; confident "
              "misattribution: posterior > 0.9 on another effect, over all in-library cases (G5: "
              "<= 0.02). Rates ± Monte Carlo standard error (n cases); '-': no case in the "

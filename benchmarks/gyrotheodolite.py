@@ -75,7 +75,7 @@ def _numpy_setup(omega0):
 
 
 def _means(x, xh, w, nx, nz, pn, ka):
-    """Constant error and the observer-based §9 correction from the phasors (last axis: state)."""
+    """Constant error and the observer-based correction from the phasors (last axis: state)."""
     gam = pn["mgl"] / (pn["mgl"] - pn["J_x"] * w**2 + 1j * pn["f_gamma"] * w) * nz
     total = (pn["H"] * 0.5 * (x[..., 1] * np.conj(gam)).real
              + pn["mgl"] * 0.5 * ((gam * nx).real + (x[..., 2] * nz).real)) / ka
@@ -143,7 +143,7 @@ def main(argv=None):
     for n_w0, n_f, tj, ts, comp_s, diff in sweep:
         lines.append(f"| {n_w0} x {n_f:,} | {tj * 1e3:.2f} | {ts * 1e3:.1f} | {ts / tj:.0f}x | "
                      f"{comp_s:.1f} | {diff:.1e} |")
-    lines += ["", "Compensation Monte Carlo (constant error + §9 corrections by harmonic balance, "
+    lines += ["", "Compensation Monte Carlo (constant error + corrections by harmonic balance, "
               "omega0 = 1000). Baselines: a per-draw numpy loop (timed on up to 2,000 draws, "
               "scaled) and batched numpy (stacked np.linalg.solve).", "",
               "| draws | gyrojax ms | numpy loop ms | ratio | batched numpy ms | ratio | gyrojax "

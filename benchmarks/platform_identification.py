@@ -1,4 +1,4 @@
-"""Platform identification benchmark: the 14-position two-amplitude data set (spec §11 test 1),
+"""Platform identification benchmark: the 14-position two-amplitude data set (docs/rigs/platform.md test 1),
 gyrojax (JAX regression (S22), and the source's EKF) against a numpy/scipy implementation of the
 same regression (vectorised over samples, scipy cumulative trapezoid, numpy lstsq).
 
@@ -133,10 +133,10 @@ def main(argv=None):
     err = np.abs(x_j / dh - np.array([TRUE_TABLE2[n] for n in COEFF_NAMES]))
     lines = ["## Platform identification (`benchmarks/platform_identification.py`)", "",
              machine_line(), "",
-             "Data set: spec §11 test 1 — Table 1's 14 positions at table amplitudes 9 g and 7 g "
-             "(attenuation 1.5, 15 Hz), 100 s dwells at 25 ms (2 x 14 x 4,001 samples of three "
-             "angles), 1 arcsec angle noise, kappa from the simulated accelerometers; all 30 "
-             "coefficients jointly.", "",
+             "Data set: test 1 of docs/rigs/platform.md — Table 1's 14 positions at table "
+             "amplitudes 9 g and 7 g (attenuation 1.5, 15 Hz), 100 s dwells at 25 ms "
+             "(2 x 14 x 4,001 samples of three angles), 1 arcsec angle noise, kappa from the "
+             "simulated accelerometers; all 30 coefficients jointly.", "",
              "| implementation | ms | ratio to numpy/scipy | compile s |", "|---|---|---|---|",
              f"| numpy/scipy regression (S22), vectorised over samples | {t_np * 1e3:.0f} | 1.0x | |",
              f"| gyrojax regression (S22), jit + vmap over positions | {t_reg * 1e3:.0f} | "

@@ -24,9 +24,9 @@ from gyrojax.models.schuler import SchulerConditions, SchulerRig
 sys.path.insert(0, os.path.dirname(__file__))
 from _results import best_time, machine_line, publish  # noqa: E402
 
-PEAK_CORE = 46e9  # float64 DGEMM peak of one core of this machine type (PERFORMANCE.md)
+PEAK_CORE = 46e9  # float64 DGEMM peak of one core of this machine type (a reference figure)
 PEAK = PEAK_CORE * (os.cpu_count() or 1)  # the machine's peak: all cores
-FLOPS_KF = 29e3  # full-covariance 17-state step with 5 measurements (PERFORMANCE.md)
+FLOPS_KF = 29e3  # full-covariance 17-state step with 5 measurements (reference figure)
 FLOPS_SHARED = 2 * (17 * 17 + 2 * 5 * 17)  # per run-step with precomputed gains
 SIG_R = np.array([0.05, 0.05, units.ARCMIN, units.ARCMIN, units.ARCMIN])
 

@@ -17,7 +17,7 @@ EXIT_USAGE = 2
 # record in other units (hours for seconds) or a wrong scheme gives thousands, an unmodelled
 # effect anything from 1 up (11 for a 300-arcsec base misalignment on a day's record)
 MISFIT_RATIO = 10.0
-SUB_STAGES = ("library_scores",)  # a part of the screening, timed apart for spec §6 G10
+SUB_STAGES = ("library_scores",)  # a part of the screening, timed apart for goal G10
 
 
 class UsageError(Exception):

@@ -94,7 +94,7 @@ class ESGCommands(AbstractRigCommands):
                                                  "(default rotor_tilt,base_misalignment)")
             group.add_argument("--method", choices=["regression", "trajectory"],
                                help="esg: sensitivity by the regression design A (linear "
-                                    "model, the spec's check; the default) or the trajectory "
+                                    "model, the source's check; the default) or the trajectory "
                                     "Jacobian of the exact model")
             group.add_argument("--exact-tol", type=float,
                                help="esg: relative singular value below which a direction is "

@@ -173,7 +173,7 @@ class PlatformCommands(AbstractRigCommands):
             group.add_argument("--nominal-terms", metavar="TERMS",
                                help="platform: comma-separated drift-law terms the nominal "
                                     "model carries for every gyro, from "
-                                    "f,i,o,s,ii,oo,ss,io,is,os (default all but oo, seed 001's "
+                                    "f,i,o,s,ii,oo,ss,io,is,os (default all but oo, the source's "
                                     "model; f,i,o,s = the first-order model); every "
                                     "coefficient left out is screened as an effect of its own")
 

@@ -67,7 +67,7 @@ def simulate(args):
     sigma_v, sigma_theta = _noise(args)
     space = rig.param_space
     key_theta, key_noise = jax.random.split(jax.random.key(args.seed))
-    if args.random_errors:  # draw theta ~ N(0, prior) (spec §9.1), then apply --set overrides
+    if args.random_errors:  # draw theta ~ N(0, prior) (docs/rigs/schuler.md), then apply --set overrides
         draw = jax.random.normal(key_theta, (len(PARAM_NAMES),))
         given = {n: float(space[n].scale * d) for n, d in zip(PARAM_NAMES, draw, strict=True)}
     else:
@@ -198,7 +198,7 @@ class SchulerCommands(AbstractRigCommands):
                                help="schuler: gimbal-angle noise in arcmin per axis (default 1)")
         if command == "simulate":
             group.add_argument("--random-errors", action="store_true",
-                               help="schuler: draw the 12 errors from their priors (spec §10), "
+                               help="schuler: draw the 12 errors from their priors (docs/rigs/schuler.md), "
                                     "then apply --set")
         if command == "observability":
             group.add_argument("--channels", default="all", choices=["all", "velocity"],

@@ -213,7 +213,7 @@ def cmd_observer(args):
     study = frequency_study(rig, params, cond, args.omega0)
     rows = study.table(level=args.level)
     print(f"gyrotheodolite observer, all poles at -omega0; latitude {args.latitude} deg, "
-          f"kappa {args.kappa:g}; gains from the corrected closed form (spec §6)")
+          f"kappa {args.kappa:g}; gains from the corrected closed form (docs/rigs/gyrotheodolite.md)")
     print(f"{'omega0':>8} {'k1 [1/s]':>12} {'k2 [1/s^2]':>12} {'k3 [1/s]':>12} {'k4 [1/s^2]':>12}"
           f"  {'max|p+w0|/w0':>12}  {int(args.level * 100)}% band [rad/s]: rate  amplitude")
     fmt = lambda x: "   none" if x is None else f"{x:7.3g}"  # noqa: E731
@@ -227,9 +227,9 @@ def cmd_observer(args):
         import jax
 
         out["compensation"] = {}
-        print("\ncompensation of the constant vibration error (spec §9), "
+        print("\ncompensation of the constant vibration error (docs/rigs/gyrotheodolite.md), "
               f"{args.compensation} random vibrations: fraction of the error left (median / p95)")
-        for label, r in (("model (1)", rig), ("§9 mechanism only", GyrotheodoliteRig(
+        for label, r in (("model (1)", rig), ("formula's mechanism only", GyrotheodoliteRig(
                 vibration_torque=False))):
             for w0 in args.omega0:
                 s = compensation_monte_carlo(r, params, jax.random.key(args.seed),
@@ -410,7 +410,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--latitude", type=float, default=50.45, help="latitude in deg (default 50.45)")
     p.add_argument("--kappa", type=float, default=0.0, help="relative compensation gain (default 0)")
     p.add_argument("--set", action="append", metavar="NAME=VALUE",
-                   help="rig parameter in SI (H=0.1, J_y=1e-3 ...), repeatable; defaults: spec §8")
+                   help="rig parameter in SI (H=0.1, J_y=1e-3 ...), repeatable; defaults: the "
+                        "assumed set of docs/rigs/gyrotheodolite.md")
     p.add_argument("--level", type=float, default=0.1,
                    help="relative rate-estimate error defining the bandwidth (default 0.1)")
     p.add_argument("--compensation", type=int, default=0, metavar="DRAWS",

@@ -10,7 +10,7 @@ repository), into :class:`BenchRecord` in SI units with their conditions.
 | :func:`load_smac` | ``smac_imudata`` | ``.npz``: ADIS16405 int16 counts x LSB (deg/s, g); MTi-G gyro x |
 | :func:`load_mpu6050` | ``mpu6050_unc`` | CSV with a 5-line header, counts / (16384 LSB/g, 131 LSB/(deg/s)) |
 
-Channels ``wx wy wz`` (rad/s) and ``ax ay az`` (m/s^2), per the DESIGN.md contract; a record may
+Channels ``wx wy wz`` (rad/s) and ``ax ay az`` (m/s^2), the record contract of docs/concepts.md; a record may
 carry a subset (the MTi-G file is gyro x only). Conditions carry the sampling rate, latitude where
 the source gives it, the nominal conversion used, and ``masked_s``: a flat tuple
 ``(t0, t1, t0, t1, ...)`` of disturbed spans (saturation, knocks) that fits and diagnoses exclude

@@ -122,7 +122,7 @@ def euler321_increment_to_rotvec(chi, dchi_euler):
 
     For ``C = R3(chi3) R2(chi2) R1(chi1)``, ``C(chi + d) ~= C(chi) Rot(J d)`` with
     $J = \\begin{pmatrix}1&0&-\\sin\\chi_2\\\\0&\\cos\\chi_1&\\sin\\chi_1\\cos\\chi_2\\\\
-    0&-\\sin\\chi_1&\\cos\\chi_1\\cos\\chi_2\\end{pmatrix}$ (spec esg-drift §3.5).
+    0&-\\sin\\chi_1&\\cos\\chi_1\\cos\\chi_2\\end{pmatrix}$ (docs/rigs/esg.md).
     """
     c1, s1 = jnp.cos(chi[0]), jnp.sin(chi[0])
     c2, s2 = jnp.cos(chi[1]), jnp.sin(chi[1])

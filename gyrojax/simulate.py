@@ -7,6 +7,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float
 
 from .models._base import AbstractRig
 from .record import BenchRecord, freeze
@@ -115,9 +116,9 @@ def _log(x):
 
 
 @eqx.filter_jit
-def trajectory(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: float = 1e-10,
-               atol: float = 1e-12, max_steps: int = 100_000, adjoint=None, throw: bool = True,
-               steps: int | None = None):
+def trajectory(rig: AbstractRig, params, conditions, ts: Float[ArrayLike, " n"], *, solver=None,
+               rtol: float = 1e-10, atol: float = 1e-12, max_steps: int = 100_000, adjoint=None,
+               throw: bool = True, steps: int | None = None) -> Float[Array, "n state"]:
     """States of ``rig`` at times ``ts`` (s), shape ``(n, state)``; see :func:`integrate`."""
     tau = jnp.asarray(ts, dtype=float) * rig.time_scale
     y0 = rig.initial_state(params, conditions)
@@ -267,9 +268,9 @@ def _interpolation_weights(solver, dense, per):
 
 
 @eqx.filter_jit
-def integrate(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: float = 1e-10,
-              atol: float = 1e-12, max_steps: int = 100_000, adjoint=None, throw: bool = True,
-              steps: int | None = None):
+def integrate(rig: AbstractRig, params, conditions, ts: Float[ArrayLike, " n"], *, solver=None,
+              rtol: float = 1e-10, atol: float = 1e-12, max_steps: int = 100_000, adjoint=None,
+              throw: bool = True, steps: int | None = None) -> Float[Array, "n c"]:
     """Noise-free measured channels of ``rig`` at times ``ts`` (s), shape ``(n, c)``.
 
     Integrates ``rig.vector_field`` in the rig's internal time from ``ts[0]`` (where the state is
@@ -301,7 +302,8 @@ def _simulate(rig, params, conditions, ts, key, noise_std, rtol, atol, max_steps
     return y
 
 
-def simulate(rig: AbstractRig, params, conditions, ts, *, key=None, noise_std=0.0,
+def simulate(rig: AbstractRig, params, conditions, ts: Float[ArrayLike, " n"], *, key=None,
+             noise_std: float | Float[ArrayLike, " c"] = 0.0,
              attrs=None, rtol: float = 1e-10, atol: float = 1e-12,
              max_steps: int = 100_000, solver=None, steps: int | None = None) -> BenchRecord:
     """Simulate a bench test: integrate the rig and add white measurement noise.

@@ -1,4 +1,4 @@
-"""Shared test helpers: standard test designs from the spec."""
+"""Shared test helpers: standard test designs of the source papers."""
 
 import jax.numpy as jnp
 

@@ -213,7 +213,7 @@ def test_mounting_budget_joint_estimation_beats_drift_only():
     """Monte Carlo over random mounting errors, noise-free (alpha2(0) = 30 deg where every
     parameter but theta is observable): estimating the mounting errors jointly cuts the drift
     error by at least 5x against ignoring them (cf. Table 3); what remains is the O(m dchi)
-    bias of the first-order regression model (spec §8.3). (In the equatorial scheme theta acts
+    bias of the first-order regression model (docs/rigs/esg.md). (In the equatorial scheme theta acts
     only at O(m theta), which the weak m11/mc2/eps3 direction amplifies: use Gauss-Newton there.)"""
     bud = mounting_error_budget(jax.random.key(3), 16, schemes=("horizontal", "vertical"),
                                 noise_arcsec=0.0, alpha20_deg=30.0, chunk_size=32)

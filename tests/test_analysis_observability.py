@@ -49,7 +49,7 @@ def test_variant2_polar_large_angles_all_observable():
 
 
 def test_variant3_equatorial_small_alpha2():
-    """theta exactly unobservable; (6.12) mc2 + eps1 ... and the spec's correction: m11 is not
+    """theta exactly unobservable; (6.12) mc2 + eps1 ... and the source's correction: m11 is not
     separable from mc2, eps3 either (null dm11 = 1, dmc2 = sin phi, deps3 = cos phi)."""
     rep = _report("equatorial", (0, 0))
     assert rep.unobservable == ["theta1", "theta2"]

@@ -1,4 +1,4 @@
-"""Schuler-test observability against spec schuler-test.md §12: Cramer-Rao bounds at half a period
+"""Schuler-test observability against docs/rigs/schuler.md: Cramer-Rao bounds at half a period
 and at four periods, the weakly separable pairs with their correlations, and the velocity-only
 (classical) test's weakest directions."""
 
@@ -13,7 +13,7 @@ COND = SchulerConditions.create()
 T = float(COND.schuler_period)
 SPACE = RIG.param_space
 
-# spec §12 CRLB table (deg/h, ppm = 1e-6 of the scale errors, m/s^2, arcmin)
+# docs/rigs/schuler.md CRLB table (deg/h, ppm = 1e-6 of the scale errors, m/s^2, arcmin)
 CRLB = {0.5: [0.067, 0.011, 0.0016, 480, 800, 1.0e-3, 1.0e-3, 510, 510, 0.36, 0.36, 27],
         4: [7.6e-5, 1.4e-4, 4.1e-5, 6.0, 15, 2.9e-5, 2.9e-5, 16, 6.1, 0.010, 0.010, 0.029]}
 
@@ -38,7 +38,7 @@ def test_cramer_rao_bounds_and_weak_pairs(periods):
 
 
 def test_velocity_only_test_leaves_two_directions_to_the_prior():
-    """Spec §12: with the velocities alone, at one period the directions alpha10/df2 and K11/D22
+    """docs/rigs/schuler.md: with the velocities alone, at one period the directions alpha10/df2 and K11/D22
     carry Fisher information 0.03 and 0.1 (prior units: less than the prior), alpha20/df1 1.7."""
     ob = schuler_observability(RIG, COND, T, channels="velocity")
     weakest = ob.weakest_directions(3)

@@ -1,4 +1,4 @@
-"""The blind suites' truth side (spec gap-diagnosis §5.4): each generator states a hidden
+"""The blind suites' truth side (docs/diagnosis.md): each generator states a hidden
 effect's noncentrality ``lambda = b^T I_bb.theta b``: the efficient information of the effect's
 coefficients, the nominal parameters projected out, on the train rows. Every figure of the
 blind benchmarks (power at a lambda, the oracle's rates, G1-G10) is read against it.
@@ -106,7 +106,7 @@ def test_esg_cases_have_the_stated_noncentrality(tmp_path):
 @pytest.mark.slow  # ~90 s: six 4-h Schuler records and their Jacobians
 def test_schuler_cases_have_the_stated_noncentrality(tmp_path):
     """Spec schuler-test: the signal in the test's own residual coordinates (velocity and the
-    attitude residual of §8), whitened by the measurement noise of §10."""
+    attitude residual), whitened by the measurement noise."""
     import diffrax
     import jax
 
@@ -119,7 +119,7 @@ def test_schuler_cases_have_the_stated_noncentrality(tmp_path):
     design = bs.SchulerDesign()
     cond, n = design.conditions, design.n_train
     ts = jnp.asarray(design.ts)
-    w = 1.0 / np.asarray([0.05, 0.05] + [units.ARCMIN] * 3)  # spec §10
+    w = 1.0 / np.asarray([0.05, 0.05] + [units.ARCMIN] * 3)  # docs/diagnosis.md
     bs.generate(tmp_path, len(bs.MEAN_FAMILIES), seed=21, null_fraction=0.0, lambdas=(64.0,),
                 families=bs.MEAN_FAMILIES)
     seen = set()
@@ -185,7 +185,7 @@ def test_gyrotheodolite_cases_have_the_stated_noncentrality(tmp_path):
 
 @pytest.mark.slow  # ~60 s: five 3-amplitude Table 1 schedules and 54 noise-free runs
 def test_platform_cases_have_the_stated_noncentrality(tmp_path):
-    """The platform's train rows (spec platform-vibration, the diagnosis' reduction): every
+    """The platform's train rows (the diagnosis' reduction): every
     dwell's angles in 50 block means, centred by the mean of its train blocks, the train blocks
     weighted by the root of their sizes, whitened by the angle noise. Here written out in numpy;
     the nominal columns by central differences of the noise-free simulation."""
@@ -282,10 +282,10 @@ def _imu_rebuild(design, truth):
 @pytest.mark.slow  # ~40 s: eight 12-pose (and 24-pose table) records and their tilts
 @pytest.mark.parametrize("kind", ["multi", "table"])
 def test_imu_cases_have_the_stated_noncentrality(tmp_path, kind):
-    """The IMU's train rows (spec gap-diagnosis §5, the strapdown stand): the static samples of
+    """The IMU's train rows (docs/diagnosis.md, the strapdown stand): the static samples of
     every pose, the first 3/4 of them, each channel whitened by its white-noise level; the
     nominal parameters are the six biases and each pose's two tilt angles. On the rate table
-    (spec D4) the gyro triad's scale factors and misalignments are driven too. The model is
+    (design D4) the gyro triad's scale factors and misalignments are driven too. The model is
     linear in the coefficients but for the transient's decay time (sealed), so the first-order
     energy is exact up to the tilts' differencing."""
     from gyrojax.validation import imu as bi

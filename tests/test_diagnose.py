@@ -379,7 +379,7 @@ def test_noncentral_factor_is_the_density_ratio_of_the_score_statistic():
 
 
 def test_shell_prior_is_calibrated_on_effects_of_fixed_noncentrality():
-    """Spec §5.4's population: the hidden effect's noncentrality is one of 8, 16, 32, 64 (not
+    """docs/goals.md's population: the hidden effect's noncentrality is one of 8, 16, 32, 64 (not
     Gaussian). Among eight one-coefficient effects with correlated signatures, the shell
     prior's posteriors (``prior="shell"``: the noncentrality log-uniform over 8 to 2^24) are
     calibrated on 6,000 cases (confidence within 0.012 of the top-1), while the Gaussian design
@@ -515,7 +515,7 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     assert np.mean(ses) == pytest.approx(np.std(ratios), rel=0.08)
     truth = (p_y * p_x_given_y + (1 - p_y) * p_x_given_not) / p_y
     assert np.mean(ratios) == pytest.approx(truth, rel=0.01)
-    # posterior calibration (spec §6 G4), worked by hand: confidence 0.9 (the posteriors sum to
+    # posterior calibration (goal G4), worked by hand: confidence 0.9 (the posteriors sum to
     # 0.5, the rest is "no effect": renormalised), right 60 times in 100 -> ECE 0.3, Brier
     # 0.6 * 0.02 + 0.4 * 1.62; a forecaster whose outcomes are Bernoulli(confidence) shows the
     # ECE of the calibrated reference
@@ -528,7 +528,7 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
              for c in conf]
     cal = calibration(pairs)
     assert cal["ece"] < cal["ece_calibrated_95"] and cal["ece_calibrated_median"] < 0.06
-    # spec §6 G9 by hand: four out-of-library cases, two strong (remainder >= 32), one of them
+    # goal G9 by hand: four out-of-library cases, two strong (remainder >= 32), one of them
     # confidently attributed (posterior 0.95 > 0.9), one weak one confidently attributed too
     att = {"verdict": "attributed", "effects": ["x"]}
     ool = [({"remainder_lambda": 40.0, "lambda": 64.0}, att | {"posterior": {"x": 0.95}}),
@@ -540,7 +540,7 @@ def test_bayes_oracle_is_the_exact_marginal_likelihood():
     assert g9["ool_strong_unexplained_or_ambiguous"]["rate"] == 0.5
     assert g9["ool_confident_misattribution"]["rate"] == 0.5
     assert g9["ool_confident_remainder_max"] == 40.0
-    # spec §6 G8 by hand on a 24 h record (tolerance 1.2 h; decay grid step ratio 1.43)
+    # goal G8 by hand on a 24 h record (tolerance 1.2 h; decay grid step ratio 1.43)
     res = {"record_hours": 24.0, "top_line": "sidereal day (23.93 h)"}
     lib = [({"family": "drift_step", "lambda": 32.0, "onset_h": 9.0},
             res | {"grid_best": {"drift_step": 10.0}, "grid_located": {"drift_step": 10.5}}),
@@ -666,7 +666,7 @@ def test_posteriors_and_the_90_percent_set_by_bayes_rule():
     """Bayes' rule worked by hand: prior 1/2 on "no effect", the rest shared by the k = 3
     effects; Bayes factors 1, 2, 4 give weights 1/2 : 1/6 : 2/6 : 4/6, i.e. 0.3 on none and
     posteriors 0.1, 0.2, 0.4. The ambiguity set is the smallest holding 90 % of the mass given
-    an effect (spec §4.2): with posteriors 0.5, 0.3, 0.15, 0.05 (renormalised) it needs three
+    an effect (docs/diagnosis.md): with posteriors 0.5, 0.3, 0.15, 0.05 (renormalised) it needs three
     (0.8 < 0.9 <= 0.95). An effect without a signature (no tested dof at any grid value:
     Bayes factor 1 whatever the record) is part of "no gap": it gets posterior 0 and no prior
     share, so two of them beside the three leave every figure above as it was."""
@@ -1567,7 +1567,7 @@ def test_blind_harness_is_sealed_and_scores(tmp_path):
     block = scores["lambda=400"]
     assert block["power"]["rate"] == 1.0 and block["power"]["n"] == 4
     assert block["top3"]["rate"] == 1.0
-    # spec §6 G3 scoring: the oracle reads every effect's score at every grid value
+    # goal G3 scoring: the oracle reads every effect's score at every grid value
     for r in results:
         assert len(r["scores"]["drift_transient"][0]) == len(r["scores"]["drift_transient"][1]) > 1
     assert block["oracle_top1"]["n"] == 4 and block["top1_separable"]["n"] == 4
@@ -1575,7 +1575,7 @@ def test_blind_harness_is_sealed_and_scores(tmp_path):
         block["top1"]["rate"] / block["oracle_top1"]["rate"])
     assert bench.score(tmp_path, results, separable=["rotor_tilt"])[
         "lambda=400"]["top1_separable"]["n"] == 2
-    # spec §6 G9's truth side: an out-of-library term's noncentrality recomputed by projection
+    # goal G9's truth side: an out-of-library term's noncentrality recomputed by projection
     # equals the generator's (information-matrix) lambda; the best library fit leaves part of it
     bench.generate(tmp_path / "ool", 1, seed=3, null_fraction=0.0, lambdas=(64.0,),
                    families=("hvac_line",))
@@ -1587,9 +1587,9 @@ def test_blind_harness_is_sealed_and_scores(tmp_path):
     assert {r["sha"] for r in results} == set(manifest)
 
 
-@pytest.mark.slow  # ~3 min on one core: spec §6 G10's 200-case CI blind subset
+@pytest.mark.slow  # ~3 min on one core: goal G10's 200-case CI blind subset
 def test_ci_blind_subset_of_200_esg_cases(tmp_path):
-    """Spec §6 G10 asks for a 200-case blind subset in CI: 200 sealed ESG cases (a quarter
+    """goal G10 asks for a 200-case blind subset in CI: 200 sealed ESG cases (a quarter
     nulls; every library family at lambda 8-64, two-effect and out-of-library cases), diagnosed
     without the manifest, then scored against it. The bounds sit several standard errors
     outside the rates of the 400-case benchmark run (false alarms 0.05, power 1.00 at lambda
@@ -1622,8 +1622,8 @@ def test_advised_design_reads_the_esg_advice_labels():
 
 @pytest.mark.slow  # ~60 s: a diagnosis, then another on the advised design's record
 def test_rotor_tilt_design_advice_closed_loop(tmp_path):
-    """Spec §6 G6, equatorial -> theta: an 18-arcsec rotor tilt on the equatorial scheme, where
-    to first order it has no signature (spec esg-drift §9). The advisor's first design for it
+    """goal G6, equatorial -> theta: an 18-arcsec rotor tilt on the equatorial scheme, where
+    to first order it has no signature (docs/rigs/esg.md). The advisor's first design for it
     predicts an MDE well below that size; the same sealed instrument run again on it (new noise)
     is attributed to rotor_tilt alone, and the refit reads the sealed tilt back."""
     from gyrojax.validation import esg as bench
@@ -1665,7 +1665,7 @@ def test_imu_blind_harness_design_shift(tmp_path):
 
 @pytest.mark.slow
 def test_imu_blind_harness_per_coefficient(tmp_path):
-    """The per-coefficient IMU design (spec §6 G10 at K >= 20): two sealed cases each hiding
+    """The per-coefficient IMU design (goal G10 at K >= 20): two sealed cases each hiding
     one coefficient at lambda = 400 (a g-sensitivity, a warm-up on one accelerometer): both
     attributed to that coefficient; the g-sensitivity's score statistic is lambda within 4 of
     its standard deviations (sqrt(2 dof + 4 lambda); the warm-up's decay time is off its grid);
@@ -1690,7 +1690,7 @@ def test_imu_blind_harness_per_coefficient(tmp_path):
 
 @pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_imu_out_of_library_mimic_fails_its_heldout_check(tmp_path):
-    """Spec §6 G9. An accelerometer bias that jumps at one pose change (out of the catalogue) is
+    """goal G9. An accelerometer bias that jumps at one pose change (out of the catalogue) is
     mimicked on the train rows by catalogue effects (truth side: the remainder after the best
     fit of one effect or a pair is < 2 % of the step's noncentrality); the diagnosis names the
     best single mimic, but its refit makes the held-out gap worse, so the verdict is
@@ -1971,7 +1971,7 @@ def test_builtin_record_gap_is_its_hidden_base_misalignment():
 
 
 def test_remainder_after_library_equals_direct_least_squares_on_every_row():
-    """Spec §6 G9's truth side takes every fit in the coordinates of one QR; each remainder
+    """goal G9's truth side takes every fit in the coordinates of one QR; each remainder
     equals the residual sum of squares of a least-squares fit on all rows (numpy's SVD solver),
     the best one effect or pair of grid blocks, with a rank-deficient nominal block."""
     from gyrojax.validation import esg as bench
@@ -2004,7 +2004,7 @@ def test_remainder_after_library_equals_direct_least_squares_on_every_row():
 
 
 def test_g9_truth_side_uses_the_diagnosis_onset_grid():
-    """The truth side of spec §6 G9 fits the library on the diagnosis' grids: one drift-step
+    """The truth side of goal G9 fits the library on the diagnosis' grids: one drift-step
     block per onset of ``onset_grid`` (one every 5 % of the record over the train span), each
     zero on the train rows before its onset and not after (the step's angle response is its
     integral), and one transient block per decay time."""
@@ -2092,7 +2092,7 @@ def test_esg_generator_onset_crb_matches_a_trajectory_difference():
 def test_blind_scores_worked_by_hand(tmp_path):
     """``bench.score`` on a sealed manifest and results written by hand (2 nulls, 4 in-library
     cases at lambda 32, 3 out-of-library, 1 two-effect case), every rate worked out here from
-    the definitions of spec §5.6: false alarms and the calibrated level's median, power, top-1
+    the definitions of docs/goals.md: false alarms and the calibrated level's median, power, top-1
     and top-3 by posterior, the 90 % set's coverage and size, confident misattribution, the
     oracle's top-1 read at lambda 32 between its recorded 16 and 64 (linear in log lambda) and
     the paired ratio with its delta-method error, ECE and Brier of the renormalised

@@ -127,7 +127,7 @@ def test_gyrotheodolite_blind_harness(tmp_path):
     s = bg.score(tmp_path / "b", [tape, step, line])
     assert s["structural_silent"]["rate"] == 1.0
     assert s["out_of_library_honest"]["rate"] == 1.0
-    # spec §6 G8: the strong step's onset at its largest score within 2 min of the truth
+    # goal G8: the strong step's onset at its largest score within 2 min of the truth
     g8 = bg.localisation_scores(tmp_path / "b", [tape, step, line])
     assert g8["g8_step_onset"] == {"rate": 1.0, "se": pytest.approx(1e-6), "n": 1}
     assert g8["g8_step_onset_crb"]["n"] == 1 and g8["g8_step_onset_crb"]["rate"] > 0.99
@@ -135,7 +135,7 @@ def test_gyrotheodolite_blind_harness(tmp_path):
 
 
 def test_gyrotheodolite_localisation_scores_by_hand(tmp_path):
-    """Spec §6 G8 on a 40-min record (tolerance 2 min; decay grid step ratio 10^(1/7))."""
+    """goal G8 on a 40-min record (tolerance 2 min; decay grid step ratio 10^(1/7))."""
     from gyrojax.validation import gyrotheodolite as bg
 
     cases = {"a": {"family": "torque_step", "lambda": 32.0, "t_step": 10.0},

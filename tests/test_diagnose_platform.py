@@ -1,4 +1,4 @@
-"""``diagnose --rig platform``: the seed-001 structural case through the whole pipeline, the
+"""``diagnose --rig platform``: the the source structural case through the whole pipeline, the
 same effect made visible by a second amplitude, a null, and a hidden base misalignment.
 Records come from the ODE model (diffrax), the diagnosis from the linear (S22) design."""
 
@@ -38,7 +38,7 @@ def _row(rep, name):
 
 
 def test_one_amplitude_d_oo_absorbed_with_exact_aliases(records):
-    """Spec G5, seed 001: hidden D_oo (the source's +-0.03 deg/h/g^2) on one amplitude leaves no
+    """Spec G5, the source: hidden D_oo (the source's +-0.03 deg/h/g^2) on one amplitude leaves no
     gap; it is flagged structurally confounded and absorbed as D_f + kappa D_oo, D_ii - D_oo,
     D_ss - D_oo (|A - exact| <= 1e-6 with the model's kappa; kappa = 1 + a^2/2 to 1e-6 rel); a
     second amplitude is advised and makes it detectable below its prior scale."""
@@ -157,7 +157,7 @@ def test_first_order_nominal_screens_each_left_out_coefficient(tmp_path, capsys)
 def test_two_hidden_coefficients_are_attributed_as_a_pair(tmp_path):
     """Two g^2 terms left out of a first-order nominal (D_ii_y and D_ss_z, -0.03 deg/h/g^2
     each): the best single refit leaves most of the held-out gap, the greedy second step
-    (spec §4.2 stage 4) adds the other, and the verdict attributes the pair: the held-out gap
+    (docs/diagnosis.md stage 4) adds the other, and the verdict attributes the pair: the held-out gap
     below its null band, both coefficients within 3 standard errors of the generating values."""
     from gyrojax.diagnose._platform import FIRST_ORDER_TERMS
 
@@ -238,7 +238,7 @@ def test_null_draws_of_the_calibrated_level_follow_the_data_residual(records):
 
 @pytest.mark.slow  # ~22 s: a second whole diagnosis, the design-shift split
 def test_design_shift_split_sees_what_the_train_design_cannot(records, capsys):
-    """Spec §4.2 stage 4 / G7: hidden D_oo on a 9 + 7 g test. The design-shift split trains on
+    """docs/diagnosis.md stage 4 / G7: hidden D_oo on a 9 + 7 g test. The design-shift split trains on
     the 9 g run only, where D_oo has no signature: the train rows show nothing, yet the 7 g
     run's held-out gap is thousands of times its null band: the verdict is `confounded` naming
     D_oo (visible on the whole record) and not rectification (invisible on both runs). The
@@ -349,7 +349,7 @@ def test_catalogue_columns_match_the_ode_model():
 @pytest.mark.slow
 def test_platform_blind_harness(tmp_path):
     """Sealed D2 cases diagnosed with the manifest out of reach: a null, a strong base
-    misalignment and ramp (attributed), the seed-001 structural case (silent), an
+    misalignment and ramp (attributed), the the source structural case (silent), an
     out-of-library pick-off line (not confidently attributed)."""
     import shutil
 

@@ -92,7 +92,7 @@ def test_bad_schuler_record(tmp_path):
 @pytest.mark.slow
 def test_schuler_blind_harness(tmp_path):
     """Four sealed D5 cases diagnosed with the manifest out of reach: a null, a strong drift
-    ramp, an out-of-library velocity line, a strong drift step (onset localised, spec §6 G8)."""
+    ramp, an out-of-library velocity line, a strong drift step (onset localised, goal G8)."""
     import shutil
 
     from gyrojax.validation import schuler as bs
@@ -109,14 +109,14 @@ def test_schuler_blind_harness(tmp_path):
     shutil.move(tmp_path / "b_sealed", tmp_path / "b" / "sealed")
     assert null["verdict"] == "no-gap"
     assert "drift_ramp" in ramp["effects"] + ramp["ambiguity"]
-    # spec §6 G9: unexplained or ambiguous, not attributed. Under the design prior the line's top
+    # goal G9: unexplained or ambiguous, not attributed. Under the design prior the line's top
     # posterior is accelerometer_tilt, which the bias absorbs whole (Bayes factor 1): without a
     # significant score test of its own it is not named `confounded` either (5d1933e)
     assert line["verdict"] in ("unexplained", "ambiguous", "no-gap"), line
     s = bs.score(tmp_path / "b", [ramp, line, step])
     assert s["by_lambda"]["400"]["power"]["rate"] == 1.0
     assert s["ool_confident_misattribution"]["rate"] == 0.0
-    # spec §6 G8: the strong step's onset at its largest score within 5 % of the record
+    # goal G8: the strong step's onset at its largest score within 5 % of the record
     # (a drift step and a warm-up transient are hard to tell apart over two Schuler periods: the
     # verdict may be ambiguous between them, the step's own onset is still scored)
     assert "drift_step" in step["effects"] + step["ambiguity"], step
@@ -127,7 +127,7 @@ def test_schuler_blind_harness(tmp_path):
 
 
 def test_schuler_blind_design_is_the_specs_four_hours():
-    """Spec gap-diagnosis §5.2: D5 records 4 h (1441 samples at 10 s, ~2.84 Schuler periods);
+    """Design D5 (docs/goals.md) records 4 h (1441 samples at 10 s, ~2.84 Schuler periods);
     ``of_periods`` and ``with_periods`` give a record of whole periods on the same sample grid."""
     from gyrojax.validation import schuler as bs
 
@@ -146,7 +146,7 @@ def test_schuler_blind_design_is_the_specs_four_hours():
 
 
 def test_schuler_localisation_scores_by_hand(tmp_path):
-    """Spec §6 G8 on a 2-period record (~169 min, tolerance ~8.4 min): the truth in minutes (the
+    """goal G8 on a 2-period record (~169 min, tolerance ~8.4 min): the truth in minutes (the
     parameters' display unit) against grids in hours; decay grid step ratio 12^(1/7)."""
     from gyrojax.validation import schuler as bs
 
@@ -179,7 +179,7 @@ def test_schuler_problem_lines_designs_and_jacobians_by_hand(tmp_path):
     lines at ``2 pi sqrt(a_R / g)`` and half of it; the advisor's four designs as labelled (twice
     the record on the same step, V2' negated, the start azimuth + 90 deg, both V' doubled); the
     screening's whitened columns (a drift ramp's, and a drift step's at its 4th onset) equal to
-    central differences of ``predict`` (the model in the test's residual coordinates, spec §8)
+    central differences of ``predict`` (the model in the test's residual coordinates, docs/rigs/schuler.md)
     per unit ``Param.scale``, divided by the channel noise (the prior scale in display units);
     and a record too short refused with the numbers."""
     from gyrojax.diagnose._schuler import DEFAULT_NOISE, SchulerProblem

@@ -60,7 +60,7 @@ def test_square_root_filter_equals_covariance_filter_and_smoother_equals_batch()
 
 @pytest.fixture(scope="module")
 def transient_case():
-    """Spec §11 check: equatorial, alpha2(0) = 30 deg, m* = (+-0.01), m0 - m* = 0.02, k = 3,
+    """docs/rigs/esg.md check: equatorial, alpha2(0) = 30 deg, m* = (+-0.01), m0 - m* = 0.02, k = 3,
     dchi2 = dchi3 = 1' (eps2 = -1', eps3 = 1'), 1-min samples, 1 arcsec noise."""
     rig, cond, p = design("equatorial", alpha0_deg=(0, 30), drift=0.0,
                           **MSTAR, eps2=-units.ARCMIN, eps3=units.ARCMIN, k_tr=3.0,
@@ -75,7 +75,7 @@ def _max_drift_err(values):
 
 @pytest.mark.slow  # the transient-state filter's long compile (~20 s)
 def test_filter_with_transient_states_recovers_settled_drift(transient_case):
-    """Regression and a constant-parameter filter fail by units of deg/h (spec: 3.8, 2.3); the
+    """Regression and a constant-parameter filter fail by units of deg/h (reference: 3.8, 2.3); the
     filter with the (7.4) transient states reaches 4e-3 deg/h (limited by the O(m dchi) bias)."""
     rig, cond, p, rec = transient_case
     reg = integral_regression(rig, rec, cond)

@@ -32,7 +32,7 @@ def test_trapezoid_regression_error_is_second_order_in_the_sample_interval():
     """The paper's quadrature (trapezoid, window 1) on exact data with no mounting errors: its
     only error is the quadrature's, O(h^2), so going from 1-min to 15-s samples divides the
     largest drift error by 4^2 = 16 (a rectangle rule would give 4). Vertical scheme, the
-    tables' drifts: ~4e-5 and ~2.5e-6 deg/h. (Spec §8.3 quotes 2.4e-6 and 1.5e-7 deg/h for this
+    tables' drifts: ~4e-5 and ~2.5e-6 deg/h. (docs/rigs/esg.md quotes 2.4e-6 and 1.5e-7 deg/h for this
     check in a design it does not name: the same ratio; the equatorial scheme reads 3e-7.)"""
     rig, cond, p = design("vertical")
     errs = []
@@ -52,7 +52,7 @@ def test_window_parameter_and_quadrature():
     np.testing.assert_allclose(deg_h(a.values), deg_h(b.values), atol=1e-6)
     t1 = integral_regression(rig, rec, cond, window=1, names=DRIFTS)
     t10 = integral_regression(rig, rec, cond, window=10, names=DRIFTS)
-    np.testing.assert_allclose(t1.values, t10.values, rtol=1e-4)  # spec: identical to 4 digits
+    np.testing.assert_allclose(t1.values, t10.values, rtol=1e-4)  # reference: identical to 4 digits
     with pytest.raises(ValueError, match="even window"):
         integral_regression(rig, rec, cond, window=3, quadrature="simpson")
     with pytest.raises(ValueError, match="window=0"):
@@ -108,7 +108,7 @@ def test_per_channel_solve_matches_the_stacked_design(scheme, base_param):
 
 
 def test_spiral_fit_initializer_accuracy():
-    """Spec §6: the spiral fit on exact-model data gets m11..m22 to ~15-20 % (it neglects the
+    """docs/rigs/esg.md: the spiral fit on exact-model data gets m11..m22 to ~15-20 % (it neglects the
     O(m) ellipticity); with mc known, the errors stay below 30 % and the fit residual is small."""
     m = {"m11": 0.008, "m12": 0.006, "m21": 0.007, "m22": -0.005, "mc1": 0.004, "mc2": -0.003}
     rig, cond, p = design("polar", drift=0.0, alpha0_deg=(1.0, 0.5), **m)

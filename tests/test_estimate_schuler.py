@@ -1,6 +1,6 @@
-"""Schuler-test estimation (spec schuler-test.md §9, §11-§12): the single-pass filter is one
-Gauss-Newton step; iterated Gauss-Newton is consistent, sits on the Cramer-Rao bounds of §12 and
-beats the source's table; the single pass is biased as the spec states."""
+"""Schuler-test estimation (docs/rigs/schuler.md): the single-pass filter is one
+Gauss-Newton step; iterated Gauss-Newton is consistent, sits on its Cramer-Rao bounds and
+beats the source's table; the single pass is biased."""
 
 import diffrax
 import jax
@@ -32,12 +32,12 @@ SIG = jnp.array([SPACE[n].scale for n in PARAM_NAMES])
 DISPLAY = np.array([SPACE[n].display_factor for n in PARAM_NAMES])
 SIGMA_Y = np.array([0.05, 0.05] + [units.ARCMIN] * 3)  # add_measurement_noise's defaults
 
-# spec §12, Cramer-Rao bounds at 1 and 2 periods (deg/h, 1, m/s^2, 1, arcmin)
+# docs/rigs/schuler.md, Cramer-Rao bounds at 1 and 2 periods (deg/h, 1, m/s^2, 1, arcmin)
 CRLB = {1: [4.7e-4, 2.1e-3, 3.6e-4, 5.0e-5, 2.5e-4, 2.3e-4, 2.5e-4, 2.5e-4, 5.6e-5, 0.088, 0.080,
             0.19],
         2: [2.2e-4, 8.4e-4, 1.2e-4, 1.4e-5, 9.8e-5, 8.1e-5, 8.2e-5, 9.8e-5, 1.4e-5, 0.029, 0.028,
             0.089]}
-# the source's estimation errors (spec §10): nu 0.01 deg/h, D, df (m/s^2), K 1e-3; no tilts
+# the source's estimation errors (docs/rigs/schuler.md): nu 0.01 deg/h, D, df (m/s^2), K 1e-3; no tilts
 SOURCE = np.array([0.01] * 3 + [1e-3] * 6)
 
 
@@ -51,7 +51,7 @@ def _records(n_runs, periods, seed):
 
 
 def _display(x):
-    """Internal -> display units; scale errors as plain numbers (not ppm) like the spec's tables."""
+    """Internal -> display units; scale errors as plain numbers (not ppm) like the source's tables."""
     out = np.asarray(x) / DISPLAY
     out[..., 3:5] *= units.PPM
     out[..., 7:9] *= units.PPM
@@ -60,8 +60,8 @@ def _display(x):
 
 @pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_single_pass_filter_is_one_gauss_newton_step():
-    """Spec §12: one pass of the linearised filter equals one Gauss-Newton step from theta = 0; and
-    re-run about the Gauss-Newton estimate it returns that estimate (one pass = one step). A
+    """docs/rigs/schuler.md: one pass of the linearised filter equals one Gauss-Newton step from theta = 0;
+    and re-run about the Gauss-Newton estimate it returns that estimate (one pass = one step). A
     budget of two optimistix steps is one Gauss-Newton step: the first evaluates the start, the
     second takes the whole step (the trust region starts at the Gauss-Newton step). The filter's
     covariance is the information at the reference, a budget of one step's (the fit evaluated at
@@ -96,9 +96,9 @@ def _monte_carlo(periods, n_runs=20):
 
 @pytest.mark.slow
 def test_monte_carlo_one_period():
-    """Spec §11, 20 runs over one period (1 s sampling, 0.05 m/s, 1 arcmin):
+    """docs/rigs/schuler.md, 20 runs over one period (1 s sampling, 0.05 m/s, 1 arcmin):
     - Gauss-Newton: normalised errors in [0.5, 1.5] for every parameter; its standard errors equal
-      the spec's Cramer-Rao bounds (within 15 %) and are at least 3x below the source's table;
+      the source's Cramer-Rao bounds (within 15 %) and are at least 3x below the source's table;
       the 20-run RMS errors too, up to their sampling scatter (~16 % sd, allowance 1.3);
     - the single-pass filter: errors of the source's order (0.5e-3 to 1e-2 on the scale errors,
       up to ~0.07 deg/h), inconsistent (normalised errors >> 1), larger than the iterated ones
@@ -123,7 +123,7 @@ def test_monte_carlo_one_period():
 
 @pytest.mark.slow
 def test_monte_carlo_two_periods():
-    """Spec §11 at 2 periods: Gauss-Newton consistent, on the bounds, 10x below the source (the
+    """docs/rigs/schuler.md at 2 periods: Gauss-Newton consistent, on the bounds, 10x below the source (the
     RMS up to sampling scatter, allowance 1.4: K11 and D22 are -0.999 correlated and scatter
     together); the single pass degrades with length (its worst scale error grows beyond 1e-2)."""
     thetas, gn, kf = _monte_carlo(2)

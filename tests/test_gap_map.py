@@ -438,7 +438,7 @@ def test_quantization_score_level_power_and_estimate():
 
 
 def test_indistinguishable_classes_are_connected_components():
-    """Spec §4.2 stage 3: pairs at canonical correlation >= 0.98 merge (transitively) into
+    """docs/diagnosis.md stage 3: pairs at canonical correlation >= 0.98 merge (transitively) into
     classes; a pair below it, or with an effect not listed (untested), does not."""
     from gyrojax.diagnose._signatures import indistinguishable_classes
 
@@ -449,7 +449,7 @@ def test_indistinguishable_classes_are_connected_components():
 
 
 def test_truth_visibility_is_one_minus_squared_cosine_and_flags_it():
-    """The harness' truth side of spec §5.6 confounding: for a one-column nominal span, an
+    """The harness' truth side of docs/goals.md confounding: for a one-column nominal span, an
     effect direction at angle phi to it keeps the visible fraction sin^2(phi) = 1 - cos^2(phi);
     the smallest over the effect's directions sets the flag (< 0.05 practically confounded,
     < 1e-6 structurally, a zero column no signature in that direction)."""

@@ -1,4 +1,4 @@
-"""Gyrotheodolite observer (spec gyrotheodolite-observer.md §6-§9): robust multi-output placement,
+"""Gyrotheodolite observer (docs/rigs/gyrotheodolite.md): robust multi-output placement,
 the observer simulated alongside the plant, its exact discretization, Fig. 1 as numbers, and the
 compensation of the constant vibration error, each against an independent truth."""
 
@@ -57,7 +57,8 @@ def test_robust_placement_two_outputs_matches_scipy(poles):
 
 def test_single_output_placement_is_the_closed_form_and_traceable():
     """auto -> Ackermann for one output; under jit/vmap it equals the closed form, and its
-    derivative in omega0 matches dk1/domega0 = 4 (spec §6) and a finite difference of k3."""
+    derivative in omega0 matches dk1/domega0 = 4 (docs/rigs/gyrotheodolite.md) and a finite difference of
+    k3."""
     k = place_observer(A, C, binomial_poles(100.0))[:, 0]
     np.testing.assert_allclose(k, RIG.observer_gains(P, COND, 100.0), rtol=1e-8)
     acker = jax.jit(jax.vmap(lambda w: ackermann_observer(A, C, -jnp.full(4, w))))
@@ -141,7 +142,7 @@ def kinematic_run():
 
 
 def test_harmonic_balance_equals_simulated_means(full_run):
-    """The constant error and both §9 corrections by harmonic balance agree with the time averages
+    """The constant error and both corrections by harmonic balance agree with the time averages
     of a diffrax simulation of the full nonlinear rig (model (1) + roll coupling) to 0.5 %."""
     cond, k, ts, x, xh, gamma = full_run
     hb = constant_vibration_error(RIG, P, cond, k)
@@ -159,7 +160,7 @@ def test_harmonic_balance_equals_simulated_means(full_run):
 
 
 def test_compensation_of_the_s9_mechanism(kinematic_run):
-    """With only the §9 mechanism in the plant (pendulous vibration torques off), compensation
+    """With only the formula's mechanism in the plant (pendulous vibration torques off), compensation
     with the true rate removes > 99 % of the simulated constant error, and with the observer
     (omega0 = 300; harmonic balance predicts 0.35 % left at 20 rad/s) it does as well to within
     1 % of the error (the paper's claim)."""
@@ -209,10 +210,10 @@ def test_monte_carlo_matches_a_numpy_implementation():
 
 
 def test_monte_carlo_summary_supports_the_papers_claim_only_for_its_mechanism():
-    """Over 4000 random vibrations: for the §9 mechanism the true-rate compensation is exact
+    """Over 4000 random vibrations: for the formula's mechanism the true-rate compensation is exact
     (median residual < 1e-6) and the omega0 = 1000 observer leaves a median 0.2 % (p95 < 3 %);
     omega0 = 100 leaves ~20 %. In model (1) the pendulous mean torque dominates the constant error
-    (median share > 50 %) and the §9 formula leaves most of it."""
+    (median share > 50 %) and the formula leaves most of it."""
     key = jax.random.key(11)
     kin = GyrotheodoliteRig(vibration_torque=False)
     s1000 = compensation_monte_carlo(kin, P, key, 4000, omega0=1000.0).summary()
@@ -227,8 +228,8 @@ def test_monte_carlo_summary_supports_the_papers_claim_only_for_its_mechanism():
 
 
 def test_frequency_study_matches_spec_closed_forms_and_fig1():
-    """W_HY2 against the spec's observer polynomial b0..b3 over (p + omega0)^4 times N_IT1; the
-    omega0 = 1000 10 % bandwidth within 10 % of the spec's 309 1/s; gains = closed form."""
+    """W_HY2 against the source's observer polynomial b0..b3 over (p + omega0)^4 times N_IT1; the
+    omega0 = 1000 10 % bandwidth within 10 % of the source's 309 1/s; gains = closed form."""
     st = frequency_study(RIG, P, COND, [100.0, 1000.0])
     w = np.asarray(st.omegas)
     h, jy, jz, mgl, fb = (float(P[n]) for n in ("H", "J_y", "J_z", "mgl", "f_beta"))
@@ -269,7 +270,7 @@ def test_cli_observer_json(tmp_path):
 
 
 def test_vibration_direction_enters_through_eps_v_plus_psi0():
-    """Spec §4: ``n_X = n_m cos(eps_v + psi0) sin wt``, ``n_Z = n_m sin(eps_v + psi0) sin wt``:
+    """docs/diagnosis.md: ``n_X = n_m cos(eps_v + psi0) sin wt``, ``n_Z = n_m sin(eps_v + psi0) sin wt``:
     the harmonic balance's constant error and both corrections depend on the two angles through
     their sum only (three splits of 0.8 rad agree to 1e-12), and not on either alone (a split of
     another sum differs); the model's own time law ``overloads`` reads the same direction."""

@@ -593,7 +593,7 @@ def test_rate_table_runs_measure_scale_factor_and_misalignment_analytically():
 @pytest.mark.slow  # ~80 s: a diagnosis, then another on the advised design's record
 def test_design_advice_closed_loop_rate_table_resolves_gyro_scale_factor_and_misalignment(
         tmp_path):
-    """Spec §6 G6, cw/ccw rotation -> sf vs misalignment, one case each: on the 12-pose still
+    """goal G6, cw/ccw rotation -> sf vs misalignment, one case each: on the 12-pose still
     stand the gyro coefficients have no signature (the nominal model carries no Earth rate); the
     advisor ranks the rate-table design first with an MDE within the prior scale (misalignment's
     common rotation of both triads, 3 directions, reported as seen by no design) and, run
@@ -712,7 +712,7 @@ def test_temperature_effects_attributed_from_the_temp_channel(hidden, truth):
 
 @pytest.mark.slow
 def test_design_advice_closed_loop_temperature_cycle_resolves_a_ramp(tmp_path):
-    """Spec §6 G6, a temperature cycle instead of a ramp: on a warm-up ramp Delta T is linear in
+    """goal G6, a temperature cycle instead of a ramp: on a warm-up ramp Delta T is linear in
     time, so a gyro bias following it cannot be told from a time drift (not attributed to
     temperature alone); the advisor ranks the temperature cycle first with an MDE within the
     prior scale, and re-run under the cycle the diagnosis attributes ``temperature`` alone,
@@ -756,11 +756,11 @@ def test_ar_noise_level_is_unbiased_after_the_full_model_fit():
 @pytest.mark.slow  # ~95 s: the K = 40 diagnosis through the CLI and 70 refit-all refits
 def test_per_coefficient_screens_each_term_and_finds_the_hidden_one(tmp_path, capsys):
     """``per_coefficient``: every coefficient of the IMU's error model screened as an effect of
-    its own (spec D1's question, which term; K = 40 on six channels). Each split signature is
+    its own (design D1's question, which term; K = 40 on six channels). Each split signature is
     its column of the family's signature; a hidden gyro-x g-sensitivity to g along y of
     15 deg/h/g (~8 s.e.) is attributed to ``g_sensitivity:gsxy`` alone through the CLI, its
     refit within 3 s.e. of the truth; the pairs the design cannot tell apart are merged into
-    classes (spec §4.2 stage 3); B2 refit-all (every effect, the six warm-ups at each of
+    classes (docs/diagnosis.md stage 3); B2 refit-all (every effect, the six warm-ups at each of
     their six decay times: 70 Levenberg-Marquardt refits) picks it too; other rigs refuse
     the option."""
     from gyrojax import rigs

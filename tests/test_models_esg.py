@@ -99,7 +99,7 @@ def _linear_polar_solution(m, lat, alpha0, tau):
 
 
 def test_polar_small_angle_model_vs_analytic_spiral():
-    """Spec §6: (i) the exact model near the pole follows the linear model (4.1) up to O(alpha^2);
+    """docs/rigs/esg.md: (i) the exact model near the pole follows the linear model (4.1) up to O(alpha^2);
     (ii) (4.1) follows the spiral (4.2)-(4.3) up to O(m r) (the dropped ellipticity); (iii) lambda
     is exact: -lambda is half the trace of the (4.1) matrix."""
     m0 = jnp.array([0.004, 0.003, 0.005, -0.002, 0.003, -0.004])

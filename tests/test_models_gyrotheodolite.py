@@ -19,7 +19,7 @@ OMEGA0 = (1.0, 10.0, 100.0, 1000.0)
 
 def test_state_matrix_equals_autodiff_linearization_and_char_poly():
     """A of (3) is the Jacobian of the equations (1) (no vibration), and det(pE - A) has the
-    spec's coefficients a0..a3."""
+    closed-form coefficients a0..a3."""
     a, c, g, b = RIG.state_space(P, COND)
     jac = jax.jacfwd(lambda x: RIG.vector_field(0.0, x, P, COND))(jnp.zeros(4))
     np.testing.assert_allclose(a, jac, rtol=1e-14, atol=1e-18)
@@ -66,7 +66,7 @@ def test_printed_gains_give_unstable_observer(omega0):
 
 @pytest.mark.parametrize("kappa,period,damping", [(0.0, 493, 0.49), (10.0, 131, 0.15)])
 def test_plant_modes_match_spec(kappa, period, damping):
-    """Spec §8: slow north-seeking mode 493 s, damping 0.49 (131 s and 0.15 with the
+    """docs/rigs/gyrotheodolite.md: slow north-seeking mode 493 s, damping 0.49 (131 s and 0.15 with the
     compensation link at kappa = 10, k_alpha's factor 1 + kappa); nutation 54.7 rad/s, damping
     0.029 either way."""
     a, _, _, _ = RIG.state_space(RIG.default_params(kappa=kappa), COND)
@@ -80,9 +80,9 @@ def test_plant_modes_match_spec(kappa, period, damping):
 
 
 def test_frequency_responses_match_closed_forms_and_fig1_bandwidth():
-    """(pE - A)^{-1} G against the spec's N_IT1, N_IT2 (9)-(10); the observer's rate-estimate error
-    |W_HY2 / W_IT2 - 1| against the spec's §8 figures: omega0 = 100: 1.2 % at 1 1/s, 120 % at 500;
-    omega0 = 1000: < 10 % up to 309 1/s, 32 % at 500. (The spec's "< 10 % below 60 1/s" for
+    """(pE - A)^{-1} G against the source's N_IT1, N_IT2 (9)-(10); the observer's rate-estimate error
+    |W_HY2 / W_IT2 - 1| against the docs/rigs/gyrotheodolite.md figures: omega0 = 100: 1.2 % at 1 1/s, 120 %
+    at 500; omega0 = 1000: < 10 % up to 309 1/s, 32 % at 500. (The source's "< 10 % below 60 1/s" for
     omega0 = 100 contradicts its own 1.2 % at 1 1/s, since the error grows linearly there; see
     docs/decisions/0008-gyrotheodolite-observer-and-vibration.md.)"""
     a, c, g, _ = RIG.state_space(P, COND)

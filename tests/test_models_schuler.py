@@ -1,6 +1,6 @@
-"""Schuler-test rig (spec schuler-test.md §2-§6, §11 item 3): the nonlinear model (S7) against an
+"""Schuler-test rig (docs/rigs/schuler.md): the nonlinear model (S7) against an
 independent direction-cosine integration, the zero-order solution (S9), the analytic response to an
-initial tilt, the spec's departure figures, and the pass/fail period estimate."""
+initial tilt, the source's departure figures, and the pass/fail period estimate."""
 
 import diffrax
 import jax
@@ -31,7 +31,7 @@ T = float(COND.schuler_period)
 TYPICAL = {"nu1": 0.2, "nu2": -0.2, "nu3": 0.2, "D11": 1e4, "D22": -1e4, "df1": 1e-2, "df2": -1e-2,
            "K11": 1e4, "K22": -1e4, "alpha10": 1e-3 / units.ARCMIN,
            "alpha20": -1e-3 / units.ARCMIN, "dA0": 1e-2 / units.ARCMIN}
-"""Spec §10's typical error set in display units (deg/h, ppm, m/s^2, arcmin)."""
+"""docs/rigs/schuler.md's typical error set in display units (deg/h, ppm, m/s^2, arcmin)."""
 
 
 def _states(params, cond, ts):
@@ -43,7 +43,8 @@ def _states(params, cond, ts):
 
 
 def test_defaults_match_spec():
-    """Spec §2: g = 9.815557 m/s^2, omega0 = 1.241223e-3 rad/s, T = 5062.09 s, sqrt(g a_R) = 7908."""
+    """docs/rigs/schuler.md: g = 9.815557 m/s^2, omega0 = 1.241223e-3 rad/s, T = 5062.09 s, sqrt(g a_R) =
+    7908."""
     assert float(COND.g) == pytest.approx(9.815557, abs=1e-6)
     assert float(COND.schuler_frequency) == pytest.approx(1.241223e-3, rel=1e-6)
     assert T == pytest.approx(5062.09, abs=0.01)
@@ -108,7 +109,7 @@ def test_vector_field_equals_direction_cosine_kinematics():
 
 def test_initial_tilt_response_is_the_analytic_schuler_oscillation():
     """From rest with a small initial tilt: V1 = -sqrt(g a_R) alpha20 sin(omega0 t) and
-    V2 = +sqrt(g a_R) alpha10 sin(omega0 t) (the signs the spec's correction 4 states)."""
+    V2 = +sqrt(g a_R) alpha10 sin(omega0 t) (the signs the source's correction 4 states)."""
     cond = SchulerConditions.create(v10=0.0, v20=0.0)
     p = RIG.param_space.make({"alpha10": 2e-5, "alpha20": 1e-4})
     ts = jnp.linspace(0.0, T, 101)
@@ -120,7 +121,7 @@ def test_initial_tilt_response_is_the_analytic_schuler_oscillation():
 
 
 def test_nonlinear_model_departs_from_zero_order_solution_as_the_spec_states():
-    """Spec §6, error-free model over 4 periods: departure from (S9) up to 2.4 m/s and 0.3 mrad;
+    """docs/rigs/schuler.md, error-free model over 4 periods: departure from (S9) up to 2.4 m/s and 0.3 mrad;
     azimuth error A' - A_z oscillating with amplitude up to 7 arcmin."""
     ts = jnp.arange(0.0, 4 * T, 10.0)
     x = _states(RIG.param_space.make({}), COND, ts)
@@ -133,7 +134,7 @@ def test_nonlinear_model_departs_from_zero_order_solution_as_the_spec_states():
 
 
 def test_schuler_period_pass_fail_check():
-    """Spec §11 item 3: a sinusoid fit to the error-free model velocities over 4 periods gives
+    """docs/rigs/schuler.md item 3: a sinusoid fit to the error-free model velocities over 4 periods gives
     84.34 min (V1') and 84.33 min (V2'), within 0.06 % of 2 pi sqrt(a_R/g) = 84.368 min."""
     ts = np.arange(0.0, 4 * T, 10.0)
     y = np.asarray(integrate(RIG, RIG.param_space.make({}), COND, jnp.asarray(ts)))
@@ -145,7 +146,7 @@ def test_schuler_period_pass_fail_check():
     assert abs(r1["relative_difference"]) < 6e-4 and abs(r2["relative_difference"]) < 6e-4
     blind = schuler_period(ts, y[:, 0])  # started from the spectral peak, no theory given
     assert blind["period_min"] == pytest.approx(r1["period_min"], abs=1e-6)
-    # the scale errors shift the period by about (K + D) / 2 (spec §9.3)
+    # the scale errors shift the period by about (K + D) / 2 (docs/rigs/schuler.md)
     p = RIG.param_space.make({"K11": 1e-2, "D22": 1e-2})
     y = np.asarray(integrate(RIG, p, COND, jnp.asarray(ts)))
     shifted = schuler_period(ts, y[:, 0], conditions=COND)
@@ -170,7 +171,7 @@ def test_bad_input_and_measurement_channels():
 
 
 def test_error_matrix_matches_the_explicit_table():
-    """The autodiff A(t) against the explicit entries of spec §7 (first order in the reference
+    """The autodiff A(t) against the explicit entries of docs/rigs/schuler.md (first order in the reference
     tilts) at tau = T/8 on the zero-order solution, columns scaled by typical state sizes; the
     exact and explicit rows differ only at second order in alpha^0 (~6e-4)."""
     tau = T / 8
@@ -202,8 +203,8 @@ def test_error_matrix_matches_the_explicit_table():
 
 @pytest.mark.parametrize("periods,factor,bound", [(1, 1.0, 0.23), (4, 1.0, 0.55), (1, 0.1, 0.0023)])
 def test_exact_error_model_matches_nonlinear_model_to_second_order(periods, factor, bound):
-    """Spec §12 table, 'exact Jacobian along the nonlinear reference', typical error set: the linear
-    model's velocity errors differ from the nonlinear model's by 0.22 m/s (1 period) and 0.53 m/s
+    """docs/rigs/schuler.md table, 'exact Jacobian along the nonlinear reference', typical error set: the
+    linear model's velocity errors differ from the nonlinear model's by 0.22 m/s (1 period) and 0.53 m/s
     (4 periods) out of signals up to 33 m/s; with the errors scaled by 0.1 the difference falls
     100x (second order)."""
     p = RIG.param_space.make({k: v * factor for k, v in TYPICAL.items()}, display=True)
@@ -230,7 +231,7 @@ def test_smooth_drift_step_sensitivity_equals_central_difference():
     sp = rig.param_space
     period = float(cond.schuler_period)
     ts = jnp.asarray(np.arange(0.0, period, 20.0))
-    w = 1 / np.array([0.05, 0.05, units.ARCMIN, units.ARCMIN, units.ARCMIN])  # spec §10 noise
+    w = 1 / np.array([0.05, 0.05, units.ARCMIN, units.ARCMIN, units.ARCMIN])  # docs/rigs/schuler.md noise
     q = sp.make() | {"t_step": jnp.asarray(0.4 * period + 3.7)}
     for name in ("nustep1", "nustep3"):
         d = sp[name].scale

@@ -1,4 +1,4 @@
-"""Three-gimbal platform under vibration (spec platform-vibration.md): frames and kinematics against
+"""Three-gimbal platform under vibration (docs/rigs/platform.md): frames and kinematics against
 Table A and autodiff, the redundancy found by the rank test with exact coefficients, amplitude from
 accelerometers, averaged vs instantaneous model, identification (Table 2 structure), (S21)."""
 
@@ -82,7 +82,7 @@ def test_running_integral_and_drift_rates_equal_their_reference_forms():
 
 def _design(a0s, mounting=None):
     """The averaged model's linearisation at the 14 static positions, by autodiff of the rig's
-    vector field with respect to the 30 coefficients (the 42 x 30 design of spec §7.3), stacked
+    vector field with respect to the 30 coefficients (the 42 x 30 design of docs/rigs/platform.md), stacked
     over the amplitudes."""
     kw = {} if mounting is None else {"mounting": mounting}
 
@@ -96,7 +96,7 @@ def _design(a0s, mounting=None):
 
 
 def test_redundancy_found_by_rank_test_with_exact_coefficients():
-    """Spec §7: one amplitude -> rank 27, null space (S17) per gyro: (D_f, D_ii, D_oo, D_ss) ~
+    """docs/rigs/platform.md: one amplitude -> rank 27, null space (S17) per gyro: (D_f, D_ii, D_oo, D_ss) ~
     (kappa, -1, -1, -1); two amplitudes -> 30; z_b Up -> 24, plus D_io_x, D_is_y, D_os_z."""
     a0 = 6.0
     kappa = 1 + a0**2 / 2
@@ -151,8 +151,9 @@ def test_amplitude_estimators_and_accelerometer_errors():
 
 
 def test_averaged_model_matches_instantaneous_to_the_ripple():
-    """§5: over a 100 s dwell at 15 Hz and a0 = 6 g the averaged model follows the instantaneous
-    one to within the vibration ripple (spec: <= 2.8e-5 deg about its mean; started from the same
+    """The averaged model: over a 100 s dwell at 15 Hz and a0 = 6 g the averaged model follows the
+    instantaneous one to within the vibration ripple (reference: <= 2.8e-5 deg about its mean; started from
+    the same
     angle at an arbitrary vibration phase the offset adds up to one more ripple amplitude)."""
     c = PlatformConditions.create(TABLE1_DEG[6], a0=6.0, phase=0.7)
     ts = jnp.linspace(0.0, 100.0, 401)
@@ -194,7 +195,7 @@ def _group_max(err):
 
 
 def test_table2_test1_two_amplitudes(tests_1_and_2):
-    """Spec §11 check 2: all 30 within 4 standard errors of truth; per-group max errors below the
+    """docs/rigs/platform.md check 2: all 30 within 4 standard errors of truth; per-group max errors below the
     source's test 1, by (S21) and by the joint fit."""
     (ang1, c1, k1), (ang2, c2, k2) = tests_1_and_2[6.0], tests_1_and_2[7 / 1.5]
     f1 = platform_regression(TS, [ang1], [c1], free=NO_OO)
@@ -226,8 +227,8 @@ def test_table2_test2_and_test3_structure(tests_1_and_2):
     ratio = se2 / se1
     idx = {g: [i for i, n in enumerate(COEFF_NAMES) if n.rsplit("_", 1)[0] in pre]
            for g, pre in GROUPS.items()}
-    # the spec's figures are the largest ratio per group (ours: 8.96, 10.43; bias 0.771, linear
-    # 0.96-0.99 where the spec says 0.8-1.0)
+    # the source's figures are the largest ratio per group (ours: 8.96, 10.43; bias 0.771, linear
+    # 0.96-0.99 where the source says 0.8-1.0)
     assert np.max(ratio[idx["quadratic"]]) == pytest.approx(9.0, rel=0.02)
     assert np.max(ratio[idx["cross"]]) == pytest.approx(10.3, rel=0.02)
     assert np.all(ratio[idx["quadratic"]] > 8.0) and np.all(ratio[idx["cross"]] > 10.0)
@@ -280,7 +281,7 @@ def test_bad_input():
 
 
 def test_diagnosis_finds_d_oo_absorbed_with_exact_aliases():
-    """Spec gap-diagnosis G5, seed 001: on a single amplitude an unmodelled D_oo is structurally
+    """Spec gap-diagnosis G5, the source: on a single amplitude an unmodelled D_oo is structurally
     confounded and absorbed as D_f + (a^2/2 + 1) D_oo, D_ii - D_oo, D_ss - D_oo (|A - exact| <=
     1e-6); a second amplitude makes it visible."""
     from gyrojax.diagnose._screening import screen
@@ -310,8 +311,8 @@ def test_diagnosis_finds_d_oo_absorbed_with_exact_aliases():
 @pytest.mark.slow  # ~25 s: every candidate schedule's Jacobian
 def test_design_tool_ranks_and_improves_on_table1():
     """Fisher information of designs: Table 1 at (9 g, 7 g) has full rank; the (0 g, 2 g) pair's
-    worst standard error is ~10.3x larger (the cross terms, spec §11 check 3); the exchange search
-    finds a 14-position design better than Table 1 on both criteria."""
+    worst standard error is ~10.3x larger (the cross terms, docs/rigs/platform.md check 3); the exchange
+    search finds a 14-position design better than Table 1 on both criteria."""
     from gyrojax.analysis.platform_design import (
         design_information,
         dwell_jacobians,
@@ -336,7 +337,7 @@ def test_design_tool_ranks_and_improves_on_table1():
 
 @pytest.mark.slow  # moved out of the default suite (compile-heavy; CI runs it)
 def test_kalman_filter_equals_batch_regression(tests_1_and_2):
-    """Spec §10.3: the source's EKF on the averaged model (angle states restarted per dwell, D
+    """docs/rigs/platform.md: the source's EKF on the averaged model (angle states restarted per dwell, D
     carried over) over both amplitude records ends where the batch regression (S22) is, to 0.05 of
     a standard error on every coefficient, with the same standard errors (10 %)."""
     from gyrojax.estimate.platform import platform_kalman
@@ -409,7 +410,7 @@ def test_batch_gauss_newton_equals_regression(tests_1_and_2):
 
 
 def test_shock_mount_response_and_transient():
-    """Spec §3/§12: the example mount (zeta 0.1, f_n 9.409 Hz) attenuates 15 Hz by 1.5; phases
+    """docs/rigs/platform.md: the example mount (zeta 0.1, f_n 9.409 Hz) attenuates 15 Hz by 1.5; phases
     -138.0 deg (f_n 8 Hz, zeta 0.15, at 15 Hz) and -73.3 deg (at 8 Hz) from the four-quadrant
     (S7); the complete response (S8)-(S9) equals a direct diffrax integration of (S4)."""
     import diffrax
@@ -583,7 +584,7 @@ def test_platform_records_are_si_and_a_record_in_g_is_refused(tmp_path, capsys):
     """DESIGN's record files are SI: the platform's accelerometers in m/s^2 (they were once
     written in g, the rig's unit, and a record in m/s^2 made kappa G0^2 = 96x too large
     without a word). The accelerometers read gravity, 1 g or more (kappa = mean |f|^2 = 1 +
-    a0^2/2 g^2 over whole cycles, spec S19c), so a record in g is told from one in m/s^2 and
+    a0^2/2 g^2 over whole cycles, (S19c)), so a record in g is told from one in m/s^2 and
     refused with the fix, by the library and by ``gyrojax fit`` and ``diagnose`` (exit 2)."""
     from gyrojax.cli import main
     from gyrojax.estimate.platform import kappa_from_accelerometers, record_kappas

@@ -67,7 +67,7 @@ def test_readme_tour_runs_and_prints_what_it_says(tmp_path, monkeypatch, capsys)
     for name, truth in (("m11", 0.15), ("mc2", -0.15)):
         p = fit["parameters"][name]
         assert p["unit"] == "deg/h" and abs(p["value"] - truth) < 4 * p["stderr"], (name, p)
-    # equatorial scheme: the rotor tilt has no signature (spec variant 3)
+    # equatorial scheme: the rotor tilt has no signature (variant 3 of docs/rigs/esg.md)
     assert "unobservable directions: theta1; theta2" in out
     assert "| polar | 206 | 200 |" in out  # Table 2, first row, as the README says
     # "here: no-gap - the 60 arcsec eps3 is almost wholly absorbed by the drifts, which the

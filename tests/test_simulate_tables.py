@@ -11,7 +11,7 @@ import gyrojax as gj
 from gyrojax import units
 from gyrojax.analysis.mounting import PAPER_TABLE2, PAPER_TABLE3, mounting_error_tables
 
-# values reconstructed in the spec (esg-drift §7, §8) with the same assumptions
+# the reconstructed values (docs/rigs/esg.md, Tables 2 and 3) with the same assumptions
 SPEC_T2 = {"polar": (206, 1457), "equatorial": (125, 43), "horizontal": (293, 1005),
            "vertical": (122, 1657)}
 SPEC_T3 = {"polar": (0.0069, 0.0439), "equatorial": (0.0079, 0.0014),
@@ -27,7 +27,7 @@ def tables():
 
 @pytest.mark.parametrize("scheme", ["polar", "equatorial", "horizontal", "vertical"])
 def test_table2_reproduced(tables, scheme):
-    """Paper's Table 2 within the spec's 5 %, and the spec's reconstruction within 1 %."""
+    """Paper's Table 2 within the source's 5 %, and the source's reconstruction within 1 %."""
     got = tables.angle_arcsec[scheme]
     for g, paper, spec in zip(got, PAPER_TABLE2[scheme], SPEC_T2[scheme]):
         assert g == pytest.approx(paper, rel=0.05)
@@ -36,7 +36,7 @@ def test_table2_reproduced(tables, scheme):
 
 @pytest.mark.parametrize("scheme", ["polar", "equatorial", "horizontal", "vertical"])
 def test_table3_reproduced(tables, scheme):
-    """Paper's Table 3 within the spec's 10 %, the reconstruction within half a unit of its last
+    """Paper's Table 3 within the source's 10 %, the reconstruction within half a unit of its last
     printed digit (<= 4 %), same worst term."""
     got = tables.drift_deg_h[scheme]
     for g, paper, spec in zip(got, PAPER_TABLE3[scheme], SPEC_T3[scheme]):

@@ -78,7 +78,7 @@ def test_rotations_orthonormal_and_rodrigues_matches_expm():
                                              ("equatorial", (1.827, 1, 0.563)),
                                              ("horizontal", (2, 1, 0)), ("vertical", (1, 1, 1))])
 def test_euler_increment_jacobian_spec_values(scheme, expected):
-    """Spec §3.5: Euler increments (1,1,1) give these rotation vectors; checked against the
+    """docs/diagnosis.md: Euler increments (1,1,1) give these rotation vectors; checked against the
     matrix logarithm of C(chi)^T C(chi + d) by finite differences."""
     from gyrojax.models.esg import scheme_angles
 

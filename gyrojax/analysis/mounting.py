@@ -1,10 +1,10 @@
 """Mounting-error studies of the ESG rig: the paper's Tables 2-3 and a Monte Carlo error budget.
 
-Table 2 (spec esg-drift §7): maximum angle error over a 24 h run caused by a base misalignment
+Table 2 (docs/rigs/esg.md): maximum angle error over a 24 h run caused by a base misalignment
 ``dchi = 1'`` on every axis or a rotor tilt ``theta = 10'`` on both axes, against the error-free run.
-Table 3 (§8): maximum drift-identification error (deg/h) when only the six drift coefficients are
+Table 3: maximum drift-identification error (deg/h) when only the six drift coefficients are
 regressed on data that contain those mounting errors. Reconstruction of the unstated conditions
-(spec): all drifts 0.01, latitude 55.75 deg, Euler-increment ``dchi``, 1-min samples, window 1,
+(docs/rigs/esg.md): all drifts 0.01, latitude 55.75 deg, Euler-increment ``dchi``, 1-min samples, window 1,
 trapezoid rule.
 
 The Monte Carlo budget draws random mounting errors for each scheme and reports the drift

@@ -4,7 +4,7 @@ For a test design (rig, conditions, sample times, nominal parameters) and a set 
 the sensitivity matrix ``J`` (trajectory Jacobian through diffrax, or the regression design ``A``
 of (6.3)) is column-normalized and decomposed by SVD. Relative singular values below ``exact_tol``
 (default 1e-6) are *unobservable*, those below ``weak_tol`` (default 1e-3) *weakly observable*
-(spec esg-drift §9). Null directions are returned in natural units (all ESG parameters are
+(docs/rigs/esg.md). Null directions are returned in natural units (all ESG parameters are
 dimensionless or rad, so they are commensurate) and written as named combinations; the
 identifiable combinations are the orthogonal complement, in reduced row-echelon form with nominal
 parameters as pivots (e.g. ``mc1 - theta1 - eps2``).
@@ -20,6 +20,7 @@ from collections.abc import Mapping, Sequence
 
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from ..estimate.least_squares import trajectory_jacobian
 from ..estimate.regression import regression_design
@@ -177,7 +178,8 @@ def analyse_jacobian(jac, names: Sequence[str], *, exact_tol: float = 1e-6,
                                exact_tol, weak_tol)
 
 
-def observability(rig, params: Mapping, conditions, ts, *, free: Sequence[str],
+def observability(rig, params: Mapping, conditions, ts: Float[ArrayLike, " n"], *,
+                  free: Sequence[str],
                   method: str = "trajectory", exact_tol: float = 1e-6,
                   weak_tol: float = 1e-3, window: int = 1) -> ObservabilityReport:
     """Observability of ``free`` parameters in a test (noise-free, at ``params``).

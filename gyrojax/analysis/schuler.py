@@ -1,4 +1,4 @@
-"""Observability of the Schuler test (spec ``schuler-test.md`` §12): Fisher information of the 12
+"""Observability of the Schuler test (docs/rigs/schuler.md): Fisher information of the 12
 unknowns from autodiff sensitivities of the nonlinear model, Cramer-Rao bounds with the prior,
 correlations, the weakly separable pairs by name, and the velocity-only variant (the classical
 pass/fail test's measurement)."""

@@ -33,6 +33,7 @@ import itertools
 import math
 
 import numpy as np
+from jaxtyping import ArrayLike, Float
 from scipy import optimize, stats
 
 __all__ = ["AllanDeviation", "allan_deviation", "equivalent_dof", "NoiseTerms",
@@ -105,7 +106,7 @@ def _local_noise(tau, adev):
     return out
 
 
-def allan_deviation(rate, rate_hz: float, m=None, *, confidence: float = 0.683,
+def allan_deviation(rate: Float[ArrayLike, " n"], rate_hz: float, m=None, *, confidence: float = 0.683,
                     noise: str | None = None) -> AllanDeviation:
     """Overlapping Allan deviation of a rate record with chi-square confidence intervals.
 

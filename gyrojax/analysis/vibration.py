@@ -1,5 +1,5 @@
 """Constant (rectified) azimuth error of the gyrotheodolite under translational vibration, and its
-algorithmic compensation (spec ``gyrotheodolite-observer.md`` §9).
+algorithmic compensation (docs/rigs/gyrotheodolite.md).
 
 The products of oscillating angles in (1) — ``mgl (gamma n_X + beta n_Z)`` and, with the rig's
 ``roll_rate_coupling``, the kinematic ``H alpha_dot gamma`` — have a nonzero mean. Averaging the
@@ -11,7 +11,7 @@ $$k_\\alpha\\langle\\alpha\\rangle = H\\langle\\dot\\alpha\\gamma\\rangle
 :func:`constant_vibration_error` evaluates every mean by harmonic balance from the first-order
 phasors (``<Im(P e^{jwt}) Im(Q e^{jwt})> = Re(P conj Q)/2``): exact to second order in the vibration
 amplitude, vectorizable, and checked in the tests against diffrax simulations of the full nonlinear
-rig. The compensation of §9 subtracts
+rig. The compensation subtracts
 
 $$\\langle\\alpha\\rangle_{\\rm est} = \\arcsin\\frac{\\langle\\hat{\\dot\\alpha}\\gamma\\rangle}
   {\\omega_3\\cos\\varphi}$$
@@ -44,7 +44,7 @@ class VibrationError(eqx.Module):
       from ``H <alpha_dot gamma>`` and ``mgl <gamma n_X + beta n_Z>``.
     - ``rate_roll``: ``<alpha_dot gamma>``; ``rate_roll_est``: ``<alpha_dot_hat gamma>`` with the
       observer's estimate.
-    - ``correction_true`` / ``correction_est``: the §9 correction with the true / estimated rate;
+    - ``correction_true`` / ``correction_est``: the correction with the true / estimated rate;
       ``residual_true`` / ``residual_est``: ``mean_alpha`` minus them (NaN where the arcsine's
       argument exceeds 1: the formula is then undefined).
     """
@@ -116,7 +116,7 @@ def _vibration_error(rig, params, conditions, plant, observer) -> VibrationError
 
 
 def compensate(ts, alpha, rate, gamma, latitude_deg):
-    """The §9 algorithm on recorded signals over one averaging window.
+    """The compensation algorithm on recorded signals over one averaging window.
 
     ``ts`` (s), ``alpha`` (rad), ``rate`` (the true or estimated azimuth rate, rad/s), ``gamma``
     (rad), all ``(N,)``. The window should span an integer number of vibration periods and be
@@ -147,7 +147,7 @@ class CompensationStudy(eqx.Module):
     def summary(self) -> dict:
         """Over the draws: the constant error (arcsec), the pendulous share of it, and the fraction
         ``|residual| / |constant error|`` left by each compensation (median and 95th percentile;
-        draws where the §9 formula is undefined are counted and left out)."""
+        draws where the formula is undefined are counted and left out)."""
         e = jax.tree.map(np.asarray, self.error)
         big = np.abs(e.mean_alpha)
         out = {"omega0_per_s": self.omega0, "draws": int(big.size),
@@ -249,7 +249,7 @@ class FrequencyStudy(eqx.Module):
 
 def frequency_study(rig: GyrotheodoliteRig, params, conditions: GyrotheodoliteConditions,
                     omega0s, omegas=None) -> FrequencyStudy:
-    """Plant and observer rate responses (spec §7, (10)-(12)) on a frequency grid (default
+    """Plant and observer rate responses (docs/rigs/gyrotheodolite.md, (10)-(12)) on a frequency grid (default
     ``logspace(-2, 3, 1001)`` rad/s), vectorized over frequency and ``omega0``; gains are the
     closed-form (corrected) ones."""
     omega0s = jnp.atleast_1d(jnp.asarray(omega0s, dtype=float))

@@ -1,6 +1,6 @@
 """Sim-to-real gap diagnosis: where model and record disagree, which catalogued effect causes it,
 whether the test can see it at all, and how far the held-out gap shrinks once it is added
-(spec ``gap-diagnosis.md``).
+(docs/diagnosis.md).
 
 :func:`diagnose` is the entry point; :class:`AbstractGapProblem` the interface a rig implements
 (:mod:`gyrojax.rigs` registers it). The statistical building blocks and the rigs' catalogue

@@ -1,6 +1,6 @@
 """Stage 3's design advice: for each flagged or ambiguous effect, every candidate design's
 minimum detectable effect alone and with its closest rival fitted too, over the directions
-some design sees (spec gap-diagnosis §4.2)."""
+some design sees (docs/diagnosis.md)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Bayes factors of the score tests: under a Gaussian prior on an effect's coefficients (the prior
 scales, the shape prior, the g-prior, their design mixture) and the shell prior on the
-noncentrality (spec gap-diagnosis §4.2).
+noncentrality (docs/diagnosis.md).
 
 Whitened quantities throughout (see :mod:`gyrojax.diagnose._signatures`)."""
 
@@ -118,7 +118,7 @@ def noncentral_log_bf(lms, dofs, lambdas) -> np.ndarray:
 
     Unlike the Gaussian priors (:func:`zellner_log_bf`, :func:`shape_log_bf`), which put most
     of their mass on effects far smaller than ``lambda``, the shell puts none there: at the
-    spec's sizes it is the Bayes factor of its validation population (§5.4: noncentrality
+    blind suites' sizes it is the Bayes factor of their population (docs/goals.md: noncentrality
     8, 16, 32 or 64, direction uniform), and :func:`shell_log_bf` mixes it over sizes."""
     lms = np.asarray(lms, float)
     flat = np.maximum(lms.reshape(lms.shape[0], -1), 0.0)[None]  # (1, G, B)

@@ -1,4 +1,4 @@
-"""The diagnosis pipeline: one linearisation, four answers, one verdict (spec gap-diagnosis §4.2).
+"""The diagnosis pipeline: one linearisation, four answers, one verdict (docs/diagnosis.md).
 
 Stage 0 fits the nominal model on the train split and whitens its residual by the noise level
 (given, or estimated from first differences of the residual, which a smooth gap barely touches).
@@ -12,12 +12,13 @@ before and after. Stage 5 gives the verdict. Multiplicity: weighted Benjamini-Ho
 every gap-map cell and every library test together; detection = any q < alpha. The weights are
 fixed before the data: the library's tests (the catalogued effects and noise-model terms, the
 hypotheses the diagnosis is for) hold ``library_share`` of the total weight, the gap map's many
-and strongly correlated cells the rest (spec §7 "FDR across the whole gap map and library").
+and strongly correlated cells the rest (docs/diagnosis.md "FDR across the whole gap map and library").
 With equal weights a 3-dof library test at noncentrality 16 competed with ~100-200 map cells.
 
 Calibrated level: the map's dyadic windows are nested and the library's signatures nearly
 collinear, so weighted BH (a weighted Simes test of the global null) is conservative on these
-positively dependent tests: the ESG rig's false-alarm rate was 0.02 at alpha 0.05. Where the
+positively dependent tests (on the ESG rig its false-alarm rate is about 0.02 at alpha 0.05,
+docs/decisions/0013-gap-map-and-multiplicity.md). Where the
 residual's null law is the linearised Gaussian one (white noise per channel, its level given or
 estimated from first differences: the ESG, Schuler and gyrotheodolite problems; the IMU's
 AR-prewhitened residual; the platform supplies its own draws, centred per dwell with the level
@@ -29,7 +30,7 @@ law (uniform; a row that is the Bonferroni minimum over k channels as ``min(1, k
 BH level is lowered or raised to the ``alpha`` quantile of the draws'
 smallest weighted-BH q-value. The global test "some q below that level" is then a Monte Carlo
 test of exact size ``alpha`` (``(B + 1) alpha`` an integer) under the linearised null
-(spec §7: sup-statistics and the map's multiplicity need a bootstrap). The draws are seeded
+(docs/diagnosis.md: sup-statistics and the map's multiplicity need a bootstrap). The draws are seeded
 by the record's data, so a diagnosis is reproducible.
 """
 
@@ -214,7 +215,7 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
     - `flicker_b`: the flicker's bias-instability coefficient B (rad; one, or per channel;
       Allan deviation floor 0.664 B); implies ``noise_model="white+flicker"``.
     - `nominal_terms`: platform only: the drift-law terms the nominal model carries for every
-      gyro (default all but ``oo``, seed 001's model; e.g. ``("f", "i", "o", "s")``, the
+      gyro (default all but ``oo``, the source's model; e.g. ``("f", "i", "o", "s")``, the
       first-order model). Every coefficient left out is then screened as an effect of its own
       (``D_ii_y``), beside the catalogue's non-drift-law effects.
     - `per_coefficient`: IMU only: screen every coefficient of a many-coefficient catalogue

@@ -43,7 +43,7 @@ __all__ = ["ESGProblem", "ESG_LIBRARY", "NOISE_MODELS", "SIDEREAL_DAY"]
 SIDEREAL_DAY = 2 * np.pi / units.EARTH_RATE  # s
 # effect -> (family, prior scale per coefficient in display units, grid)
 ESG_LIBRARY = {
-    "rotor_tilt": ("mounting", 600.0),  # arcsec (10 arcmin, seed 000)
+    "rotor_tilt": ("mounting", 600.0),  # arcsec (10 arcmin, the source's figure)
     "base_misalignment": ("mounting", 60.0),  # arcsec (1 arcmin)
     "drift_transient": ("transient", 0.3),  # deg/h (m0 - m*), decay time on a grid
     "drift_ramp": ("trend", 0.002),  # deg/h per h
@@ -193,8 +193,8 @@ class ESGProblem(AbstractGapProblem):
         self.nominal_units = tuple(space[k].display_unit for k in self.nominal_names)
         self.nominal_display_scales = self.nominal_scales / np.array(
             [space[k].display_factor for k in self.nominal_names])
-        # the step's onset grid (with onsets 2 h apart on 24 h the screened one was within
-        # 5 % of the record of the truth in only 0.81 of 100 blind cases, 0.87 now)
+        # the step's onset grid, one onset every 5 % of the train span
+        # (docs/decisions/0018-grid-effects.md)
         self.step_grid_h = tuple(float(x) for x in onset_grid(self.t / 3600, self.n_train))
         self.lines = {"sidereal day": SIDEREAL_DAY, "half sidereal day": SIDEREAL_DAY / 2}
         self.notes: list[str] = []

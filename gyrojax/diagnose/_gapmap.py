@@ -1,6 +1,6 @@
 """The gap map: where the whitened residual departs from white noise, cell by cell (time x channel
 windows, known lines, the largest unlisted line, positions and conditions, auxiliary bins, the
-Allan tau band), each cell a test with its p-value (spec gap-diagnosis §4.2, stage 1).
+Allan tau band), each cell a test with its p-value (docs/diagnosis.md, stage 1).
 
 Whitened quantities throughout (see :mod:`gyrojax.diagnose._signatures`)."""
 

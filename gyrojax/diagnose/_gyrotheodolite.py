@@ -2,8 +2,8 @@
 
 Record: the azimuth pick-off ``alpha`` (rad) of a sensing element released near the meridian,
 sampled over several north-seeking periods. Nominal model: the 4-state rig (1) of
-:class:`gyrojax.models.GyrotheodoliteRig` with the physical constants of spec §8 frozen and five
-test parameters free - the index offset (the azimuth the instrument measures), the release state
+:class:`gyrojax.models.GyrotheodoliteRig` with the physical constants of docs/rigs/gyrotheodolite.md frozen
+and five test parameters free - the index offset (the azimuth the instrument measures), the release state
 ``alpha0``, ``alpha_dot0``, and the slow mode's stiffness and damping through ``kappa`` and
 ``F_KC`` - fitted by Levenberg-Marquardt (optimistix) through diffrax (``Kvaerno5``: the 8.7 Hz
 nutation mode makes the rig stiff for explicit solvers). Catalogue: the rig's effect groups,

@@ -3,7 +3,7 @@
 Rows are block means of the static samples (static intervals from
 :func:`gyrojax.estimate.multiposition.detect_static`; masked spans excluded), so long records stay
 small; the turns between poses are not modelled (the poses' up vectors are nuisance parameters,
-two small-angle terms per pose about the accelerometer's first guess). Rate-table runs (spec D4:
+two small-angle terms per pose about the accelerometer's first guess). Rate-table runs (design D4:
 the record's conditions ``table_rate_s``, flat ``(t0, t1, rate_dps)`` triples, or the CLI's
 ``--table-run``) are segments too: the IMU turns about the vertical at the commanded rate, and
 each run adds two nuisance terms, the horizontal Earth rate, which turns at minus the table rate
@@ -596,7 +596,7 @@ class IMUProblem(AbstractGapProblem):
         poses and six tilted ones) of the same total static time; and the record followed by a
         rate-table test (:data:`TABLE_DESIGN`, :func:`table_runs`: counter-clockwise and
         clockwise at ``TABLE_RATE_DPS`` with x, y and z up in turn, twice, each run as long as
-        the record's mean pose; CIGTF's STB, spec D4), where the gyro scale factors and
+        the record's mean pose; CIGTF's STB, design D4), where the gyro scale factors and
         misalignments, which a still stand sees only through the Earth rate (no signature
         under the nominal model, which carries none), are driven by the table rate, and cw/ccw
         tells them (odd in the rate) from biases and g-sensitivity (even)."""
@@ -937,7 +937,7 @@ TABLE_DESIGN = (f"the record + a rate table: ccw/cw at {TABLE_RATE_DPS:g} deg/s 
 
 
 def table_runs():
-    """The advisor's rate-table test (spec D4): up vectors ``(12, 3)`` and table rates
+    """The advisor's rate-table test (design D4): up vectors ``(12, 3)`` and table rates
     ``(12,)`` in rad/s: x, y and z up in turn, each counter-clockwise then clockwise (seen from
     above), the sequence twice (so that a time-ordered held-out quarter holds a whole pass)."""
     up = np.tile(np.repeat(np.eye(3), 2, axis=0), (2, 1))

@@ -1,5 +1,5 @@
 """Multiplicity control over the gap map and the library together: weighted Benjamini-Hochberg
-q-values (spec gap-diagnosis §7).
+q-values (docs/diagnosis.md).
 
 Whitened quantities throughout (see :mod:`gyrojax.diagnose._signatures`)."""
 

@@ -9,7 +9,7 @@ means of the centred angles (``blocks`` per dwell; exact for a linear model, the
 white), so a 14 x 2 x 100 s test at 40 Hz gives 2,800 x 3 rows.
 
 Nominal model: the 30 coefficients less the ``D_oo`` (quadrature anisoelastic) terms, the model
-a single amplitude can fit (spec seed 001); ``nominal_terms`` picks another (e.g.
+a single amplitude can fit (the source's test); ``nominal_terms`` picks another (e.g.
 :data:`FIRST_ORDER_TERMS`, bias and g terms), and every coefficient it leaves out is then
 screened as an effect of its own (:func:`platform_library`) in place of ``anisoelastic_oo``.
 Catalogue (drift terms in the platform frame, each
@@ -23,7 +23,7 @@ with a null value, entering the angles through the kinematics of (S12)):
   biases.
 - ``warmup_transient``: ``dm_j exp(-t/tau)`` from the start of the test (deg/h), tau on a grid.
 - ``drift_ramp``: ``r_j t`` (deg/h per h).
-- ``vibration_rectification``: a constant drift in vibrated dwells only (deg/h, seed 003): with
+- ``vibration_rectification``: a constant drift in vibrated dwells only (deg/h): with
   every dwell vibrated it is exactly ``D_f``; a 0 g amplitude makes it visible.
 
 Held-out splits (``split``):
@@ -33,7 +33,7 @@ Held-out splits (``split``):
   dof (``nuisance_dof``) and their share of the held-out gap (``heldout_extra``). Holding out
   whole positions instead would leave the 27-coefficient model underdetermined on Table 1.
 - ``"design-shift"``: the last vibration amplitude's run held out whole (another vibration
-  level, spec §4.2 stage 4), the other runs wholly train. Every dwell is centred by its own
+  level, docs/rigs/platform.md stage 4), the other runs wholly train. Every dwell is centred by its own
   mean; the held-out dwells' offsets are fitted on the held-out rows (``heldout_dof``). A
   confusable pick (a ramp for a transient, rectification for ``D_f``) that fits the train
   runs extrapolates wrongly to the new level and time, which the same-design split cannot see.
@@ -107,8 +107,8 @@ def _coefficient_effect(name: str):
 def platform_library(nominal_terms=None) -> dict:
     """The catalogue the diagnosis screens for a nominal model of ``nominal_terms`` (drift-law
     terms of :data:`~gyrojax.models.platform.TERMS` carried for every gyro; default all but
-    ``oo``, seed 001's model): effect -> ``(family, prior scale per coefficient)``. The default
-    keeps seed 001's grouping (:data:`PLATFORM_LIBRARY`, ``D_oo`` of the three gyros as one
+    ``oo``, the source's model): effect -> ``(family, prior scale per coefficient)``. The default
+    keeps the source's grouping (:data:`PLATFORM_LIBRARY`, ``D_oo`` of the three gyros as one
     effect); any other nominal screens every coefficient it leaves out as an effect of its
     own (``D_ii_y``: which gyro needs which term) beside the four non-drift-law effects."""
     terms = _check_terms(nominal_terms)

@@ -1,4 +1,4 @@
-"""GapReport: the diagnosis as data (JSON per the DESIGN.md contract) and as Markdown."""
+"""GapReport: the diagnosis as data (JSON for programs, Markdown for people) and as Markdown."""
 
 from __future__ import annotations
 
@@ -346,7 +346,7 @@ def grid_located(values, weights, points_per_step: int = 64):
     with ``r`` the grid's ratio.
 
     This is the Bayes decision for a one-step loss (right when within one step of the truth),
-    the loss spec §6 G8 scores, and differs from the grid value of the largest score where the
+    the loss goal G8 scores, and differs from the grid value of the largest score where the
     posterior has several modes: a broad mode can hold more mass than a taller narrow one. The
     posterior between grid values is their weights interpolated linearly (each weight spread as
     a hat over one step either side), so ``c`` can fall between two grid values; it is searched

@@ -77,7 +77,7 @@ def candidate_record(r: Screen, prob, excess, n, c, cells) -> Candidate:
                # the posterior over the grid values given the effect (uniform prior)
                "posterior": ([float(x) for x in r.grid_weights]
                              if r.grid_weights is not None else [1.0]),
-               # the value within one grid step of the most posterior mass (spec §6 G8's
+               # the value within one grid step of the most posterior mass (goal G8's
                # loss): the localisation to quote; "best" is what the refit uses
                **dict(zip(("located", "located_mass", "located_window"),
                           grid_located(r.sig.grid, r.grid_weights

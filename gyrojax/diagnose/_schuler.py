@@ -1,14 +1,14 @@
-"""The platform INS Schuler test as the diagnosis sees it (``--rig schuler``, spec D5).
+"""The platform INS Schuler test as the diagnosis sees it (``--rig schuler``, design D5).
 
 Nominal model: the 12 errors the test identifies (gyro drifts, torquer scales, accelerometer
 biases and scales, initial tilts and azimuth error), fitted on the train split by the iterated
-Gauss-Newton of :func:`gyrojax.estimate.schuler.fit_schuler` (its weak prior of spec §10 only
+Gauss-Newton of :func:`gyrojax.estimate.schuler.fit_schuler` (its weak prior of docs/rigs/schuler.md only
 regularises; the data outweigh it by orders of magnitude). Catalogue: the rig's unmodelled-effect
 groups (:data:`gyrojax.models.schuler.EFFECT_NAMES`) — gyro drift ramp, warm-up transient (decay
 time on a grid), drift step (onset on a grid), accelerometer bias ramp, g-sensitive drift,
 accelerometer cross-axis and vertical-axis tilts — each entering the nonlinear model (S7).
 
-Residuals are the test's own (spec §8): velocity differences and the attitude residual (S12) of
+Residuals are the test's own (docs/rigs/schuler.md): velocity differences and the attitude residual (S12) of
 the measured against the modelled rotation since t0, whitened per channel; so ``predict`` returns
 ``y - residual`` (the record's frame), and every Jacobian is the derivative of the modelled
 channels in those residual coordinates, by forward-mode autodiff through diffrax.
@@ -52,7 +52,7 @@ SCHULER_LIBRARY = {
 }
 CHANNELS = ("V1", "V2", "rot1", "rot2", "rot3")
 TRANSIENT_TIMES_H = tuple(float(x) for x in np.geomspace(0.25, 3.0, 8))
-DEFAULT_NOISE = (0.05, 0.05, units.ARCMIN, units.ARCMIN, units.ARCMIN)  # spec §10
+DEFAULT_NOISE = (0.05, 0.05, units.ARCMIN, units.ARCMIN, units.ARCMIN)  # docs/rigs/schuler.md
 _NOMINAL_MAX_ITER = 40  # optimistix steps per pass: evaluations, rejected trials included
 _REFIT_MAX_ITER = 150  # a large unmodelled step: a trial rejected twice for each step taken
 
@@ -135,7 +135,7 @@ class SchulerProblem(AbstractGapProblem):
             self.notes.append(note)
 
     def predict(self, params: dict, extra=None) -> np.ndarray:
-        """``y - residual`` over the whole record (the residual is the test's, spec §8)."""
+        """``y - residual`` over the whole record (the residual is the test's, docs/rigs/schuler.md)."""
         r = np.asarray(_residual(self.rig, self.conditions, jnp.asarray(self.t),
                                  jnp.asarray(self.y), params))
         return self.y - r

@@ -1,6 +1,6 @@
 """The efficient score tests of the catalogue: each effect's test on the residual with the nominal
 span projected out, grid effects by a bootstrap sup-p, posteriors over the catalogue and the
-ambiguity set (spec gap-diagnosis §4.2, stage 2).
+ambiguity set (docs/diagnosis.md, stage 2).
 
 Whitened quantities throughout (see :mod:`gyrojax.diagnose._signatures`)."""
 
@@ -229,7 +229,7 @@ def screen(e: np.ndarray, jn: np.ndarray, sigs: list[Signature], *, n_boot: int 
     next, both expecting noncentrality ``lambda0``), ``prior="shape"`` (the prior scales' shape,
     :func:`shape_log_bf`), ``prior="zellner"`` (the g-prior ``b ~ N(0, g I^-1)``,
     ``g = lambda0 / dof``, on the tested directions: :func:`grid_log_bf`) or ``prior="scale"``
-    (``b ~ N(0, prior_scale^2)``, spec §4.2 step 5) or ``prior="shell"`` (the noncentrality
+    (``b ~ N(0, prior_scale^2)``, docs/diagnosis.md step 5) or ``prior="shell"`` (the noncentrality
     log-uniform over :data:`SHELL_RANGE`, not fixed: an effect of one coefficient gets the
     exact factor, :func:`shell_log_bf`; any other the design prior's mixed over the same sizes,
     :func:`_shell_grid`). Each row also carries ``log_bf_curve``, the

@@ -1,6 +1,6 @@
 """Signatures, projections and visibility: the nominal span, an effect's projected signature, its
 directions without a signature or absorbed by the nominal parameters, canonical correlations
-between effects (spec gap-diagnosis §4.2-4.3).
+between effects (docs/diagnosis.md).
 
 Everything here works on *whitened* quantities: the residual ``e`` (length ``m``, unit variance
 under the nominal model) and Jacobians whose columns are derivatives of ``e``'s model per unit
@@ -39,10 +39,10 @@ __all__ = ["INDISTINGUISHABLE", "LAMBDA_80", "NULL_TOL", "SEPARABLE", "Signature
 LAMBDA_80 = 7.85  # noncentrality giving 80 % power at alpha = 0.05, 1 dof
 
 
-SEPARABLE = 0.9  # spec §5.6: separable = largest projected canonical correlation <= this
+SEPARABLE = 0.9  # docs/goals.md: separable = largest projected canonical correlation <= this
 
 
-INDISTINGUISHABLE = 0.98  # spec §4.2 stage 3: pairs at or above "cannot be told apart"
+INDISTINGUISHABLE = 0.98  # docs/diagnosis.md stage 3: pairs at or above "cannot be told apart"
 
 
 NULL_TOL = 1e-6  # relative singular value of a raw signature direction counted as no signature
@@ -100,7 +100,7 @@ def check_effects(effects, library, rig: str) -> None:
 
 def onset_grid(t, n_train: int) -> np.ndarray:
     """A step's onset grid over the train span of a record sampled at ``t``: equally spaced
-    interior values at most 5 % of the record apart (spec §6 G8 asks onsets within one such
+    interior values at most 5 % of the record apart (goal G8 asks onsets within one such
     window) and at least 8 of them; in ``t``'s units."""
     t = np.asarray(t, float)
     span = t[n_train - 1] - t[0]
@@ -128,7 +128,7 @@ def _orth(j, rtol=1e-8):
 
 
 def indistinguishable_classes(pairs: dict, names) -> list[list[str]]:
-    """Spec §4.2 stage 3: the effects ``names`` merged into classes by their pairs at projected
+    """The diagnosis' ambiguity classes: the effects ``names`` merged into classes by their pairs at projected
     canonical correlation >= :data:`INDISTINGUISHABLE` (``pairs``: ``{(a, b): correlation}``,
     the *smallest* canonical correlation of the pair, so that a class means every direction of
     the smaller effect is mimicked by the other; connected components, in the order of

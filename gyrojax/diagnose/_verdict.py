@@ -1,6 +1,6 @@
 """Stages 4 and 5 of the diagnosis: the held-out gap and its null band, the refits' standard
 errors and the combinations they determine, what the held-out part says of each refit, and
-the verdict (spec gap-diagnosis §4.2)."""
+the verdict (docs/diagnosis.md)."""
 
 from __future__ import annotations
 
@@ -114,8 +114,8 @@ def _null_band(jn_all, m_train, m_ho, extra: float = 0.0, noise_dof: float = np.
 def _does_not_transfer(refit) -> bool:
     """An attribution fails its held-out check when the refit leaves the held-out gap outside
     its null band *and* removes less than half of it (or adds to it): the effect mimics the
-    train residual but does not predict new data (an out-of-library term it happens to fit, spec
-    §6 G9). A right effect whose gap is merely not fully closed still removes most of it."""
+    train residual but does not predict new data (an out-of-library term it happens to fit, goal
+    G9). A right effect whose gap is merely not fully closed still removes most of it."""
     g0, g1 = refit["heldout_gap_before"], refit["heldout_gap_after"]
     if refit.get("closure") is not False or g1 is None or not np.isfinite(g0):
         return False
@@ -127,7 +127,7 @@ def _heldout_by_member(names, single, base) -> dict:
     (``heldout_gap_after_by_effect``) and, where the held-out part tells the members apart (the
     refits of some predict it, those of others fit the train part only: :func:`_does_not_transfer`),
     which do and which do not (``heldout_separates``). The train design cannot separate them,
-    which is why the verdict is ambiguous; a held-out part on another design can (spec §4.2,
+    which is why the verdict is ambiguous; a held-out part on another design can (docs/diagnosis.md,
     Stage 4: confounded alternatives separate on the design-shift split). The verdict stays
     ambiguous: the held-out gap is the check of an attribution, not its input. ``base``: the
     verdict's held-out gap and null band; separation needs a gap above the band."""

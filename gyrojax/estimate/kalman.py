@@ -7,7 +7,7 @@ triangularizations of pre-arrays (no covariance subtraction, no loss of positivi
 states (1e-10 rad/s) need no jitter. Innovations are returned standardized by the Cholesky factor of
 their covariance (N(0, I) under the model).
 
-ESG part (spec esg-drift §10-11): state ``(alpha1, alpha2, p, delta)`` with ``p`` the linear-model
+ESG part (docs/rigs/esg.md): state ``(alpha1, alpha2, p, delta)`` with ``p`` the linear-model
 parameters (6.9) and ``delta = m - m*`` the start-up transients of the six drift coefficients
 (``delta' = -k delta``). Discretised with the regression's integrals between samples, the
 integrands evaluated at the measured angles (third-order three-point rule, see
@@ -22,6 +22,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
+from jaxtyping import Array, ArrayLike, Float
 
 from ..record import BenchRecord
 from ..simulate import integrate
@@ -61,7 +62,11 @@ class KalmanResult(eqx.Module):
         return self.s_filt @ jnp.swapaxes(self.s_filt, -1, -2)
 
 
-def square_root_filter(x0, s0, phis, gammas, sqrt_qs, h, sqrt_r, ys, *,
+def square_root_filter(x0: Float[ArrayLike, " d"], s0: Float[ArrayLike, "d d"],
+                       phis: Float[ArrayLike, "n-1 d d"], gammas: Float[ArrayLike, "n-1 d"],
+                       sqrt_qs: Float[ArrayLike, "n-1 d d"],
+                       h: Float[ArrayLike, "m d"] | Float[ArrayLike, "n m d"],
+                       sqrt_r: Float[ArrayLike, "m m"], ys: Float[ArrayLike, "n m"], *,
                        history: bool = True) -> KalmanResult:
     """Square-root Kalman filter over ``n`` samples.
 
@@ -119,7 +124,7 @@ def kalman_gains(s0, phis, sqrt_qs, h, sqrt_r):
 
     For a linear model the covariances and gains do not depend on the measurements, so across
     Monte Carlo runs of one model they are computed once (here) and applied to every run with
-    :func:`apply_gains` as batched matrix products (see PERFORMANCE.md).
+    :func:`apply_gains` as batched matrix products (``benchmarks/schuler_kf.py`` times it).
     """
     d = s0.shape[0]
     n = phis.shape[0] + 1
@@ -164,7 +169,8 @@ def apply_gains(x0, phis, h, gains, ys):
     return x_last
 
 
-def rts_smoother(result: KalmanResult, phis):
+def rts_smoother(result: KalmanResult, phis: Float[ArrayLike, "n-1 d d"]
+                 ) -> tuple[Float[Array, "n d"], Float[Array, "n d d"]]:
     """Rauch-Tung-Striebel smoother: smoothed means (n, d) and covariances (n, d, d).
 
     The gain $G_j = P_j \\Phi_j^T (P^-_{j+1})^{-1}$ is formed by triangular solves with the

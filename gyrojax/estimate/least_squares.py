@@ -3,7 +3,7 @@
 
 The residual is ``integrate(rig, params) - record.y`` over all samples and channels; its Jacobian
 comes from forward sensitivities through diffrax (``diffrax.ForwardMode`` + ``jax.jacfwd``), so the
-exact nonlinear model (spec esg-drift §5.1) is fitted, free of the first-order model's
+exact nonlinear model (docs/rigs/esg.md) is fitted, free of the first-order model's
 ``O(m dchi)`` bias. The free parameters are optimised in scaled form (value / ``Param.scale``).
 Standard errors: $\\hat\\sigma^2 (J^T J)^{+}$ from the Jacobian at the solution, computed by QR/SVD.
 """

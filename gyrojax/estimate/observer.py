@@ -1,6 +1,6 @@
 """Luenberger observers: pole placement and frequency responses of state-space models.
 
-Observer (spec gyrotheodolite §6): $\\dot{\\hat x} = (A - K C)\\hat x + K y$. For a single output,
+Observer (docs/rigs/gyrotheodolite.md): $\\dot{\\hat x} = (A - K C)\\hat x + K y$. For a single output,
 Ackermann's formula gives $K = \\phi_d(A)\\,O^{-1} e_n$ with $O$ the observability matrix (rows
 $C A^i$) and $\\phi_d$ the desired characteristic polynomial.
 """
@@ -242,7 +242,7 @@ class DiscreteObserver(eqx.Module):
     """Exact discretization of $\\dot{\\hat x} = (A - K C)\\hat x + K y + b$ over a sample interval
     ``dt``: ``x_{k+1} = Phi x_k + Gamma0 y_k + Gamma1 (y_{k+1} - y_k) + beta``.
 
-    ``hold="zoh"`` holds ``y`` constant over the interval (``Gamma1 = 0``; causal, the spec's
+    ``hold="zoh"`` holds ``y`` constant over the interval (``Gamma1 = 0``; causal, the source's
     choice); ``hold="foh"`` interpolates it linearly (one sample of look-ahead, exact for
     piecewise-linear ``y``, second order in ``dt`` for smooth signals).
     """

@@ -1,4 +1,4 @@
-"""Identification on the vibrating platform (spec platform-vibration §8-§10).
+"""Identification on the vibrating platform (docs/rigs/platform.md).
 
 - vibration amplitude from the accelerometers: the first-harmonic estimator (S19b), the mean of
   ``|f|^2`` (S19c, exact for any zero-mean vibration), the forgetting-factor blend (source (18)),
@@ -380,7 +380,7 @@ def _kalman_scan(angles, conds, p_d, noise_std, q_coeff, dt, free, stride):
 def platform_kalman(ts, records: Sequence, conditions: Sequence, *,
                     free: Sequence[str] = COEFF_NAMES, noise_std: float = 4.84813681109536e-06,
                     prior_std=None, q_coeff: float = 0.0, stride: int = 100) -> PlatformKalman:
-    """The source's identification (spec §10.3 (a)): an extended Kalman filter on the averaged
+    """The source's identification (docs/rigs/platform.md (a)): an extended Kalman filter on the averaged
     model with state ``(alpha, beta, gamma, D_free)`` over every dwell of every record in turn
     (``lax.scan``). The angle states restart at each dwell from its first sample; ``D`` and its
     covariance carry over. Transition: one Heun step of (S12)-(S14) per sample, linearised by

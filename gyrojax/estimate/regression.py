@@ -1,4 +1,4 @@
-"""Integral-equation linear regression (spec esg-drift §8.3, equations (6.2)-(6.5)).
+"""Integral-equation linear regression (docs/rigs/esg.md, equations (6.2)-(6.5)).
 
 The motion equations linear in the parameters, $\\alpha' = c(\\tau, \\alpha) + F(\\tau, \\alpha) p$
 (6.1), are integrated over blocks of ``window`` samples with the trapezoid rule, the integrands
@@ -123,7 +123,7 @@ def integral_regression(rig, record: BenchRecord, conditions, *, window: int = 1
     **Arguments:**
     - `rig`: a rig with ``regression_columns`` and ``regression_names`` (the ESG rig).
     - `record`: the measured angles; `conditions`: the rig's conditions (latitude, scheme).
-    - `window`: block length ``s`` in samples (spec §8.3); 1 uses every sample interval.
+    - `window`: block length ``s`` in samples (docs/rigs/esg.md); 1 uses every sample interval.
     - `names`: subset of ``rig.regression_names`` to estimate (the others are held at zero), e.g.
       only the six drift coefficients as in Table 3.
     - `quadrature`: ``"trapezoid"`` (the paper's checks) or ``"simpson"`` (even ``window``; error

@@ -1,19 +1,19 @@
 """Estimation of the 12 instrument errors and initial misalignments from a Schuler-test record
-(spec ``schuler-test.md`` §8-§9).
+(docs/rigs/schuler.md).
 
-Measurements (§8): the model velocities ``V1 V2`` and the platform's rotation since ``t0`` (record
-channels ``rot1..3``, a rotation vector). Against a model trajectory the attitude residual is
+Measurements (docs/rigs/schuler.md): the model velocities ``V1 V2`` and the platform's rotation since ``t0``
+(record channels ``rot1..3``, a rotation vector). Against a model trajectory the attitude residual is
 (S12): $E = \\Delta R\\,\\Delta R_{model}^T = I - [\\mathbf z_\\theta\\times]$,
 $\\mathbf z_\\theta = -\\mathrm{vee}(\\tfrac12(E - E^T))$.
 
 Two estimators of $\\boldsymbol\\theta = $ (``nu1 nu2 nu3 D11 D22 df1 df2 K11 K22 alpha10 alpha20
-dA0``), both with the prior $N(0, \\Sigma_\\theta)$ of §10:
+dA0``), both with the prior $N(0, \\Sigma_\\theta)$:
 
-- :func:`schuler_filter` — the source's single-pass linearised Kalman filter (§9.2) on the 17-state
+- :func:`schuler_filter` — the source's single-pass linearised Kalman filter on the 17-state
   error model about the error-free reference, in square-root form under ``lax.scan``, with an RTS
   smoother. Biased for realistic scale errors (the linearisation misses the Schuler-frequency
   shift).
-- :func:`fit_schuler` — the iterated Gauss-Newton on the nonlinear model (§9.3), as optimistix's
+- :func:`fit_schuler` — the iterated Gauss-Newton on the nonlinear model, as optimistix's
   trust-region Levenberg-Marquardt: forward-mode sensitivities through diffrax, the prior as
   extra residual rows, first on the first period and then on the whole record. It reaches the
   Cramer-Rao bound.
@@ -30,6 +30,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from .. import units
 from ..models.schuler import (
@@ -173,7 +174,7 @@ def check_schuler_record(ts, y, conditions: SchulerConditions, *, uniform: bool 
                              "the filter needs a constant interval (resample the record)")
 
 
-# -- Gauss-Newton (§9.3) ---------------------------------------------------------------------
+# -- Gauss-Newton ---------------------------------------------------------------------------
 class _FitOutcome(NamedTuple):
     theta: jax.Array  # internal units
     covariance: jax.Array  # posterior (prior included)
@@ -237,18 +238,19 @@ def _fit_prior_jit(rig, conditions, ts, y, weights, sig, u0, max_iter, tol, name
                        jnp.sqrt(jnp.mean(r**2, axis=0)), sol.converged, sol.step_se, sol)
 
 
-def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_v: float = 0.05,
+def fit_schuler(rig: SchulerRig, ts: Float[ArrayLike, " n"], y: Float[ArrayLike, "n 5"],
+                conditions: SchulerConditions, *, sigma_v: float = 0.05,
                 sigma_theta: float = units.ARCMIN, prior_std: dict | None = None,
                 max_iter: int = 40, tol: float = 1e-3, staged: bool = True,
                 check: bool = True) -> SchulerEstimate:
-    """Iterated Gauss-Newton on the nonlinear model (spec §9.3), as optimistix's trust-region
+    """Iterated Gauss-Newton on the nonlinear model (docs/rigs/schuler.md), as optimistix's trust-region
     Levenberg-Marquardt (:func:`~gyrojax.estimate.solve_least_squares`).
 
     **Arguments:** ``ts`` (N,) in s; ``y`` (N, 5): ``V1 V2`` (m/s) and ``rot1..3`` (rad);
     ``sigma_v`` (m/s) and ``sigma_theta`` (rad) the measurement noise; ``prior_std`` overrides the
     prior standard deviations (internal units, by name); ``max_iter``: optimistix steps per pass;
     ``tol``: its test on successive iterates (prior standard deviations); with ``staged`` and a
-    record longer than 1.2 periods the first period is fitted first (the spec's safeguard
+    record longer than 1.2 periods the first period is fitted first (a safeguard
     against the Schuler-frequency ambiguity). ``check=False`` skips the host-side validation
     (for ``jax.vmap`` over records).
 
@@ -282,7 +284,7 @@ def fit_schuler(rig: SchulerRig, ts, y, conditions: SchulerConditions, *, sigma_
                            solution=gn.solution)
 
 
-# -- linearised Kalman filter (§9.2) -------------------------------------------------------
+# -- linearised Kalman filter -------------------------------------------------------------
 def _perturbed_measurement(x, state_ref, state_ref0, rot_ref):
     """The measurement (S12) of the state ``X_ref + dX(x)`` against the reference: velocity
     variations and the attitude residual, as a function of the 17-state ``x``."""
@@ -309,8 +311,8 @@ def _transfer(n_theta=12):
 
 @eqx.filter_jit
 def linearised_model(rig: SchulerRig, conditions: SchulerConditions, ts, ref):
-    """The discrete linear model of §9.2 about the trajectory with errors ``ref`` on the uniform
-    sample times ``ts``: ``Phi_k = expm(A(t_{k+1/2}) dt)`` (N-1, 17, 17), ``H_k`` (N, 5, 17) the
+    """The discrete linear model of the single-pass filter about the trajectory with errors ``ref`` on the
+    uniform sample times ``ts``: ``Phi_k = expm(A(t_{k+1/2}) dt)`` (N-1, 17, 17), ``H_k`` (N, 5, 17) the
     autodiff Jacobian of (S12), the reference states (N, 6) and rotation vectors (N, 3)."""
     dt = ts[1] - ts[0]
     mids = 0.5 * (ts[1:] + ts[:-1])
@@ -326,7 +328,7 @@ def linearised_model(rig: SchulerRig, conditions: SchulerConditions, ts, ref):
 
 
 def measurement_variations(y, x_ref, rot_ref):
-    """``z`` of §8 (N, 5): measured minus reference velocities and the attitude residual (S12)."""
+    """The measurements ``z`` (N, 5): measured minus reference velocities and the attitude residual (S12)."""
     return jnp.concatenate([y[:, :2] - x_ref[:, 3:5],
                             jax.vmap(attitude_residual)(y[:, 2:], rot_ref)], axis=1)
 
@@ -342,11 +344,12 @@ def _filter(rig, conditions, ts, y, ref, sqrt_r, s0, x0, smooth):
     return res.x_filt[-1], res.p_filt[-1], res.innovations, smoothed
 
 
-def schuler_filter(rig: SchulerRig, ts, y, conditions: SchulerConditions, *,
+def schuler_filter(rig: SchulerRig, ts: Float[ArrayLike, " n"], y: Float[ArrayLike, "n 5"],
+                   conditions: SchulerConditions, *,
                    sigma_v: float = 0.05, sigma_theta: float = units.ARCMIN,
                    prior_std: dict | None = None, params_ref=None, smooth: bool = False,
                    check: bool = True):
-    """The source's single-pass linearised Kalman filter (spec §9.2), square-root form.
+    """The source's single-pass linearised Kalman filter (docs/rigs/schuler.md), square-root form.
 
     The reference is the error-free trajectory (or ``params_ref``, e.g. a previous estimate:
     the prior mean of the correction is then ``-theta_ref``, and one pass is one Gauss-Newton

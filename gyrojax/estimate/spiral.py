@@ -1,11 +1,11 @@
-"""Polar-gyro logarithmic spiral (spec esg-drift §6, (4.2)-(4.6)) and its fit through optimistix.
+"""Polar-gyro logarithmic spiral (docs/rigs/esg.md, (4.2)-(4.6)) and its fit through optimistix.
 
 For the polar scheme at small angles, the spin-axis trace is approximately the spiral (4.4)
 $\\alpha_1 = \\alpha_{c1} + r e^{-\\lambda\\tau}\\cos(\\nu\\tau+\\psi)$,
 $\\alpha_2 = \\alpha_{c2} - r e^{-\\lambda\\tau}\\sin(\\nu\\tau+\\psi)$ with centre, damping and frequency
 (4.3) set by the drift. The fit minimizes (4.6) by Levenberg-Marquardt; (4.5) inverts the spiral to
 ``m11 m12 m21 m22`` when ``mc1, mc2`` are known. Accuracy is limited to 15-20 % by the neglected
-ellipticity (spec §6): use it as an initializer, not an estimator.
+ellipticity (docs/rigs/esg.md): use it as an initializer, not an estimator.
 """
 
 from __future__ import annotations

@@ -1,26 +1,26 @@
-"""Non-contact (electrostatic) gyro in a two-axis gyrostabilizer — spec ``esg-drift.md`` (seed 000).
+"""Non-contact (electrostatic) gyro in a two-axis gyrostabilizer — docs/rigs/esg.md.
 
-Conventions (spec §2-§3): normalized time ``tau = U t`` (``U`` = Earth's sidereal rate, so one
+Conventions (docs/rigs/esg.md): normalized time ``tau = U t`` (``U`` = Earth's sidereal rate, so one
 sidereal day is ``2 pi``); drift coefficients ``m`` are normalized torques, ``drift[deg/h] =
 15.0411 m``; angles in rad. Frames: ``eta`` geographic ENU; ``zeta`` the stabilizer base
 (``C_eta_zeta = R3(chi3) R2(chi2) R1(chi1)``, Table 1 gives the nominal ``chi`` of the four
 mounting schemes); ``x`` the platform (``C_zeta_x = R1(alpha1) R2(alpha2)``). State: the gimbal angles
 ``alpha = (alpha1, alpha2)``; they are also the measured channels.
 
-Parameters (names as in the spec):
+Parameters (names as in docs/rigs/esg.md):
 
 | group | names | unit (report) |
 |---|---|---|
 | nominal | ``alpha10 alpha20`` (first-sample angles), ``m11 ... mc2`` | rad (deg), 1 (deg/h) |
-| ``rotor_tilt`` | ``theta1 theta2`` (spin-axis non-perpendicularity, §3.4) | rad (arcsec) |
-| ``base_misalignment`` | ``eps*`` or ``dchi1..3`` by ``base_param`` (§3.5-3.6) | rad (arcsec) |
+| ``rotor_tilt`` | ``theta1 theta2`` (spin-axis non-perpendicularity) | rad (arcsec) |
+| ``base_misalignment`` | ``eps*`` or ``dchi1..3`` by ``base_param`` | rad (arcsec) |
 | ``drift_transient`` | ``dm11_0 ... dmc2_0`` (``m0 - m*``), ``k_tr`` (law 7.4) | 1 (deg/h), 1/tau (1/h) |
 | ``drift_ramp`` | ``rmc1 rmc2``: case-fixed drift growing linearly from t = 0 | 1/tau (deg/h/h) |
 | ``drift_step`` | ``smc1 smc2``: case-fixed drift step at ``t_step`` (re-levitation) | 1 (deg/h), tau (h) |
 
 ``base_param`` chooses how the base misalignment is parametrized:
 
-- ``"eps"`` (default): ``eps = u_zeta x dchi`` constrained normal to ``u`` (spec §8.2): two free
+- ``"eps"`` (default): ``eps = u_zeta x dchi`` constrained normal to ``u`` (docs/rigs/esg.md): two free
   components, the third (``eps_dependent``) solved from ``eps . u = 0``; the base is rotated exactly
   by ``dchi = eps x u``.
 - ``"eps_free"``: the paper's (6.9), all three ``eps`` free and acting additively on the Earth-rate
@@ -114,7 +114,7 @@ def _default_dependent(u_zeta) -> int:
 
 
 class ESGRig(AbstractRig):
-    """The non-contact gyro in a two-axis gyrostabilizer (spec esg-drift §5).
+    """The non-contact gyro in a two-axis gyrostabilizer (docs/rigs/esg.md).
 
     **Arguments:**
     - `base_param`: ``"eps"`` | ``"eps_free"`` | ``"rotvec"`` | ``"euler"`` (see module docstring).
@@ -249,7 +249,7 @@ class ESGRig(AbstractRig):
         return jnp.stack([params["alpha10"], params["alpha20"]])
 
     def vector_field(self, t, state, params, conditions):
-        """$d\\alpha/d\\tau$ of the exact precessional model (spec §5.1) or of (3.1)."""
+        """$d\\alpha/d\\tau$ of the exact precessional model (docs/rigs/esg.md) or of (3.1)."""
         m = self._drift(params, t)
         theta = jnp.stack([params["theta1"], params["theta2"]])
         if self.order == "exact":
@@ -284,9 +284,9 @@ class ESGRig(AbstractRig):
         return (*DRIFT_NAMES, "theta1", "theta2", *self.base_names)
 
     def regression_terms(self, alpha, conditions):
-        """``c(alpha)`` (2,) and ``F(alpha)`` (2, k) of $\\alpha' = c + F p$ (spec (6.7), (6.10)).
+        """``c(alpha)`` (2,) and ``F(alpha)`` (2, k) of $\\alpha' = c + F p$ (docs/rigs/esg.md (6.7), (6.10)).
 
-        Written out from the spec (with the corrected ``f18``) rather than differentiated; tests
+        Written out from the equations (with the corrected ``f18``) rather than differentiated; tests
         check it against the autodiff tangent of the exact model. ``alpha`` may carry leading batch
         axes. The stacked form of :meth:`regression_columns`.
         """
@@ -357,7 +357,7 @@ def check_angle_units(y, t=None):
     """Refuse gimbal angles ``y`` ``(n, 2)`` that cannot be radians over times ``t`` (s) that
     cannot be seconds.
 
-    The model's ``alpha2`` lies within +-pi/2 (the gimbal lock, spec esg-drift §3.3), so a
+    The model's ``alpha2`` lies within +-pi/2 (the gimbal lock, docs/rigs/esg.md), so a
     record reaching beyond it is in other units (a 24-h record in deg or arcsec: the fits end
     in inf/NaN, "not converged"); ``alpha1`` turns freely (720 deg in two days on the
     equatorial scheme), but no faster than the Earth turns plus the drifts: with ``t``, the
@@ -392,7 +392,7 @@ def _combine(columns, coefficients):
 
 def _platform_components(s1, c1, s2, c2, v):
     """``x_i . v`` of a base-frame vector ``v`` on the platform axes x1 = (c2, s1 s2, -c1 s2),
-    x2 = (0, c1, s1), x3 = (s2, -s1 c2, c1 c2) (spec §3.3), from the sines and cosines of the
+    x2 = (0, c1, s1), x3 = (s2, -s1 c2, c1 c2) (docs/rigs/esg.md), from the sines and cosines of the
     gimbal angles: three arrays shaped like the angles."""
     return (c2 * v[0] + s1 * s2 * v[1] - c1 * s2 * v[2], c1 * v[1] + s1 * v[2],
             s2 * v[0] - s1 * c2 * v[1] + c1 * c2 * v[2])

@@ -1,26 +1,29 @@
-"""Gyrotheodolite sensing element — spec ``gyrotheodolite-observer.md`` (seed 003).
+"""Gyrotheodolite sensing element — docs/rigs/gyrotheodolite.md.
 
 State ``x = (alpha, alpha_dot, beta, beta_dot)`` (rad, rad/s); only ``alpha`` is measured. Frame
-(spec §2): SE frame x = main axis (North), y = Up, z = East; ``alpha`` about the vertical,
+(docs/rigs/gyrotheodolite.md): SE frame x = main axis (North), y = Up, z = East; ``alpha`` about the vertical,
 ``beta`` tilt about z; the centre of mass a distance l below the suspension. Equations (1) with
 ``k_alpha = H omega3 cos(phi)(1 + kappa)``, ``D = F_KC + f_alpha``:
 
 $J_y \\ddot\\alpha + H\\dot\\beta + D\\dot\\alpha + k_\\alpha \\alpha = mgl(\\gamma n_X + \\beta n_Z)$,
 $J_z \\ddot\\beta - H\\dot\\alpha + f_\\beta\\dot\\beta + mgl\\,\\beta = mgl\\,n_X + H\\omega_3\\sin\\varphi$.
 
-Vibration (spec §4): ``n_X = n_m cos(eps_v + psi0) sin(omega t)``, ``n_Z = n_m sin(eps_v + psi0)
-sin(omega t)`` in g.
+Vibration (docs/rigs/gyrotheodolite.md): ``n_X = n_m cos(eps_v + psi0) sin(omega t)``, ``n_Z = n_m sin(eps_v
++ psi0) sin(omega t)`` in g.
 
 Roll ``gamma`` about the main axis (**assumed**; the source gives no model): the steady-state
 response of a pendulous roll mode driven like the tilt mode of (1),
 $J_x\\ddot\\gamma + f_\\gamma\\dot\\gamma + mgl\\,\\gamma = mgl\\,n_Z$ (roll about the spin axis
 has no gyroscopic coupling). With ``roll_rate_coupling=True`` (default) the azimuth equation also
-carries the kinematic term of spec §9: the azimuth rate seen about the horizontal axis ``z`` of the
-rolled SE, $-\\dot\\alpha\\gamma$, adds to the Earth-rate term, i.e. ``+ H alpha_dot gamma`` on the
-right of the first equation. This is the mechanism behind the compensation formula of §9; without
+carries the kinematic term of docs/rigs/gyrotheodolite.md: the azimuth rate seen about the horizontal axis
+``z`` of the rolled SE, $-\\dot\\alpha\\gamma$, adds to the Earth-rate term, i.e. ``+ H alpha_dot gamma``
+on the
+right of the first equation. This is the mechanism behind the compensation formula
+(docs/rigs/gyrotheodolite.md); without
 vibration both additions vanish and the rig is exactly (1).
 
-Parameters (nominal; the spec's §8 assumed values are the defaults of :meth:`default_params`):
+Parameters (nominal; the docs/rigs/gyrotheodolite.md assumed values are the defaults of
+:meth:`default_params`):
 ``H`` (N m s), ``J_y``, ``J_z``, ``J_x`` (kg m^2), ``mgl`` (N m), ``f_alpha``, ``f_beta``,
 ``f_gamma``, ``F_KC`` (N m s), ``kappa`` (1). ``J_x`` and ``f_gamma`` (roll mode) are assumed equal
 to ``J_z``, ``f_beta``.
@@ -58,8 +61,8 @@ __all__ = ["GyrotheodoliteRig", "GyrotheodoliteConditions", "DEFAULTS", "ODE_OPT
 
 DEFAULTS = {"H": 0.1, "J_y": 1.0e-3, "J_z": 3.5e-3, "mgl": 0.48, "f_alpha": 1e-5,
             "f_beta": 1e-2, "F_KC": 3e-4, "kappa": 0.0, "J_x": 3.5e-3, "f_gamma": 1e-2}
-"""Assumed parameter set of spec §8 (north-seeking period ~8 min); ``J_x``, ``f_gamma`` of the
-roll mode are gyrojax's assumption (not in the spec)."""
+"""Assumed parameter set of docs/rigs/gyrotheodolite.md (north-seeking period ~8 min); ``J_x``, ``f_gamma``
+of the roll mode are gyrojax's assumption (not in the source)."""
 
 ODE_OPTIONS = {"solver": diffrax.Kvaerno5(), "rtol": 1e-8, "atol": 1e-12, "max_steps": 200_000}
 """Integration settings for bench-length runs (``integrate``/``simulate``/``trajectory_jacobian``
@@ -150,9 +153,9 @@ class GyrotheodoliteConditions(eqx.Module):
 class GyrotheodoliteRig(AbstractRig):
     """The 4-state sensing element (1)/(3); time in seconds.
 
-    ``roll_rate_coupling``: include the kinematic ``H alpha_dot gamma`` term of §9 (see the module
+    ``roll_rate_coupling``: include the kinematic ``H alpha_dot gamma`` term (see the module
     docstring). ``vibration_torque``: include the pendulous products ``mgl (gamma n_X + beta n_Z)``
-    of (1); switching it off leaves only the mechanism the §9 compensation formula describes.
+    of (1); switching it off leaves only the mechanism the compensation formula describes.
     """
 
     CHANNEL_UNITS: ClassVar[dict] = {"alpha": "rad"}
@@ -173,7 +176,7 @@ class GyrotheodoliteRig(AbstractRig):
         return 1.0
 
     def default_params(self, **overrides) -> dict:
-        """The spec's assumed parameters (§8), with overrides in SI; validated by
+        """The assumed parameters (docs/rigs/gyrotheodolite.md), with overrides in SI; validated by
         :meth:`check_params`."""
         return self.check_params(_SPACE.make(overrides))
 
@@ -249,7 +252,7 @@ class GyrotheodoliteRig(AbstractRig):
 
     def state_space(self, params, conditions):
         """``(A, C, G, b)`` of (3), (7): $\\dot x = A x + G n_X + b$, $y = C x$, written from the
-        spec (tests check ``A`` against the autodiff Jacobian of :meth:`vector_field`)."""
+        equations (tests check ``A`` against the autodiff Jacobian of :meth:`vector_field`)."""
         h, jy, jz, mgl = params["H"], params["J_y"], params["J_z"], params["mgl"]
         d = params["F_KC"] + params["f_alpha"]
         ka = self.k_alpha(params, conditions)
@@ -262,7 +265,7 @@ class GyrotheodoliteRig(AbstractRig):
         return a, c, g, b
 
     def open_loop_coefficients(self, params, conditions):
-        """``(a0, a1, a2, a3)`` of ``det(pE - A)`` (spec §4)."""
+        """``(a0, a1, a2, a3)`` of ``det(pE - A)`` (docs/rigs/gyrotheodolite.md)."""
         h, jy, jz, mgl, fb = (params[k] for k in ("H", "J_y", "J_z", "mgl", "f_beta"))
         d = params["F_KC"] + params["f_alpha"]
         ka = self.k_alpha(params, conditions)
@@ -271,7 +274,8 @@ class GyrotheodoliteRig(AbstractRig):
                 (d * jz + fb * jy) / jj)
 
     def observer_gains(self, params, conditions, omega0, *, printed: bool = False):
-        """Closed-form observer gains ``K`` for all four poles at ``-omega0`` (spec §6, corrected).
+        """Closed-form observer gains ``K`` for all four poles at ``-omega0`` (docs/rigs/gyrotheodolite.md,
+        corrected).
 
         With ``printed=True`` the source's (dimensionally wrong) ``k3``, ``k4`` are returned, which
         give an unstable observer; kept to demonstrate the correction.

@@ -15,7 +15,7 @@ quantization Q: a differenced white sequence), bias instability (flicker, simula
 Gauss-Markov processes), rate random walk (K) and outliers (a contamination fraction).
 
 **Nominal model** = the biases ``bgx.. baz`` with the nominal scale (the poses' directions are
-nuisance parameters of the fit). **Effects** (stable names, DESIGN.md): ``earth_rate`` (``k_earth``,
+nuisance parameters of the fit). **Effects** (stable names): ``earth_rate`` (``k_earth``,
 1 = the full vertical Earth rate), ``scale_factor``, ``misalignment`` (6 off-diagonal terms per
 triad: the symmetric part is non-orthogonality, the antisymmetric part an axis rotation, which the
 poses absorb for the accelerometer), ``g_sensitivity`` (9 terms), ``time_drift``,
@@ -28,7 +28,7 @@ The IMU is algebraic on a static stand (no equations of motion), so :class:`IMUR
 parameter space and the measurement function, not a diffrax vector field; :func:`simulate_imu`
 integrates the attitude through the turns between poses exactly (piecewise-constant rates). A
 pose may also turn at a constant rate-table rate about the vertical (:class:`Pose`
-``rate_dps``; spec design D4): the up vector stays put and the gyros see the table rate along it.
+``rate_dps``; design D4 of docs/goals.md): the up vector stays put and the gyros see the table rate along it.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
-"""Three-gimbal inertial platform under linear vibration — spec ``platform-vibration.md`` (seed 001).
+"""Three-gimbal inertial platform under linear vibration — docs/rigs/platform.md.
 
-Frames (spec §2): geographic ENU ``r``; base ``b`` on the vibration table (default mounting: ``x_b``
-North, ``y_b`` Up = vibration axis, ``z_b`` East, ``C_r^b`` of (S1)); platform ``p`` with
+Frames (docs/rigs/platform.md): geographic ENU ``r``; base ``b`` on the vibration table (default mounting:
+``x_b`` North, ``y_b`` Up = vibration axis, ``z_b`` East, ``C_r^b`` of (S1)); platform ``p`` with
 $C_p^b = P_1(\\alpha) P_2(\\beta) P_3(\\gamma)$ (frame rotations ``P_k(t) = rot_k(-t)``, (S2)).
 State: the gimbal angles ``(alpha, beta, gamma)`` (rad); time in s. The servo loops null the gyro
 outputs, so the platform turns at minus the drift (S11) and the angles follow (S12):
@@ -10,14 +10,14 @@ $\\dot{(\\alpha,\\beta,\\gamma)} = M(\\beta,\\gamma)(-\\varepsilon - C_b^p \\ome
 Gyro ``j`` (input axis = platform axis ``j``; output/spin axes cyclic, ``I x O = S``) drifts by
 the 10-coefficient g-sensitive law (S10) with the specific force ``(1 + A_1(t)) n^p`` in g,
 ``n^p = C_b^p u^b``. ``drift_model="instantaneous"`` uses the vibration
-``A_1 = a0 sin(omega t + phase)`` itself; ``"averaged"`` (§5, (S14)) the period average, i.e. the
+``A_1 = a0 sin(omega t + phase)`` itself; ``"averaged"`` ((S14)) the period average, i.e. the
 quadratic and cross terms times ``kappa = 1 + a0^2/2`` (``conditions.kappa``).
 
 Parameters (internal rad/s; reports in deg/h, deg/h/g, deg/h/g^2): ``D_f_x ... D_os_z`` (30, the
-canonical gyro-major order of §6). Effects with null values: ``accel_bias`` (``b_x b_y b_z``, g),
+canonical gyro-major order). Effects with null values: ``accel_bias`` (``b_x b_y b_z``, g),
 ``accel_scale`` (``dk_x dk_y dk_z``), ``accel_misalignment`` (``M_xy M_xz M_yx M_yz M_zx M_zy``,
 rad): the accelerometer errors of (S20a), which act on the accelerometer channels only; and the
-bench effects the gap diagnosis catalogues (spec gap-diagnosis §4.1), with the test time
+bench effects the gap diagnosis catalogues (docs/diagnosis.md), with the test time
 ``T = t0 + t`` (``conditions.t0``: the dwell's start in the test):
 
 - ``base_misalignment``: ``dchi_x dchi_y dchi_z`` (rad, base axes): the base is turned by
@@ -53,7 +53,7 @@ EARTH_RATE_SOURCE = 7.2921151467e-5
 AXES = ("x", "y", "z")
 TERMS = ("f", "i", "o", "s", "ii", "oo", "ss", "io", "is", "os")
 COEFF_NAMES = tuple(f"D_{term}_{ax}" for ax in AXES for term in TERMS)
-"""The 30 coefficients in the spec's canonical gyro-major order."""
+"""The 30 coefficients in the canonical gyro-major order."""
 
 DEFAULT_MOUNTING = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 """``C_r^b`` of (S1): x_b North, y_b Up, z_b East."""
@@ -64,11 +64,11 @@ TABLE1_DEG = np.array([
     [0, 0, 0], [0, 0, 45], [0, 0, 90], [0, 0, 180], [180, 0, 45], [45, 0, 0], [45, 0, 90],
     [90, 0, 90], [90, 0, 180], [180, 0, 270], [270, 0, 0], [270, 0, 90], [-45, 0, 0],
     [-45, 0, 90]], dtype=float)
-"""The 14 test positions (alpha, beta, gamma) in deg (spec §11, Table 1)."""
+"""The 14 test positions (alpha, beta, gamma) in deg (docs/rigs/platform.md, Table 1)."""
 
 _TRUE_X = (1, -1, -1, 1, 0.03, 0.03, -0.03, 0.03, -0.03, -0.03)
 TRUE_TABLE2 = dict(zip(COEFF_NAMES, _TRUE_X + tuple(-v for v in _TRUE_X) + _TRUE_X, strict=True))
-"""True coefficients of the source's simulation (spec §6), display units."""
+"""True coefficients of the source's simulation (docs/rigs/platform.md), display units."""
 
 
 def _param_space() -> ParameterSpace:
@@ -124,7 +124,7 @@ _SPACE = _param_space()
 
 
 def platform_matrix(angles):
-    """``C_p^b = P1(alpha) P2(beta) P3(gamma)`` with the spec's frame rotations (S2)."""
+    """``C_p^b = P1(alpha) P2(beta) P3(gamma)`` with the frame rotations of (S2)."""
     a, b, c = angles[0], angles[1], angles[2]
     return rot1(-a) @ rot2(-b) @ rot3(-c)
 
@@ -321,7 +321,7 @@ def schedule(positions_deg=TABLE1_DEG, *, a0: float = 0.0, latitude_deg: float =
 
 
 class ShockMount(eqx.Module):
-    """The second-order shock mount of spec §3 between the table and the platform (S4):
+    """The second-order shock mount of docs/rigs/platform.md between the table and the platform (S4):
     ``(m + k2) X'' + k1 X' + k0 X = k2 Y'' + k1 Y' + k0 Y`` with the table acceleration
     ``Y'' = a sin(omega t)``. Fields in SI: mass ``m`` (kg), stiffness ``k0`` (N/m), damping ``k1``
     (N s/m), inertance ``k2`` (kg)."""

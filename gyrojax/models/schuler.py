@@ -1,10 +1,10 @@
-"""Platform INS in the "Schuler period" test — spec ``schuler-test.md`` (seed 004).
+"""Platform INS in the "Schuler period" test — docs/rigs/schuler.md.
 
 A gimballed platform INS on a fixed stand is switched into a navigation mode whose model velocities
 start at 200 m/s although nothing moves; the platform, torqued to follow the pretended motion, tilts
 and the model velocities and tilts oscillate with the Schuler period $2\\pi\\sqrt{a_R/g}$.
 
-Frames (spec §2): geographic ENU ``x0``; platform ``x`` with
+Frames (docs/rigs/schuler.md): geographic ENU ``x0``; platform ``x`` with
 $C_{x^0}^{x} = P_2(\\alpha_2) P_1(\\alpha_1) P_3(-A_z)$ (frame rotations ``P_k(t) = rot_k(-t)``);
 azimuths clockwise from North. State ``X = (alpha1, alpha2, A_z, V1', V2', A')`` (rad, m/s), time in
 seconds. The vector field is the full nonlinear model (S7), with the commanded rates (S5), the gyro
@@ -14,11 +14,12 @@ drift ``nu = nu0 + (D11 w1', D22 w2', 0)`` and the accelerometer error
 Parameters (internal SI; display units in reports): gyro drifts ``nu1 nu2 nu3`` (rad/s; deg/h),
 torquer scale errors ``D11 D22`` (1; ppm), accelerometer biases ``df1 df2`` (m/s^2), accelerometer
 scale errors ``K11 K22`` (1; ppm), initial tilts ``alpha10 alpha20`` and initial azimuth error
-``dA0 = A'(t0) - A_z(t0)`` (rad; arcmin). Their scales are the prior standard deviations of §10.
+``dA0 = A'(t0) - A_z(t0)`` (rad; arcmin). Their scales are the prior standard deviations of
+docs/rigs/schuler.md.
 
 Measured channels: the model velocities ``V1 V2`` (m/s) and the platform's rotation since ``t0``,
 $\\Delta R(t) = C(t)\\,C(t_0)^T$, as a rotation vector ``rot1 rot2 rot3`` (rad) — what gimbal
-angles give on a stand of unknown attitude (spec §8).
+angles give on a stand of unknown attitude (docs/rigs/schuler.md).
 """
 
 from __future__ import annotations
@@ -123,7 +124,7 @@ class SchulerConditions(eqx.Module):
     @staticmethod
     def create(latitude_deg: float = 55.57, *, g: float | None = None, v10: float = 200.0,
                v20: float = -200.0, azimuth0_deg: float = 0.0) -> SchulerConditions:
-        """Spec §2 defaults: 55.57 deg, normal gravity (9.815557 m/s^2), V' = (200, -200) m/s."""
+        """The defaults: 55.57 deg, normal gravity (9.815557 m/s^2), V' = (200, -200) m/s."""
         if not -89.0 <= float(latitude_deg) <= 89.0:
             raise ValueError(f"latitude {latitude_deg} deg is outside [-89, 89]; give degrees North")
         lat = jnp.asarray(latitude_deg * units.DEG, dtype=float)
@@ -208,8 +209,8 @@ class SchulerRig(AbstractRig):
     def step_times(self, params, conditions):
         """Steps through the drift step's rise (``t_step`` +- 3 ``STEP_WIDTH``, at half-widths
         near the centre): the adaptive steps would otherwise stride over the rise where its
-        amplitude is 0, and the step's forward sensitivity was 7e-4 of its norm off (now 2e-7,
-        tests/test_models_schuler.py)."""
+        amplitude is 0, and the step's forward sensitivity would be off by up to 7e-4 of its norm
+        (docs/decisions/0004-forward-sensitivities-across-jumps.md)."""
         return jnp.asarray(params.get("t_step", 3600.0), dtype=float) + STEP_WIDTH * jnp.array(
             [-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0, 3.0])
 
@@ -314,14 +315,14 @@ def schuler_period(ts, v, *, conditions: SchulerConditions | None = None) -> dic
 
 
 ERROR_STATES = ("dalpha1", "dalpha2", "dV1", "dV2", "dA") + PARAM_NAMES
-"""The 17 states of the first-order error model (S10), in the spec's order (§7)."""
+"""The 17 states of the first-order error model (S10), in the order of docs/rigs/schuler.md."""
 INSTRUMENT_NAMES = PARAM_NAMES[:9]
 
 
 def error_matrix(rig: SchulerRig, params_ref, conditions: SchulerConditions, state_ref):
     """$A(t)$ of (S10), 17 x 17, at one reference state: the autodiff Jacobian of (S7) with respect
     to the state and the nine instrument errors, mapped to the error state with
-    $\\delta A_z = -\\delta A$ (``A'`` carries no error). This is the spec's recommended exact form
+    $\\delta A_z = -\\delta A$ (``A'`` carries no error). This is the exact form
     (``q = 0``); ``params_ref`` are the reference's errors (zero, or the current estimate when
     iterating)."""
     order = (0, 1, 3, 4)  # rows/cols of (alpha1, alpha2, V1', V2') in X

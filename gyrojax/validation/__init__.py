@@ -1,4 +1,4 @@
-"""Blind validation of the gap diagnosis (spec gap-diagnosis §5): sealed suites of simulated
+"""Blind validation of the gap diagnosis (docs/diagnosis.md): sealed suites of simulated
 records whose hidden effects the diagnosis is not told, run through
 :func:`gyrojax.diagnose.diagnose` and scored against the unsealed truth.
 

@@ -1,4 +1,4 @@
-"""Running and scoring a blind suite, shared by the rigs' harnesses (spec gap-diagnosis §5.6).
+"""Running and scoring a blind suite, shared by the rigs' harnesses (docs/diagnosis.md).
 
 :func:`run_cases` diagnoses every ``case_*.nc`` of a suite (never reading ``sealed/``) and keeps
 what the scorer needs; :func:`score_cases` unseals the manifest and computes the false-alarm rate,
@@ -45,7 +45,7 @@ def separability(record, rig: str, sigma, split=None, **problem_kw) -> dict:
     """Largest canonical correlation of each visible catalogue effect with another on the train
     rows of ``split``, after the nominal parameters are projected out, maximised over the
     effects' grids (a transient with a decay time near the record length looks like a ramp);
-    spec §5.6 calls an effect separable at <= 0.9. ``sigma``: the channels' noise (SI; only the
+    docs/goals.md calls an effect separable at <= 0.9. ``sigma``: the channels' noise (SI; only the
     ratios between channels matter); ``None``: the problem's own noise model on this record (the
     diagnosis's, e.g. the IMU's AR prewhitening). ``problem_kw``: the diagnosis' catalogue
     options (``nominal_terms``, ``per_coefficient``)."""
@@ -86,7 +86,7 @@ def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
     statistic of the generator's alternative (equal odds between the catalogue's effects
     with a signature, the diagnosis' design prior sized to expect exactly ``lambda``), so
     rejecting above the threshold is the most powerful level-``alpha`` test a diagnosis could
-    run: the reference for spec §6 G2's detection power."""
+    run: the reference for goal G2's detection power."""
     from ..diagnose import design_log_bf, screen_designs
 
     jn, sigs = _train_jacobians(record, rig, sigma, split, **problem_kw)
@@ -108,7 +108,7 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
               progress=None, split_for=None, baselines: bool = False,
               diagnose_kw: dict | None = None, prior: str | None = None) -> list:
     """Diagnose every case blind. ``refit_all``: refit every catalogued effect alone as well
-    (the scorer's oracle is then the hidden effect's own refit, spec §6 G7). ``split_for``:
+    (the scorer's oracle is then the hidden effect's own refit, goal G7). ``split_for``:
     ``(record, split) -> split`` where a record's own design decides (a one-amplitude platform
     test has no design shift). ``baselines``: also run B2 refit-all + BIC on each record
     (:func:`~gyrojax.validation._scoring.refit_all_baseline`: its answers, wall time and refit count,
@@ -154,10 +154,10 @@ def run_cases(case_dir, rig: str, holdout: float, *, split=None, refit_all: bool
             "time_library_scores_s": rep.timings.get("library_scores_s", 0.0)
             + rep.timings.get("jacobians_s", 0.0),
             "time_refit_all_in_report_s": rep.timings.get("refit_all_s"),
-            # the effects this design cannot tell apart (spec §4.2 stage 3)
+            # the effects this design cannot tell apart (docs/diagnosis.md stage 3)
             "classes": rep.ambiguity["classes"],
             # each grid effect's grid value at its largest score (onset, decay time) and the
-            # record's length: spec §6 G8's localisation
+            # record's length: goal G8's localisation
             "grid_best": grid_best(rep), "grid_located": grid_locations(rep),
             "record_s": float(rep.t[-1] - rep.t[0]),
             **multiplicity_fields(rep),
@@ -181,7 +181,7 @@ def sealed_pairs(case_dir, results) -> list:
 
 
 def sealed_localisation(case_dir, results, *, lam_min: float = 32.0, **rules) -> dict:
-    """Spec §6 G8's grid rules (:func:`~gyrojax.validation._scoring.grid_localisation` with
+    """Goal G8's grid rules (:func:`~gyrojax.validation._scoring.grid_localisation` with
     ``rules``) over the sealed in-library cases at ``lambda >= lam_min`` that screened a grid."""
     strong = [(t, r) for t, r in sealed_pairs(case_dir, results)
               if t.get("lambda", 0) >= lam_min and "grid_best" in r]
@@ -194,15 +194,15 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
     one (noise effects: the first significant noise-model effect); named: the hidden effect is
     in the verdict, the ambiguity set or the noise-model list. ``structural``: families with no
     signature on the design, scored by ``structural_silent`` (verdict no-gap or confounded).
-    Per noncentrality also the top-1 over the ``separable`` families (spec §6 G3), the Bayes
+    Per noncentrality also the top-1 over the ``separable`` families (goal G3), the Bayes
     oracle's top-1 on the mean families (:func:`~gyrojax.validation._scoring.oracle_choice`: the
     sealed lambda as the prior) and the ratio of the two. With the runs' ``single_refits``
-    (``run_cases(refit_all=True)``): the oracle comparison of spec §6 G7 over the detected
+    (``run_cases(refit_all=True)``): the oracle comparison of goal G7 over the detected
     cases of the ``separable`` families (default: every mean family) whose held-out gap
     exceeds its null band: the share whose reduction ``R = 1 - G_after / G_before`` reaches
     0.9 x the oracle's (the hidden effect's own refit). ``oracle_thresholds`` (``{lambda:
     threshold}``, :func:`oracle_detection_thresholds`): also the Bayes oracle's detection power
-    (spec §6 G2's reference) on the mean families."""
+    (goal G2's reference) on the mean families."""
     rows = sealed_pairs(case_dir, results)
     nulls = [(t, r) for t, r in rows if t["family"] == "null"]
     lib = [(t, r) for t, r in rows if t["family"] in tuple(mean_families) + tuple(noise_families)]
@@ -233,7 +233,7 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
             "power": rate(sub, lambda t, r: r["verdict"] != "no-gap"),
             "top1": rate(sub, top), "named": rate(sub, named),
             "mean_set_size": float(np.mean(sizes)) if sizes else None,
-            # spec §6 G3: top-1 on the separable families, and against the Bayes oracle (mean
+            # goal G3: top-1 on the separable families, and against the Bayes oracle (mean
             # effects: the oracle reads the score statistics, which noise effects do not have)
             "top1_separable": rate([(t, r) for t, r in sub if t["family"] in sep], top),
             "oracle_top1_separable": rate([(t, r) for t, r in sub_mean if t["family"] in sep],
@@ -280,14 +280,14 @@ def score_cases(case_dir, results, mean_families, noise_families=(), out_of_libr
     out["out_of_library_honest"] = rate(ool, lambda t, r: r["verdict"] in
                                          ("unexplained", "ambiguous", "no-gap"))
 
-    out |= ool_scores(ool)  # spec §6 G9
-    out |= confounding_scores(mean_lib)  # spec §6 G5, practical confounding
+    out |= ool_scores(ool)  # goal G9
+    out |= confounding_scores(mean_lib)  # goal G5, practical confounding
     if structural:
         out["structural_silent"] = rate([(t, r) for t, r in rows if t["family"] in structural],
                                          lambda t, r: r["verdict"] in ("no-gap", "confounded"))
     out["median_diagnose_s"] = float(np.median([r["time_diagnose_s"] for _, r in rows]))
     b2 = [r for _, r in rows if "time_refit_all_s" in r]
-    if b2:  # spec §6 G10: screening against B2 refit-all on the same records
+    if b2:  # goal G10: screening against B2 refit-all on the same records
         out["cost"] = {"median_screen_s": float(np.median([r["time_screen_s"] for r in b2])),
                        "median_library_scores_s": float(np.median(
                            [r["time_library_scores_s"] for r in b2])),
@@ -318,7 +318,7 @@ def _first_effect(rep):
 
 def closed_loop(case_dir, rig: str, hidden: str, rerun, truth_coefficients, *,
                 holdout: float, seed: int = 0, load=load_record, progress=None) -> list:
-    """Spec §6 G6 closed loop over the cases of ``case_dir``. Each record is diagnosed blind
+    """Goal G6 closed loop over the cases of ``case_dir``. Each record is diagnosed blind
     with the design advisor on; then, as an experimenter would, the same instrument is run
     again, new noise, under the design the advisor ranks first for ``hidden`` and that record is
     diagnosed blind. ``rerun(record, truth, label, key) -> record`` re-simulates the sealed

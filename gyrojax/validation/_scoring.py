@@ -1,4 +1,4 @@
-"""Generic scoring of blind validation suites (spec gap-diagnosis §5.6): sealing a suite's
+"""Generic scoring of blind validation suites (docs/diagnosis.md): sealing a suite's
 truths (:class:`Sealer`), the truth side of each case (visible fractions, Cramér-Rao references,
 remainders after the library), the B2 refit-all baseline, and the suite's metrics with Monte Carlo
 standard errors (rates, calibration, the Bayes oracle's choices and power, localisation,
@@ -40,16 +40,16 @@ __all__ = ["CONFOUNDED_FLAGS", "Sealer", "calibration", "confounding_scores", "c
            "top_effect", "truth_visibility"]
 
 
-# the flags of spec §4.2 stage 3 that say the nominal fit absorbs (part of) an effect: visible
+# the flags of docs/diagnosis.md stage 3 that say the nominal fit absorbs (part of) an effect: visible
 # fraction < 0.05 in some direction (practically or structurally confounded, or no signature)
 CONFOUNDED_FLAGS = ("practically confounded", "structurally confounded",
                     "partly structurally confounded", "no signature")
 
 
 def truth_visibility(jb, jt) -> dict:
-    """Truth side of spec §5.6's confounding recall and precision: the hidden effect's visible
+    """Truth side of docs/goals.md's confounding recall and precision: the hidden effect's visible
     fraction on the train rows (the smallest ``1 - rho^2`` over its coefficient directions,
-    spec §4.2 stage 3) from the whitened Jacobian ``jb`` of its coefficients at the generating
+    docs/diagnosis.md stage 3) from the whitened Jacobian ``jb`` of its coefficients at the generating
     parameters and sealed grid value, and ``jt``, the same with the nominal span projected out;
     and the flag that fraction earns. The diagnosis computes its own at its fitted nominal and
     chosen grid value, from the record."""
@@ -101,12 +101,12 @@ class Sealer:
 
 
 def refit_all_baseline(prob, ranking, sigma, prior: str = "design") -> dict:
-    """Spec §5.7 B2 on one record: refit every catalogued effect alone (a grid effect at every
+    """Baseline B2 (docs/goals.md) on one record: refit every catalogued effect alone (a grid effect at every
     grid value, keeping the best: refit-all has no score to pick a decay time or onset, and the
     grid value counts as one more parameter) from the same nominal fit as the diagnosis, on its
     whitened train rows. Returns the BIC choice (``b2_choice``, ``"none"`` when the nominal wins),
     the choice by the screening's own Bayes factor with each refit's estimate in place of the
-    one-step one (``b2_lr_choice``: the answer screening approximates, spec §6 G10), their log
+    one-step one (``b2_lr_choice``: the answer screening approximates, goal G10), their log
     Bayes factors, the refits' wall time and count. ``ranking``: the report's rows (the dof each
     effect was screened on); ``sigma``: the report's noise level; ``prior``: the screening's
     (``"design"`` or ``"shell"``, :func:`~gyrojax.diagnose._screening.screen`)."""
@@ -176,7 +176,7 @@ def grid_locations(rep) -> dict:
 def grid_localisation(strong, *, step, transient, decay_grid, record_length,
                       truth_scale: float = 1.0, crb_key: str | None = None,
                       decay_crb_key: str | None = None) -> dict:
-    """Spec §6 G8's onset and decay-time rules over (truth, result) pairs with ``grid_best``:
+    """Goal G8's onset and decay-time rules over (truth, result) pairs with ``grid_best``:
     ``step`` and ``transient`` are ``(family, truth key)``; an onset counts within 5 % of the
     record (``record_length(result)``, in the grid's unit) of the truth, a decay time within one
     step of the geometric ``decay_grid``. ``truth_scale`` converts the truth's display unit to the
@@ -248,7 +248,7 @@ def crb_spread(pairs, key: str, tol: float):
 
 
 def localisation_fields(rep) -> dict:
-    """What spec §6 G8 scores from a report: each grid effect's screened grid value (onset,
+    """What goal G8 scores from a report: each grid effect's screened grid value (onset,
     decay time; ``grid_best``) and located value (``grid_located``), the frequency cell of
     smallest p (``top_line``, its p) and the record's length in hours."""
     lines = [x for x in rep.where if x["axis"] == "frequency"]
@@ -265,7 +265,7 @@ def localisation_fields(rep) -> dict:
 
 
 def tau_band_scores(pairs) -> dict:
-    """Spec §6 G8 for noise-model effects over (truth, result) pairs of ``angle_random_walk``
+    """Goal G8 for noise-model effects over (truth, result) pairs of ``angle_random_walk``
     cases: the share whose tau axis has a significant cell, and of those the share whose
     smallest-p tau cell is the longest band (where a random walk's Allan excess over white
     noise, growing as tau^2, is largest)."""
@@ -318,7 +318,7 @@ def orthonormal_basis(j):
 
 
 def remainder_after_library(d, jn, cols) -> dict:
-    """Truth side of spec §6 G9: the noncentrality of a whitened out-of-library term ``d``
+    """Truth side of goal G9: the noncentrality of a whitened out-of-library term ``d``
     (train rows) left after the nominal parameters (columns ``jn``) and the best catalogue fit
     the diagnosis can make (one effect, or a pair: its greedy second step) are fitted.
     ``cols``: family -> list of column blocks (one per grid value). Returns the
@@ -360,7 +360,7 @@ def confident(r) -> bool:
 
 
 def ool_scores(ool) -> dict:
-    """Spec §6 G9 over out-of-library (truth, result) pairs: over the cases whose remainder
+    """Goal G9 over out-of-library (truth, result) pairs: over the cases whose remainder
     noncentrality after the best library fit (truth side, ``remainder_lambda``; else the
     case's lambda) is >= 32, the share not confidently attributed and the share unexplained or
     ambiguous; over every case, the confident misattributions."""
@@ -387,7 +387,7 @@ def ranking_scores(ranking) -> dict:
 
 
 def oracle_choice(r, lam: float):
-    """The Bayes-oracle answer (spec §5.6) for a case of noncentrality ``lam``: the effect of
+    """The Bayes-oracle answer (docs/goals.md) for a case of noncentrality ``lam``: the effect of
     largest posterior under the linearised model with equal prior odds between the catalogue
     effects and the diagnosis' design prior sized to expect exactly ``lam``
     (:func:`~gyrojax.diagnose._bayes.design_log_bf`), averaged over each effect's grid. It
@@ -437,7 +437,7 @@ def oracle_power(pairs, lam: float, thresholds):
 
 
 def calibration(pairs, n_bins: int = 10):
-    """Spec §5.6 set calibration of the posteriors over in-library (truth, result) pairs, with
+    """The set calibration (docs/goals.md) of the posteriors over in-library (truth, result) pairs, with
     each result's posteriors renormalised over the catalogue (an effect is present): expected
     calibration error of the top posterior (``n_bins`` equal-width bins; ``|accuracy -
     confidence|`` weighted by the bin's share) and the multi-class Brier score. ``None``
@@ -488,8 +488,8 @@ def ratio_rate(pairs, num, den):
 
 
 def confounding_scores(lib) -> dict:
-    """Spec §5.6 / §6 G5 over the in-library cases ``lib`` ((truth, result) pairs): confounding
-    recall (hidden effects whose truth-side visible fraction is < 0.05, or which have no
+    """The metrics of docs/goals.md / goal G5 over the in-library cases ``lib`` ((truth, result) pairs):
+    confounding recall (hidden effects whose truth-side visible fraction is < 0.05, or which have no
     signature, that the diagnosis flags so: :data:`CONFOUNDED_FLAGS` on that effect's row) and
     precision (flagged hidden effects that are so on the truth side), the agreement of the two
     flags over every case, and the confident misattribution over all in-library cases

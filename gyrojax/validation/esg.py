@@ -1,4 +1,4 @@
-"""Blind validation harness for the gap diagnosis (spec gap-diagnosis §5), ESG rig.
+"""Blind validation harness for the gap diagnosis (docs/diagnosis.md), ESG rig.
 
 :func:`generate` writes records (``case_<index>.nc``) and, separately, a sealed manifest
 (``sealed/manifest.json``) keyed by each record file's SHA-256: the hidden effect, its
@@ -6,7 +6,7 @@ coefficients and its noncentrality. The diagnosis reads only the record files (t
 package never imports the validation package; a test enforces it). :func:`run` diagnoses every case, also
 runs two baselines on the same records (B1: Ljung-Box whiteness of the nominal residual; B2:
 refit every candidate and pick by BIC), and :func:`score` unseals and computes the metrics of
-§5.6 with Monte Carlo standard errors.
+docs/goals.md with Monte Carlo standard errors.
 
 Case families: ``null``; each library effect; ``two_effects``; and two effects the library omits
 (``heater_cycle``: a 2 h square wave on the gimbal angles; ``hvac_line``: a 5 h line).
@@ -90,7 +90,7 @@ _EFFECT_PARAMS = {
 
 @dataclasses.dataclass(frozen=True)
 class Design:
-    """A test design of the blind suite (spec §5.2, D3-like): scheme, latitude, length, noise."""
+    """A test design of the blind suite (docs/goals.md, D3-like): scheme, latitude, length, noise."""
 
     scheme: str = "vertical"
     latitude_deg: float = 55.75
@@ -98,7 +98,7 @@ class Design:
     sample_s: float = 60.0
     noise_arcsec: float = 1.0
     holdout: float = 0.25
-    # spec §6 G1's robustness suite: flicker on each gimbal angle (the white nominal noise model
+    # goal G1's robustness suite: flicker on each gimbal angle (the white nominal noise model
     # omits it, the white+flicker one models it), bias-instability coefficient B (Allan
     # deviation flat at ~0.664 B from ~2 samples to ~2000), arcsec; 0 = none
     flicker_arcsec: float = 0.0
@@ -303,9 +303,9 @@ def _simulate_case(p, design, key, out_term=0.0):
     return BenchRecord(rec.t, rec.y + jnp.asarray(out_term), rec.channels, rec.attrs)
 
 
-# -- spec §6 G6: design advice, closed loop ---------------------------------------------------
+# -- goal G6: design advice, closed loop ---------------------------------------------------
 # the hidden effects of the closed loops at the diagnosis' own prior scales (arcsec: 10 arcmin
-# of rotor tilt, seed 000; 5 arcsec per coefficient of the sidereal-day line)
+# of rotor tilt, the source's figure; 5 arcsec per coefficient of the sidereal-day line)
 G6_PRIOR = {k: ESG_LIBRARY[k][1] for k in ("rotor_tilt", "diurnal_line")}
 
 
@@ -374,7 +374,7 @@ def advised_design(label: str, design: Design) -> Design:
 
 def closed_loop(case_dir, hidden: str = "rotor_tilt", *, design: Design | None = None,
                 seed: int = 0, progress=None) -> list:
-    """Spec §6 G6 on the cases of :func:`generate_closed_loop` (``hidden``: their family):
+    """Goal G6 on the cases of :func:`generate_closed_loop` (``hidden``: their family):
     :func:`~gyrojax.validation._harness.closed_loop`, the same instrument (every sealed
     parameter and the line) run again on the design the advisor ranks first for ``hidden``.
     ``rotor_tilt`` is G6's "equatorial / arbitrary alpha_2 -> theta"; ``diurnal_line`` on a
@@ -479,7 +479,7 @@ def run(case_dir, *, design: Design | None = None, baselines: bool = True,
 
 
 def localisation_scores(lib, *, lam_min: float = 32.0) -> dict:
-    """Spec §6 G8 over in-library (truth, result) pairs at ``lambda >= lam_min``: a step's
+    """Goal G8 over in-library (truth, result) pairs at ``lambda >= lam_min``: a step's
     screened onset within 5 % of the record of the truth (one window of the gap map's finest
     level), a transient's screened decay time within one step of the geometric grid, and a
     diurnal line found on the sidereal-day line (the frequency cell of smallest p)."""
@@ -501,9 +501,9 @@ def localisation_scores(lib, *, lam_min: float = 32.0) -> dict:
 
 
 def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
-    """Unseal the manifest and compute the §5.6 metrics (rate, its Monte Carlo standard error,
+    """Unseal the manifest and compute the metrics of docs/goals.md (rate, its Monte Carlo standard error,
     and the count behind it). ``separable``: the families whose largest projected canonical
-    correlation with another is <= 0.9 on the design (for the separable top-1 of spec §6 G3;
+    correlation with another is <= 0.9 on the design (for the separable top-1 of goal G3;
     default: every family)."""
     manifest = json.loads((Path(case_dir) / "sealed" / "manifest.json").read_text())["cases"]
     rows = []
@@ -556,9 +556,9 @@ def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
     out["out_of_library_honest"] = rate(ool, lambda t, r: r["verdict"] in
                                         ("unexplained", "ambiguous", "no-gap")
                                         or max(r["posterior"].values()) <= 0.9)
-    out |= ool_scores(ool)  # spec §6 G9
-    out |= localisation_scores(lib)  # spec §6 G8
-    out |= confounding_scores(lib)  # spec §6 G5, practical confounding
+    out |= ool_scores(ool)  # goal G9
+    out |= localisation_scores(lib)  # goal G8
+    out |= confounding_scores(lib)  # goal G5, practical confounding
     out |= tau_band_scores(rows)
     out["two_effects_both_named"] = rate(two, lambda t, r: {e["family"] for e in t["effects"]}
                                          <= set(r["effects"]) | set(r["ambiguity"]))

@@ -1,4 +1,4 @@
-"""Blind validation harness for the gyrotheodolite diagnosis (spec gap-diagnosis §5).
+"""Blind validation harness for the gyrotheodolite diagnosis (docs/diagnosis.md).
 
 :func:`generate` writes north-seeking runs (``case_<index>.nc``: channel ``alpha`` with the
 latitude as an attribute) and the sealed manifest beside them (see :mod:`.bench`). Each case
@@ -171,7 +171,7 @@ def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
 
 
 def localisation_scores(case_dir, results, *, lam_min: float = 32.0) -> dict:
-    """Spec §6 G8 over the in-library cases at ``lambda >= lam_min``: a torque step's onset at
+    """Goal G8 over the in-library cases at ``lambda >= lam_min``: a torque step's onset at
     its largest score within 5 % of the record of the truth, and a drift transient's decay time
     within one step of its geometric grid (``_gyrotheodolite.TRANSIENT_TIMES_MIN``)."""
     from ..diagnose import GYROTHEODOLITE_TRANSIENT_TIMES_MIN as TRANSIENT_TIMES_MIN

@@ -1,4 +1,4 @@
-"""Blind validation harness for the gap diagnosis, strapdown IMU rig (spec gap-diagnosis §5).
+"""Blind validation harness for the gap diagnosis, strapdown IMU rig (docs/diagnosis.md).
 
 Like :mod:`gyrojax.validation.esg` (ESG): :func:`generate` writes records and a sealed manifest
 keyed by each file's SHA-256, :func:`run` diagnoses the records without reading the manifest, and
@@ -14,7 +14,7 @@ keyed by each file's SHA-256, :func:`run` diagnoses the records without reading 
 - ``static``: one pose, 40 min at 50 Hz, for the noise-model effects (rate_random_walk,
   bias_instability, outliers, quantization) and time_drift / warmup_transient.
 
-``IMUDesign(per_coefficient=True)`` (spec §6 G10 at K >= 20): the diagnosis screens every
+``IMUDesign(per_coefficient=True)`` (goal G10 at K >= 20): the diagnosis screens every
 coefficient as an effect of its own (``diagnose(per_coefficient=True)``, K = 40 on the six
 channels) and each case hides one coefficient (``g_sensitivity:gsxy``; :func:`mean_families`).
 
@@ -89,7 +89,7 @@ def _effect_params(design):
 
 @dataclasses.dataclass(frozen=True)
 class IMUDesign:
-    """One blind design: ``kind`` ``"multi"``, ``"static"`` or ``"table"`` (spec D4: the
+    """One blind design: ``kind`` ``"multi"``, ``"static"`` or ``"table"`` (design D4: the
     12-pose stand, then the rate-table runs of the diagnosis' advice, ccw/cw at 10 deg/s with
     x, y and z up, twice, ``dwell_s`` each); white noise densities ``arw`` (deg/sqrt(h)) and
     ``vrw`` (m/s/sqrt(h)); ``split`` ``"same-design"`` or ``"design-shift"``."""
@@ -188,7 +188,7 @@ def _lambda_scale(params, design, names, b, n_train_frac):
 
 
 def _remainder_lambda(params, design, term):
-    """Truth side of spec §6 G9: the noncentrality of an additive term ``term`` (n, 6) on the
+    """Truth side of goal G9: the noncentrality of an additive term ``term`` (n, 6) on the
     train static samples (whitened) that is left after the nominal parameters (biases, pose
     angles) and the best catalogue fit the diagnosis can make (one mean effect, or a pair: its
     greedy second step) are fitted; the transient over a grid of decay times. Returns
@@ -248,9 +248,9 @@ def _noise_theta(family, design):
     """Strength of a noise term with unit Whittle noncentrality on the static train record,
     over the whole spectrum up to the Nyquist frequency: the information the record holds, not
     that of one test's band (quantization lives at the top of the band, where the slow terms'
-    ``rate / 10`` fit never looks: its cases were ~28x stronger in ``Q^2`` than their lambda
-    said before this counted the whole band; bias instability and rate random walk change by
-    < 0.5 %). For quantization this is exactly the noncentrality ``N Q^4 / (tau0^4 sigma^4)``
+    ``rate / 10`` fit never looks: counted over that band alone, its cases would be ~28x
+    stronger in ``Q^2`` than their lambda says; bias instability and rate random walk would
+    change by < 0.5 %). For quantization this is exactly the noncentrality ``N Q^4 / (tau0^4 sigma^4)``
     of its MA(1) score test."""
     n = int(design.static_s * design.rate_hz * 0.75)
     f = np.arange(2, n // 2) * design.rate_hz / n
@@ -399,7 +399,7 @@ def score(case_dir, results, separable=None, oracle_thresholds=None,
                        oracle_thresholds=oracle_thresholds)
 
 
-# -- spec §6 G8 on the IMU: the position and tau axes of the gap map ------------------------
+# -- goal G8 on the IMU: the position and tau axes of the gap map ------------------------
 def expected_position_z(record, truth) -> dict:
     """Truth side of the per-position signature (G8) of a ``pose_step`` case: the expected Wald
     z of every position cell of the diagnosis's map (cell label, channel) -> E z, up to the
@@ -486,7 +486,7 @@ def tau_band_hit(where, family, level) -> dict:
     return out
 
 
-# -- spec §6 G6: design advice, closed loop (cw/ccw rotation; a temperature cycle) -------------
+# -- goal G6: design advice, closed loop (cw/ccw rotation; a temperature cycle) -------------
 # the hidden coefficients: the gyro scale factors and misalignments (no signature on a still
 # stand whose nominal model carries no Earth rate; a rate table drives them) and the gyro
 # temperature coefficients (on a warm-up ramp a time drift; a temperature cycle tells them)
@@ -583,7 +583,7 @@ def advised_poses(label: str, design: IMUDesign) -> list:
 
 def closed_loop(case_dir, hidden: str, *, design: IMUDesign | None = None, seed: int = 0,
                 progress=None) -> list:
-    """Spec §6 G6's "cw/ccw rotation -> sf vs misalignment" on the cases of
+    """Goal G6's "cw/ccw rotation -> sf vs misalignment" on the cases of
     :func:`generate_closed_loop` (``hidden``: their family):
     :func:`~gyrojax.validation._harness.closed_loop`, the same instrument run again, new noise,
     on the poses the advisor's first design for ``hidden`` names."""

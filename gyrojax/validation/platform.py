@@ -1,8 +1,8 @@
-"""Blind validation harness for the platform diagnosis (spec gap-diagnosis §5, design D2).
+"""Blind validation harness for the platform diagnosis (docs/diagnosis.md, design D2).
 
 :func:`generate` writes platform test records (``case_<index>.nc``, the layout of
 ``gyrojax simulate --rig platform`` with the *nominal* schedule as attribute) and the sealed
-manifest beside them (see :mod:`.bench`). D2: the 14 positions of seed 001 (Table 1) at a static
+manifest beside them (see :mod:`.bench`). D2: the 14 positions of Table 1 at a static
 run and two vibration amplitudes (table 0, 9, 7 g), 100 s dwells at 40 Hz, 1 arcsec angle noise.
 Each case draws the 27 nominal drift coefficients (the 30 of (S10) less ``D_oo``) from their
 prior scales, adds a hidden effect and integrates the ODE model with it (the rig's effect
@@ -11,7 +11,7 @@ groups: the diagnosis's linear columns are not used here).
 Case families: ``null``; each catalogue effect (``anisoelastic_oo``, ``base_misalignment``,
 ``warmup_transient`` with a log-uniform decay time over [1/30, 1/3] of the test,
 ``drift_ramp``, ``vibration_rectification``) in a random direction of its three coefficients;
-the structural case of seed 001 (``anisoelastic_oo_one_amplitude``: hidden ``D_oo`` at its prior
+the the source's structural case (``anisoelastic_oo_one_amplitude``: hidden ``D_oo`` at its prior
 scale on a single-amplitude test, which has no signature: scored as silent); and two effects
 the library omits: ``readout_line`` (a 20-min thermal line on the gamma pick-off) and
 ``readout_step`` (a slip of the alpha pick-off inside one dwell).
@@ -244,7 +244,7 @@ def run(case_dir, *, design: PlatformDesign | None = None, progress=None,
     """Diagnose every record in ``case_dir`` (never reading ``sealed/``) with the design's
     split and nominal, refitting every catalogue effect as well (the scorer's oracle). Records
     on one amplitude (the structural cases) have no design shift and keep the same-design
-    split. ``baselines``: B2 refit-all + BIC per record as well (spec §6 G10's comparison);
+    split. ``baselines``: B2 refit-all + BIC per record as well (goal G10's comparison);
     ``refit_all=False``: no refit of every effect inside the diagnosis (no G7 oracle);
     ``prior``: the diagnosis' Bayes-factor prior (and B2's)."""
     design = design or PlatformDesign()
@@ -267,7 +267,7 @@ def score(case_dir, results, separable=None, oracle_thresholds=None,
                        oracle_thresholds=oracle_thresholds)
 
 
-# -- spec §6 G6: design advice, closed loop ---------------------------------------------------
+# -- goal G6: design advice, closed loop ---------------------------------------------------
 def advised_amplitudes(label: str, amplitudes) -> list:
     """Table amplitudes (g) of the test an advice row names, from the record's own
     ``amplitudes``: ``"second amplitude X g (table)"`` adds X, ``"an added 0 g (static) run"``
@@ -282,7 +282,7 @@ def advised_amplitudes(label: str, amplitudes) -> list:
 
 def closed_loop(case_dir, *, design: PlatformDesign | None = None, seed: int = 0,
                 progress=None) -> list:
-    """Spec §6 G6 on the seed-001 structural cases of ``case_dir`` (hidden ``D_oo`` at its
+    """Goal G6 on the source's structural cases of ``case_dir`` (hidden ``D_oo`` at its
     prior scale on a single-amplitude test): :func:`~gyrojax.validation._harness.closed_loop`,
     the same instrument (the sealed truth: the nominal coefficients and ``D_oo``) run again on
     the table amplitudes the advisor's first design for ``anisoelastic_oo`` names."""

@@ -1,9 +1,9 @@
-"""Blind validation harness for the Schuler-test diagnosis (spec gap-diagnosis §5, design D5).
+"""Blind validation harness for the Schuler-test diagnosis (docs/diagnosis.md, design D5).
 
 :func:`generate` writes Schuler-test records (``case_<index>.nc``: ``V1 V2 rot1 rot2 rot3`` with
 the conditions as attributes) and the sealed manifest beside them (see :mod:`.bench`). Each case
-draws the 12 nominal errors from the prior of spec §10, adds a hidden effect, integrates the
-nonlinear model (S7) and adds the measurement noise of §10 (0.05 m/s, 1 arcmin).
+draws the 12 nominal errors from the prior of docs/diagnosis.md, adds a hidden effect, integrates the
+nonlinear model (S7) and adds the measurement noise (0.05 m/s, 1 arcmin).
 
 Case families: ``null``; each visible catalogue effect (``drift_ramp``, ``drift_transient`` with a
 log-uniform decay time in [0.25, 3] h, ``drift_step`` with a uniform onset, ``accelerometer_ramp``,
@@ -12,7 +12,7 @@ two effects the library omits: ``velocity_line`` (a 40-min line on both velocity
 pump or HVAC cycle) and ``attitude_step`` (a readout step of the azimuth gimbal angle).
 Magnitudes: the noncentrality ``lambda = b^T I_eff b`` on the train split with the 12 nominal
 errors projected out, computed here from the truth model (the test's residuals of
-:mod:`gyrojax.estimate.schuler`, not the diagnosis code). ``lambda`` is first order (spec §5.4);
+:mod:`gyrojax.estimate.schuler`, not the diagnosis code). ``lambda`` is first order (docs/goals.md);
 the manifest's ``lambda_signal`` is the energy of the integrated signal itself, projected the
 same way. They agree to ~1e-4 except for ``accelerometer_cross_axis``, whose signal is a product
 of the cross-axis terms with the Schuler oscillation's own tilts: at arcminute coefficients it
@@ -51,7 +51,7 @@ CHANNELS = ("V1", "V2", "rot1", "rot2", "rot3")
 
 @dataclasses.dataclass(frozen=True)
 class SchulerDesign:
-    """D5: the Schuler test on a fixed stand, ``hours`` long (the spec's 4 h, ~2.84 Schuler
+    """D5: the Schuler test on a fixed stand, ``hours`` long (design D5's 4 h, ~2.84 Schuler
     periods) at ``sample_s``."""
 
     hours: float = 4.0
@@ -212,7 +212,7 @@ def score(case_dir, results, separable=None, oracle_thresholds=None) -> dict:
 
 
 def localisation_scores(case_dir, results, *, lam_min: float = 32.0) -> dict:
-    """Spec §6 G8 over the in-library cases at ``lambda >= lam_min``: a drift step's onset at its
+    """Goal G8 over the in-library cases at ``lambda >= lam_min``: a drift step's onset at its
     largest score within 5 % of the record of the truth, and a drift transient's decay time within
     one step of its geometric grid (``_schuler.TRANSIENT_TIMES_H``). The truth is in minutes (the
     parameters' display unit), the grids in hours."""
