@@ -17,10 +17,15 @@ import os
 import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .record import BenchRecord, freeze
+
+if TYPE_CHECKING:
+    import pandas as pd
+    import xarray as xr
 
 __all__ = ["RecordFileError", "load_record", "save_record", "validate_samples", "atomic_write",
            "write_json", "json_text", "check_times", "to_xarray", "from_xarray", "to_pandas",
@@ -129,7 +134,8 @@ def _check_channels(channels, expected, source):
                               f"This rig needs columns {list(expected)} (SI units)")
 
 
-def load_record(source, *, channels: Sequence[str] | None = None,
+def load_record(source: str | os.PathLike | xr.Dataset | pd.DataFrame, *,
+                channels: Sequence[str] | None = None,
                 conditions: Mapping | None = None) -> BenchRecord:
     """Read a BenchRecord from a ``.nc`` or ``.csv`` file, an ``xarray.Dataset`` or a
     ``pandas.DataFrame`` (:func:`from_xarray`, :func:`from_pandas`).
@@ -540,7 +546,8 @@ def record_path(path, option: str = "--out") -> Path:
     return out
 
 
-def save_record(record: BenchRecord, path, *, units: Mapping[str, str] | None = None) -> Path:
+def save_record(record: BenchRecord, path: str | os.PathLike, *,
+                units: Mapping[str, str] | None = None) -> Path:
     """Write a (single, unbatched) record to ``.nc`` or ``.csv`` atomically.
 
     ``units``: each channel's unit in CF notation, ``{channel prefix: unit}`` (a rig's

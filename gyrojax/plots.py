@@ -2,9 +2,24 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Mapping
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from . import units
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+    from .analysis.mounting import MountingBudget
+    from .analysis.spectral import AllanDeviation, NoiseTerms
+    from .analysis.vibration import FrequencyStudy
+    from .diagnose import GapReport
+    from .estimate import FitReport
+    from .record import BenchRecord
 
 
 def _plt():
@@ -46,7 +61,8 @@ def _save(fig, path):
     _plt().close(fig)
 
 
-def plot_fit(rig, record, conditions, report, path=None):
+def plot_fit(rig, record: BenchRecord, conditions, report: FitReport,
+             path: str | os.PathLike | None = None) -> Figure:
     """Measured vs fitted gimbal angles (deg) and residuals (arcsec) over time (h)."""
     from .simulate import integrate
 
@@ -72,7 +88,7 @@ def plot_fit(rig, record, conditions, report, path=None):
     return fig
 
 
-def plot_budget(budget, path=None):
+def plot_budget(budget: MountingBudget, path: str | os.PathLike | None = None) -> Figure:
     """Bar chart of the RMS drift-identification error per scheme and parameter (deg/h, log)."""
     plt = _plt()
     from .models.esg import DRIFT_NAMES
@@ -97,7 +113,7 @@ def plot_budget(budget, path=None):
     return fig
 
 
-def plot_frequency_study(study, path=None):
+def plot_frequency_study(study: FrequencyStudy, path: str | os.PathLike | None = None) -> Figure:
     """Fig. 1 of the gyrotheodolite paper: amplitude (rad/s per g, log-log) and phase (deg) of the
     true rate response to ``n_X`` and of the observer's estimate for each ``omega0``."""
     plt = _plt()
@@ -122,7 +138,7 @@ def plot_frequency_study(study, path=None):
     return fig
 
 
-def plot_gap_report(report, path=None):
+def plot_gap_report(report: GapReport, path: str | os.PathLike | None = None) -> Figure:
     """One figure of a gap diagnosis: the time x channel gap map (-log10 q per dyadic window),
     the whitened residuals before and after the verdict's refit (train | held-out), the
     candidate ranking (posterior, score test -log10 p), the tau band (Allan variance of the
@@ -289,7 +305,8 @@ def _plot_positions(ax, where, chans):
     ax.legend(fontsize=7, ncol=min(len(chans), 6))
 
 
-def plot_allan(ad, fits=None, *, unit="deg/h", title="", path=None, ax=None):
+def plot_allan(ad: AllanDeviation, fits: Mapping[str, NoiseTerms] | None = None, *, unit: str = "deg/h",
+               title: str = "", path: str | os.PathLike | None = None, ax: Axes | None = None) -> Figure:
     """Overlapping Allan deviation with its confidence intervals, and the AVAR curves of fitted
     noise terms (``fits``: label -> :class:`gyrojax.analysis.spectral.NoiseTerms`), in ``unit``
     (deg/h for a gyro, mg for an accelerometer)."""

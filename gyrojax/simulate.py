@@ -7,7 +7,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .models._base import AbstractRig
 from .record import BenchRecord, freeze
@@ -16,7 +16,8 @@ from .rotations import sincos
 __all__ = ["simulate", "integrate", "trajectory", "grid_steps", "gaussian_noise"]
 
 
-def gaussian_noise(key, shape, std=1.0):
+def gaussian_noise(key: PRNGKeyArray, shape: tuple[int, ...],
+                   std: float | Float[ArrayLike, "*shape"] = 1.0) -> Float[Array, "*shape"]:
     """White Gaussian deviates of standard deviation ``std`` (float64), by the Box-Muller
     transform of 64-bit uniforms: ``sqrt(-2 ln u1) (cos, sin)(2 pi u2)``, exact in distribution
     up to the uniforms' 2**-52 grid (the largest deviate is 8.5 sigma).
@@ -143,7 +144,8 @@ def trajectory(rig: AbstractRig, params, conditions, ts: Float[ArrayLike, " n"],
     return sol.ys
 
 
-def grid_steps(rig: AbstractRig, params, conditions, ts, *, solver=None, rtol: float = 1e-10,
+def grid_steps(rig: AbstractRig, params, conditions, ts: Float[ArrayLike, " n"], *, solver=None,
+               rtol: float = 1e-10,
                atol: float = 1e-12, margin: float = 0.05, max_factor: float = 2.5) -> int | None:
     """A fixed step grid for :func:`trajectory`'s ``steps``, or None where adaptive steps are
     the better choice.

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxtyping import PyTree
 from threadpoolctl import threadpool_limits
 
 __all__ = ["monte_carlo", "batch_size_of", "staged", "shutdown_processes"]
@@ -74,7 +75,7 @@ def staged(first: Callable, second: Callable, *, batch_size: int = 8) -> Callabl
     return trials
 
 
-def monte_carlo(fn: Callable, draws, *, chunk_size: int = 1024, devices=None,
+def monte_carlo(fn: Callable, draws: PyTree, *, chunk_size: int = 1024, devices=None,
                 progress: bool | str = False, vectorized: bool = False,
                 blas_threads: int | None = 1, processes: int | str | None = None):
     """Evaluate ``fn`` on every draw; returns the stacked outputs as numpy arrays.

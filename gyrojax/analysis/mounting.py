@@ -18,6 +18,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import PRNGKeyArray
 
 from .. import units
 from ..estimate._linalg import scaled_lstsq
@@ -150,7 +151,7 @@ class MountingBudget:
                           for s, v in self.rms("joint").items()}}
 
 
-def mounting_error_budget(key, n_draws: int, latitude_deg: float = 55.75, *, schemes=SCHEMES,
+def mounting_error_budget(key: PRNGKeyArray, n_draws: int, latitude_deg: float = 55.75, *, schemes=SCHEMES,
                           drift: float = 0.01, dchi_std_arcmin: float = 1.0,
                           theta_std_arcmin: float = 10.0, noise_arcsec: float = 0.0,
                           hours: float = 24.0, sample_s: float = 60.0, alpha20_deg: float = 0.0,

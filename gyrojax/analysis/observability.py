@@ -20,7 +20,7 @@ from collections.abc import Mapping, Sequence
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ..estimate.least_squares import trajectory_jacobian
 from ..estimate.regression import regression_design
@@ -157,7 +157,7 @@ def _pretty_basis(null):
     return rref
 
 
-def analyse_jacobian(jac, names: Sequence[str], *, exact_tol: float = 1e-6,
+def analyse_jacobian(jac: Float[ArrayLike, "m k"], names: Sequence[str], *, exact_tol: float = 1e-6,
                      weak_tol: float = 1e-3) -> ObservabilityReport:
     """Rank, relative singular values and named null spaces of a sensitivity matrix ``jac``
     (rows: observations, columns: ``names`` in natural units)."""
@@ -201,7 +201,7 @@ def observability(rig, params: Mapping, conditions, ts: Float[ArrayLike, " n"], 
     return analyse_jacobian(jac, free, exact_tol=exact_tol, weak_tol=weak_tol)
 
 
-def cramer_rao(jac, noise_std):
+def cramer_rao(jac: Float[ArrayLike, "m k"], noise_std: float) -> Float[Array, "k k"]:
     """Cramer-Rao bound ``sigma^2 (J^T J)^+`` for white Gaussian noise of std ``noise_std``."""
     jac = jnp.asarray(jac)
     return noise_std**2 * jnp.linalg.pinv(jac.T @ jac, hermitian=True)

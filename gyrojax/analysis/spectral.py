@@ -31,6 +31,7 @@ import dataclasses
 import functools
 import itertools
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from jaxtyping import ArrayLike, Float
@@ -188,7 +189,8 @@ def fit_noise_terms(ad: AllanDeviation, *, terms=("quantization", "angle_random_
 LIK_TERMS = ("quantization", "angle_random_walk", "bias_instability", "rate_random_walk")
 
 
-def periodogram(pieces, rate_hz: float, *, taper: bool = True):
+def periodogram(pieces: Float[ArrayLike, " n"] | Sequence[Float[ArrayLike, " _"]], rate_hz: float,
+                *, taper: bool = True):
     """Pooled periodogram of one or more contiguous pieces (each mean-removed): returns the
     Fourier frequencies ``f_k`` (Hz, 2 <= k < n/2) of every piece and ``I_k``, whose
     expectation is the per-sample spectrum ``S_d(f_k)`` (for white noise: its variance).
@@ -453,7 +455,8 @@ def null_periodograms(lengths, rate_hz: float, f_max: float, coef, draws: int, r
     return np.concatenate(out, axis=1)
 
 
-def fit_noise_likelihood(pieces, rate_hz: float, *, terms=LIK_TERMS,
+def fit_noise_likelihood(pieces: Float[ArrayLike, " n"] | Sequence[Float[ArrayLike, " _"]],
+                         rate_hz: float, *, terms=LIK_TERMS,
                          start: NoiseTerms | None = None,
                          f_max: float | None = None, null_draws: int = 200,
                          bootstrap_terms=None, seed: int = 0,

@@ -28,6 +28,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from .. import units
 from ..estimate.observer import frequency_response
@@ -115,7 +116,8 @@ def _vibration_error(rig, params, conditions, plant, observer) -> VibrationError
                           residual_est=total - corr_est)
 
 
-def compensate(ts, alpha, rate, gamma, latitude_deg):
+def compensate(ts: Float[ArrayLike, " n"], alpha: Float[ArrayLike, " n"],
+               rate: Float[ArrayLike, " n"], gamma: Float[ArrayLike, " n"], latitude_deg: float):
     """The compensation algorithm on recorded signals over one averaging window.
 
     ``ts`` (s), ``alpha`` (rad), ``rate`` (the true or estimated azimuth rate, rad/s), ``gamma``

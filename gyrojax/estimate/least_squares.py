@@ -17,6 +17,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
+from jaxtyping import ArrayLike, Float
 
 from ..record import BenchRecord
 from ..simulate import integrate
@@ -69,7 +70,8 @@ def _residual_fn(rig, space, free, base, conditions, ts, y, rtol, atol, max_step
     return fn
 
 
-def trajectory_jacobian(rig, params: Mapping, conditions, ts, free: Sequence[str], *,
+def trajectory_jacobian(rig, params: Mapping, conditions, ts: Float[ArrayLike, " n"],
+                        free: Sequence[str], *,
                         rtol: float = 1e-10, atol: float = 1e-12, max_steps: int = 100_000,
                         solver=None, directions=None):
     """Jacobian of the noise-free channels (flattened, ``n*c``) w.r.t. the free parameters in

@@ -26,6 +26,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from ..datasets import masked
 from ..models.imu import IMURig
@@ -352,7 +353,8 @@ class AccelCalibration:
         return np.asarray(_true_force(th, jnp.asarray(f_meas, float)))
 
 
-def calibrate_accelerometer(means, gravity: float, *, weights=None) -> AccelCalibration:
+def calibrate_accelerometer(means: Float[ArrayLike, "k 3"], gravity: float, *,
+                            weights: Float[ArrayLike, " k"] | None = None) -> AccelCalibration:
     """Fit ``b_a``, ``s_a`` and the upper-triangular misalignments ``ma_xy ma_xz ma_yz`` so that
     every static mean has ``|f| = g`` (Levenberg-Marquardt, optimistix). The rotational gauge (3
     terms) is unobservable without a reference attitude and fixed to zero. Poses that do not

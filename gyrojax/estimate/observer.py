@@ -12,13 +12,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float
 
 __all__ = ["observability_matrix", "ackermann_observer", "place_observer", "frequency_response",
            "observer_error_response", "binomial_poles", "DiscreteObserver",
            "simulate_with_observer"]
 
 
-def observability_matrix(a, c):
+def observability_matrix(a: Float[ArrayLike, "n n"], c: Float[ArrayLike, "p n"]
+                         ) -> Float[Array, "pn n"]:
     """Rows ``C, C A, ..., C A^{n-1}`` stacked: shape ``(n * m, n)``."""
     n = a.shape[0]
     rows = [c]
@@ -34,7 +36,8 @@ def binomial_poles(omega0, n: int = 4):
     return -jnp.full(n, jnp.asarray(omega0, dtype=float))
 
 
-def ackermann_observer(a, c, poles):
+def ackermann_observer(a: Float[ArrayLike, "n n"], c: Float[ArrayLike, "1 n"],
+                       poles: ArrayLike) -> Float[Array, "n 1"]:
     """Observer gain ``K`` (n,) placing the eigenvalues of ``A - K C`` at ``poles`` (one output).
 
     **Raises:** ``ValueError`` if ``C`` has more than one row (use a multi-output method), if the
@@ -60,7 +63,8 @@ def ackermann_observer(a, c, poles):
     return phi @ jnp.linalg.solve(obs, e_n)
 
 
-def frequency_response(a, b, omegas, c=None):
+def frequency_response(a: Float[ArrayLike, "n n"], b: Float[ArrayLike, " n"] | Float[ArrayLike, "n m"],
+                       omegas: Float[ArrayLike, " F"], c=None):
     """``(j omega E - A)^{-1} B`` for every ``omega`` (rad/s), optionally premultiplied by ``C``.
 
     ``a`` is ``(n, n)`` or a stack ``(S, n, n)`` of systems (then ``b`` is ``(S, n)`` or
@@ -145,7 +149,9 @@ def _check_observable(obs):
                          "no gain can place all observer poles")
 
 
-def place_observer(a, c, poles, *, method: str = "auto", max_sweeps: int = 50, tol: float = 1e-10):
+def place_observer(a: Float[ArrayLike, "n n"], c: Float[ArrayLike, "p n"], poles: ArrayLike, *,
+                   method: str = "auto", max_sweeps: int = 50,
+                   tol: float = 1e-10) -> Float[Array, "n p"]:
     """Observer gain ``K`` (n, m) with the eigenvalues of ``A - K C`` at ``poles``.
 
     - ``method="ackermann"`` (one output only): :func:`ackermann_observer`; places repeated poles
@@ -290,7 +296,8 @@ class DiscreteObserver(eqx.Module):
         return jnp.concatenate([x0[None], xs], axis=0)
 
 
-def simulate_with_observer(rig, params, conditions, gain, ts, *, xhat0=None, x0=None,
+def simulate_with_observer(rig, params, conditions, gain: Float[ArrayLike, " n"],
+                           ts: Float[ArrayLike, " T"], *, xhat0=None, x0=None,
                            constant_input: bool = True, solver=None, rtol: float = 1e-9,
                            atol: float = 1e-12, max_steps: int = 1_000_000):
     """Integrate the rig's nonlinear equations and a Luenberger observer on its linear model

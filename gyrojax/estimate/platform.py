@@ -17,6 +17,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float
 
 from ..models.platform import (
     AXES,
@@ -62,7 +63,8 @@ def _whole_cycles(ts, frequency_hz):
     return n - n % n0 if n >= n0 else n
 
 
-def amplitude_first_harmonic(ts, acc, frequency_hz: float):
+def amplitude_first_harmonic(ts: Float[ArrayLike, " n"], acc: Float[ArrayLike, "*batch n 3"],
+                             frequency_hz: float) -> Float[Array, "*batch"]:
     """``a0`` (g) from the first harmonic of ``S = |f|^2`` (S19b); ``acc`` (..., n, 3) in g.
 
     The sums run over the longest whole number of cycles of the *sampled* sequence, where they
@@ -75,7 +77,9 @@ def amplitude_first_harmonic(ts, acc, frequency_hz: float):
     return 0.5 * jnp.sqrt(c1**2 + s1**2)
 
 
-def kappa_from_accelerometers(acc, ts=None, frequency_hz=None):
+def kappa_from_accelerometers(acc: Float[ArrayLike, "*batch n 3"],
+                              ts: Float[ArrayLike, " n"] | None = None,
+                              frequency_hz: float | None = None) -> Float[Array, "*batch"]:
     """``kappa = mean |f|^2`` (S19c), exact for any zero-mean vibration over whole periods;
     ``acc`` (..., n, 3) in g. Give ``ts`` and ``frequency_hz`` to average over whole cycles of
     the sampled sequence only."""
@@ -238,7 +242,8 @@ def _check_inputs(ts, records, conditions, free) -> tuple:
     return free
 
 
-def platform_regression(ts, records: Sequence, conditions: Sequence, *,
+def platform_regression(ts: Float[ArrayLike, " n"], records: Sequence[Float[ArrayLike, "p n 3"]],
+                        conditions: Sequence, *,
                         free: Sequence[str] = COEFF_NAMES, noise_std=None,
                         accelerations: Sequence | None = None) -> PlatformFit:
     """Batch regression (S22) of the averaged model, or of the original model (S10) with the
@@ -377,7 +382,8 @@ def _kalman_scan(angles, conds, p_d, noise_std, q_coeff, dt, free, stride):
     return d, pd, hist, trace
 
 
-def platform_kalman(ts, records: Sequence, conditions: Sequence, *,
+def platform_kalman(ts: Float[ArrayLike, " n"], records: Sequence[Float[ArrayLike, "p n 3"]],
+                    conditions: Sequence, *,
                     free: Sequence[str] = COEFF_NAMES, noise_std: float = 4.84813681109536e-06,
                     prior_std=None, q_coeff: float = 0.0, stride: int = 100) -> PlatformKalman:
     """The source's identification (docs/rigs/platform.md (a)): an extended Kalman filter on the averaged
@@ -441,7 +447,8 @@ def _gn_solve(ts, angles, conds, x0, free, rtol, atol, max_steps, noise_var):
     return sol.value, cov_unit, sigma2, sol.converged, sol.num_steps, sol.step_se
 
 
-def platform_gauss_newton(ts, records: Sequence, conditions: Sequence, *,
+def platform_gauss_newton(ts: Float[ArrayLike, " n"],
+                          records: Sequence[Float[ArrayLike, "p n 3"]], conditions: Sequence, *,
                           free: Sequence[str] = COEFF_NAMES, start: dict | None = None,
                           noise_std=None, rtol: float = 1e-8, atol: float = 1e-10,
                           max_steps: int = 20) -> PlatformFit:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
 
 from ..record import BenchRecord
 from ._lstsq import ScaledLevenbergMarquardt, solve_least_squares
@@ -37,7 +38,8 @@ def spiral_parameters(m, latitude):
     return ac1, ac2, lam, nu
 
 
-def spiral_trajectory(theta, tau):
+def spiral_trajectory(theta: Float[ArrayLike, " 6"], tau: Float[ArrayLike, " n"]
+                      ) -> Float[Array, "n 2"]:
     """(4.4) at normalized times ``tau``: shape ``(n, 2)``; ``theta`` = SPIRAL_NAMES values."""
     ac1, ac2, r, lam, nu, psi = theta
     e = r * jnp.exp(-lam * tau)

@@ -39,6 +39,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float
 
 from .. import units
 from ..earth import check_gravity, normal_gravity
@@ -215,7 +216,9 @@ def accel_matrix(params):
     return _mat(params, "ma", "sa")
 
 
-def imu_measure(params, up, t, conditions: IMUConditions, rate=None, thermal=None):
+def imu_measure(params, up: Float[ArrayLike, "n 3"], t: Float[ArrayLike, " n"],
+                conditions: IMUConditions, rate: Float[ArrayLike, "n 3"] | None = None,
+                thermal=None) -> Float[Array, "n 6"]:
     """Noise-free outputs ``(n, 6)`` = ``wx wy wz ax ay az`` for body-frame up vectors ``up``
     ``(n, 3)`` (unit) at times ``t`` ``(n,)``; ``rate`` ``(n, 3)`` adds a body rotation rate
     (turns between poses) to the Earth rate; ``thermal`` ``(dT, dT/dt)``, two ``(n,)`` arrays

@@ -31,6 +31,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .. import units
 from ..earth import check_gravity, normal_gravity
@@ -244,7 +245,7 @@ class SchulerRig(AbstractRig):
         return jnp.concatenate([state[3:5], matrix_to_rotvec(rel)])
 
 
-def schuler_solution(conditions: SchulerConditions, tau):
+def schuler_solution(conditions: SchulerConditions, tau: Float[ArrayLike, " n"]):
     """The zero-order solution (S9) at ``tau = t - t0`` (s): ``(alpha1, alpha2, A', V1', V2')``,
     each shaped like ``tau``; ``A_z = A'`` at this order."""
     tau = jnp.asarray(tau, dtype=float)
@@ -256,7 +257,8 @@ def schuler_solution(conditions: SchulerConditions, tau):
             conditions.v10 * c, conditions.v20 * c)
 
 
-def schuler_period(ts, v, *, conditions: SchulerConditions | None = None) -> dict:
+def schuler_period(ts: Float[ArrayLike, " n"], v: Float[ArrayLike, " n"], *,
+                   conditions: SchulerConditions | None = None) -> dict:
     """The classical pass/fail check: the oscillation period of a model-velocity record.
 
     Fits ``v(t) = a cos(w t) + b sin(w t) + c`` by least squares (variable projection: the linear
@@ -372,7 +374,8 @@ def propagate_error_model(rig: SchulerRig, conditions: SchulerConditions, params
     return sol.ys[:, :6], sol.ys[:, 6:]
 
 
-def add_measurement_noise(key, y, *, sigma_v: float = 0.05, sigma_theta: float = units.ARCMIN):
+def add_measurement_noise(key: PRNGKeyArray, y: Float[ArrayLike, "n 5"], *, sigma_v: float = 0.05,
+                          sigma_theta: float = units.ARCMIN) -> Float[Array, "n 5"]:
     """Noisy record channels: white noise of ``sigma_v`` (m/s) on the velocities, and a random
     small rotation of ``sigma_theta`` (rad) per axis composed with the measured relative rotation
     (so that the attitude residual (S12) sees exactly that noise)."""
