@@ -138,7 +138,7 @@ def write_outputs(outputs) -> None:
         print(f"wrote {path}", file=sys.stderr)
 
 
-OUTPUT_OPTIONS = ("out", "json", "plot")  # the options that name a file a command writes
+OUTPUT_OPTIONS = ("out", "json", "plot", "netcdf")  # the options that name a file a command writes
 
 
 def check_outputs(args, extra=()) -> None:

@@ -70,7 +70,8 @@ def cmd_observability(args):
 def cmd_montecarlo(args):
     import jax
 
-    from .analysis.mounting import mounting_error_budget, mounting_error_tables
+    from .analysis.mounting import mounting_budget_stats, mounting_error_tables
+    from .io import atomic_write
 
     lat = args.latitude if args.latitude is not None else 55.75
     if args.study == "tables":
@@ -83,24 +84,38 @@ def cmd_montecarlo(args):
             raise UsageError(f"--draws {args.draws} must be >= 1")
         if args.chunk_size < 1:
             raise UsageError(f"--chunk-size {args.chunk_size} must be >= 1 (draws per compiled "
-                             "batch; default 512)")
+                             "block; default 128)")
         if not np.isfinite(args.noise_arcsec) or args.noise_arcsec < 0:
             raise UsageError(f"--noise-arcsec {args.noise_arcsec} must be >= 0")
-        processes = args.processes
-        if processes is not None and processes != "all":
-            if not processes.isdigit() or int(processes) < 1:
-                raise UsageError(f"--processes {processes!r}: give a number of worker processes "
-                                 ">= 1 or 'all' (one per CPU core)")
-            processes = int(processes)
-        bud = mounting_error_budget(jax.random.key(args.seed), args.draws, lat,
+        scheduler = args.scheduler
+        if args.processes is not None:
+            if scheduler is not None:
+                raise UsageError("--processes and --scheduler: give one (--scheduler local runs "
+                                 "one worker per core)")
+            if args.processes != "all" and (not args.processes.isdigit()
+                                            or int(args.processes) < 1):
+                raise UsageError(f"--processes {args.processes!r}: give a number of worker "
+                                 "processes >= 1 or 'all' (one per CPU core)")
+            scheduler = "local" if args.processes == "all" else f"local:{int(args.processes)}"
+        bud = mounting_budget_stats(jax.random.key(args.seed), args.draws, lat,
                                     noise_arcsec=args.noise_arcsec, alpha20_deg=args.alpha20,
-                                    chunk_size=args.chunk_size, progress="budget",
-                                    processes=processes)
+                                    block_size=args.chunk_size, scheduler=scheduler,
+                                    resume=args.resume, progress=True)
         print(f"# Monte Carlo error budget: {args.draws} draws per scheme, dchi ~ N(0, 1'), "
               f"theta ~ N(0, 10'), noise {args.noise_arcsec}\", alpha2(0) = {args.alpha20} deg; "
-              "RMS drift error in deg/h")
+              "RMS drift error ± its standard error, deg/h")
+        if bud.stats.nonfinite:
+            print(f"warning: {bud.stats.nonfinite} draws gave non-finite errors and are left out",
+                  file=sys.stderr)
         print(bud.markdown())
         emit_json(bud.to_json(), args.json)
+        if args.netcdf:
+            ds = bud.to_xarray()
+            atomic_write(args.netcdf, lambda tmp: ds.to_netcdf(tmp, engine="h5netcdf"))
+        if args.plot:
+            from .plots import plot_budget
+
+            plot_budget(bud, args.plot)
 
 
 def cmd_effects(args):
@@ -395,10 +410,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha20", type=float, default=30.0,
                    help="initial alpha2 in deg (budget; default 30, where all parameters are "
                         "observable in the equatorial scheme)")
-    p.add_argument("--chunk-size", type=int, default=512, help="draws per compiled batch")
+    p.add_argument("--chunk-size", type=int, default=128,
+                   help="draws per compiled block, the unit of work (budget; default 128)")
+    p.add_argument("--scheduler", metavar="ADDRESS|local",
+                   help="run the budget's blocks on Dask: 'local' starts one worker process per "
+                        "CPU core, an address (tcp://...) uses a running cluster (default: this "
+                        "process only); the statistics are the same bit for bit")
     p.add_argument("--processes", metavar="N|all",
-                   help="run the budget's chunks on N worker processes, one pinned to each CPU "
-                        "core ('all': every core; default: this process only)")
+                   help="a local Dask cluster of N worker processes ('all': one per CPU core)")
+    p.add_argument("--resume", metavar="FILE",
+                   help="keep each finished block's statistics in FILE and skip those already "
+                        "there (an interrupted budget resumes)")
+    p.add_argument("--netcdf", metavar="FILE",
+                   help="write the statistics as a NetCDF dataset (fit x scheme x parameter)")
+    p.add_argument("--plot", metavar="FILE", help="save the budget's bar chart (.png, .pdf, .svg)")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed")
     p.add_argument("--json", metavar="FILE", help="write results ('-' = stdout)")
     p.set_defaults(func=cmd_montecarlo)

@@ -14,7 +14,7 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-    from .analysis.mounting import MountingBudget
+    from .analysis.mounting import MountingBudget, MountingBudgetStats
     from .analysis.spectral import AllanDeviation, NoiseTerms
     from .analysis.vibration import FrequencyStudy
     from .diagnose import GapReport
@@ -88,8 +88,10 @@ def plot_fit(rig, record: BenchRecord, conditions, report: FitReport,
     return fig
 
 
-def plot_budget(budget: MountingBudget, path: str | os.PathLike | None = None) -> Figure:
-    """Bar chart of the RMS drift-identification error per scheme and parameter (deg/h, log)."""
+def plot_budget(budget: MountingBudget | MountingBudgetStats,
+                path: str | os.PathLike | None = None) -> Figure:
+    """Bar chart of the RMS drift-identification error per scheme and parameter (deg/h, log),
+    with its standard error."""
     plt = _plt()
     from .models.esg import DRIFT_NAMES
 
@@ -98,9 +100,9 @@ def plot_budget(budget: MountingBudget, path: str | os.PathLike | None = None) -
     w = 0.8 / len(budget.schemes)
     for ax, which, title in zip(axes, ("drift_only", "joint"),
                                 ("drift only (mounting errors ignored)", "drift + mounting errors")):
-        rms = budget.rms(which)
+        rms, se = budget.rms(which), budget.rms_se(which)
         for i, s in enumerate(budget.schemes):
-            ax.bar(x + i * w, rms[s], w, label=s)
+            ax.bar(x + i * w, rms[s], w, yerr=se[s], capsize=2, label=s)
         ax.set_xticks(x + 0.4 - w / 2, DRIFT_NAMES)
         ax.set_yscale("log")
         ax.set_title(title, fontsize=10)

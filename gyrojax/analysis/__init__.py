@@ -7,7 +7,13 @@ from .mounting import (
     MountingBudget as MountingBudget,
 )
 from .mounting import (
+    MountingBudgetStats as MountingBudgetStats,
+)
+from .mounting import (
     MountingTables as MountingTables,
+)
+from .mounting import (
+    mounting_budget_stats as mounting_budget_stats,
 )
 from .mounting import (
     mounting_error_budget as mounting_error_budget,
@@ -30,6 +36,9 @@ from .observability import (
 from .observability import (
     observability as observability,
 )
+from .streaming import LeafStats as LeafStats
+from .streaming import MonteCarloStats as MonteCarloStats
+from .streaming import monte_carlo_stats as monte_carlo_stats
 from .vibration import (
     compensation_monte_carlo as compensation_monte_carlo,
 )

@@ -2,16 +2,16 @@
 
 ``monte_carlo(fn, draws)`` evaluates ``fn`` (one draw -> a pytree of arrays) for every draw (a
 pytree with a leading batch axis). Draws are processed in chunks of ``chunk_size`` (the last chunk
-is padded, so the jitted batch function compiles once); each chunk is split over
-``jax.devices()`` along a one-dimensional ``("batch",)`` mesh with ``jax.shard_map``, so every
-device runs the batch function on its own slice with no communication (a vmapped ODE solve's
-while loop never waits on another device's lanes). The same call uses every CPU device
-(``XLA_FLAGS=--xla_force_host_platform_device_count=N``), GPU, or, under ``jax.distributed``,
-every host. On the CPU, ``processes=k`` instead hands the chunks to ``k`` worker processes, one
-pinned to each core (one process's graph runs on one core). A progress bar (tqdm) advances
-between chunks. During the run BLAS/LAPACK
-(OpenBLAS, through ``threadpoolctl``) uses one thread: a trial's least-squares problems are small,
-and jaxlib already spreads a batch's LAPACK calls over XLA's threads.
+is padded, so the jitted batch function compiles once); each chunk is split over ``jax.devices()``
+along a one-dimensional ``("batch",)`` mesh with ``jax.shard_map``, so every device runs the batch
+function on its own slice with no communication (a vmapped ODE solve's while loop never waits on
+another device's lanes). The same call uses every CPU device
+(``XLA_FLAGS=--xla_force_host_platform_device_count=N``) or GPU of this process (not other hosts:
+beyond one process, :func:`~gyrojax.analysis.monte_carlo_stats` runs on Dask). On the CPU,
+``processes=k`` instead hands the chunks to ``k`` worker processes, one pinned to each core (one
+process's graph runs on one core). A progress bar (tqdm) advances between chunks. During the run
+BLAS/LAPACK (OpenBLAS, through ``threadpoolctl``) uses one thread: a trial's least-squares problems
+are small, and jaxlib already spreads a batch's LAPACK calls over XLA's threads.
 """
 
 from __future__ import annotations

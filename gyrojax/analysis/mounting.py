@@ -28,8 +28,9 @@ from ..record import BenchRecord
 from ..simulate import gaussian_noise, grid_steps, integrate
 from .montecarlo import monte_carlo, staged
 
-__all__ = ["mounting_error_tables", "mounting_error_budget", "MountingTables", "MountingBudget",
-           "PAPER_TABLE2", "PAPER_TABLE3"]
+__all__ = ["mounting_error_tables", "mounting_error_budget", "mounting_budget_stats",
+           "MountingTables", "MountingBudget", "MountingBudgetStats", "PAPER_TABLE2",
+           "PAPER_TABLE3"]
 
 PAPER_TABLE2 = {"polar": (200, 1500), "equatorial": (125, 45), "horizontal": (291, 1000),
                 "vertical": (120, 1700)}
@@ -134,6 +135,12 @@ class MountingBudget:
         d = getattr(self, which)
         return {s: np.sqrt(np.mean(d[s] ** 2, axis=0)) for s in self.schemes}
 
+    def rms_se(self, which="drift_only") -> dict:
+        """Standard error of :meth:`rms` (delta method on the mean of the squares)."""
+        d, r = getattr(self, which), self.rms(which)
+        return {s: np.std(d[s] ** 2, axis=0, ddof=1) / np.sqrt(len(d[s])) / (2 * r[s])
+                for s in self.schemes}
+
     def markdown(self) -> str:
         rows = ["| scheme | fit | " + " | ".join(DRIFT_NAMES) + " |",
                 "|---|---|" + "---|" * len(DRIFT_NAMES)]
@@ -151,8 +158,62 @@ class MountingBudget:
                           for s, v in self.rms("joint").items()}}
 
 
-def mounting_error_budget(key: PRNGKeyArray, n_draws: int, latitude_deg: float = 55.75, *, schemes=SCHEMES,
-                          drift: float = 0.01, dchi_std_arcmin: float = 1.0,
+class _BudgetTrial:
+    """The budget's trial pieces, shared by :func:`mounting_error_budget` (draws up front) and
+    :func:`mounting_budget_stats` (draws from keys, reduced to statistics)."""
+
+    def __init__(self, latitude_deg, schemes, drift, noise_arcsec, hours, sample_s, alpha20_deg):
+        self.schemes = tuple(schemes)
+        self.rig = ESGRig(base_param="rotvec")
+        self.ts = jnp.arange(0.0, hours * 3600.0 + 0.5 * sample_s, sample_s)
+        self.drift = drift
+        self.base = self.rig.param_space.make({n: drift for n in DRIFT_NAMES},
+                                              alpha20=alpha20_deg * units.DEG)
+        self.conds = _stack_conditions(self.schemes, latitude_deg)
+        self.joint_names = self.rig.regression_names
+        self.masks = jnp.stack([jnp.array([n in DRIFT_NAMES for n in self.joint_names]),
+                                jnp.ones(len(self.joint_names), bool)])
+        self.noise = noise_arcsec * units.ARCSEC
+        # one fixed step grid for every draw (each step's error is still checked against the
+        # tolerance): about 3x faster than adaptive steps in a batch
+        counts = [grid_steps(self.rig, self.base, jax.tree.map(lambda x: x[i], self.conds),
+                             self.ts) for i in range(len(self.schemes))]
+        self.steps = None if None in counts else max(counts)
+
+    def simulate(self, i, dchi, theta):
+        c = jax.tree.map(lambda x: x[i], self.conds)
+        p = self.base | {"theta1": theta[0], "theta2": theta[1], "dchi1": dchi[0],
+                         "dchi2": dchi[1], "dchi3": dchi[2]}
+        return integrate(self.rig, p, c, self.ts, steps=self.steps)
+
+    def identify(self, i, y, noise_key):
+        """Drift errors (deg/h) of the drift-only and the joint fit, each ``(6,)``."""
+        # noise in the regression's sub-batch, where the record is in cache (see `staged`);
+        # noise-free budgets draw no deviates
+        if self.noise != 0.0:
+            y = y + gaussian_noise(noise_key, y.shape, self.noise)
+        c = jax.tree.map(lambda x: x[i], self.conds)
+        rec = BenchRecord(self.ts, y, self.rig.channels)
+        a, b, _ = regression_design(self.rig, rec, c, names=self.joint_names)
+        # both fits from one design in one batched solve: two independent LAPACK solves after a
+        # while_loop in one graph can deadlock jaxlib 0.10.2's CPU runtime
+        # (docs/decisions/0007-monte-carlo-worker-processes.md)
+        est = jax.vmap(lambda m: scaled_lstsq(a * m, b)[0][:6])(self.masks)
+        err = (est - self.drift) * units.EARTH_RATE_DEG_PER_HOUR
+        return err[0], err[1]
+
+
+def _check_budget(n_draws, dchi_std_arcmin, theta_std_arcmin, noise_arcsec):
+    if n_draws < 1:
+        raise ValueError(f"n_draws={n_draws}: need at least one Monte Carlo draw")
+    for name, v in (("dchi_std_arcmin", dchi_std_arcmin), ("theta_std_arcmin", theta_std_arcmin),
+                    ("noise_arcsec", noise_arcsec)):
+        if not np.isfinite(v) or v < 0:
+            raise ValueError(f"{name}={v}: a standard deviation must be finite and >= 0")
+
+
+def mounting_error_budget(key: PRNGKeyArray, n_draws: int, latitude_deg: float = 55.75, *,
+                          schemes=SCHEMES, drift: float = 0.01, dchi_std_arcmin: float = 1.0,
                           theta_std_arcmin: float = 10.0, noise_arcsec: float = 0.0,
                           hours: float = 24.0, sample_s: float = 60.0, alpha20_deg: float = 0.0,
                           chunk_size: int = 512, progress=False,
@@ -162,63 +223,159 @@ def mounting_error_budget(key: PRNGKeyArray, n_draws: int, latitude_deg: float =
     Each draw: ``dchi ~ N(0, dchi_std)`` (rotation vector, 3 axes), ``theta ~ N(0, theta_std)``
     (2 axes), white angle noise; simulate the exact model; regress (a) the six drifts only and
     (b) drifts + theta + dchi (the rank-deficient direction dchi || u is dropped by the
-    minimum-norm solution). Returns the drift errors in deg/h. ``processes``: as in
+    minimum-norm solution). Returns every draw's drift errors in deg/h (all held in memory:
+    for large budgets use :func:`mounting_budget_stats`). ``processes``: as in
     :func:`~gyrojax.analysis.monte_carlo` (``"all"``: one worker process per CPU core).
     """
-    if n_draws < 1:
-        raise ValueError(f"n_draws={n_draws}: need at least one Monte Carlo draw")
-    for name, v in (("dchi_std_arcmin", dchi_std_arcmin), ("theta_std_arcmin", theta_std_arcmin),
-                    ("noise_arcsec", noise_arcsec)):
-        if not np.isfinite(v) or v < 0:
-            raise ValueError(f"{name}={v}: a standard deviation must be finite and >= 0")
-    schemes = tuple(schemes)
-    rig = ESGRig(base_param="rotvec")
-    space = rig.param_space
-    ts = jnp.arange(0.0, hours * 3600.0 + 0.5 * sample_s, sample_s)
-    base = space.make({n: drift for n in DRIFT_NAMES}, alpha20=alpha20_deg * units.DEG)
-    conds = _stack_conditions(schemes, latitude_deg)
-    ns = len(schemes)
+    _check_budget(n_draws, dchi_std_arcmin, theta_std_arcmin, noise_arcsec)
+    bt = _BudgetTrial(latitude_deg, schemes, drift, noise_arcsec, hours, sample_s, alpha20_deg)
+    ns = len(bt.schemes)
     k1, k2, k3 = jax.random.split(key, 3)
     total = n_draws * ns
     dchi = jax.random.normal(k1, (total, 3)) * dchi_std_arcmin * units.ARCMIN
     theta = jax.random.normal(k2, (total, 2)) * theta_std_arcmin * units.ARCMIN
     keys = jax.random.key_data(jax.random.split(k3, total))
     sidx = jnp.repeat(jnp.arange(ns), n_draws)
-    joint_names = rig.regression_names
-    masks = jnp.stack([jnp.array([n in DRIFT_NAMES for n in joint_names]),
-                       jnp.ones(len(joint_names), bool)])
-    noise = noise_arcsec * units.ARCSEC
-    # one fixed step grid for every draw (each step's error is still checked against the
-    # tolerance): about 3x faster than adaptive steps in a batch
-    counts = [grid_steps(rig, base, jax.tree.map(lambda x: x[i], conds), ts) for i in range(ns)]
-    steps = None if None in counts else max(counts)
 
     def simulate(draw):
-        i, dc, th, _ = draw
-        c = jax.tree.map(lambda x: x[i], conds)
-        p = base | {"theta1": th[0], "theta2": th[1], "dchi1": dc[0], "dchi2": dc[1],
-                    "dchi3": dc[2]}
-        return integrate(rig, p, c, ts, steps=steps)
+        return bt.simulate(draw[0], draw[1], draw[2])
 
     def identify(draw, y):
-        # noise in the regression's sub-batch, where the record is in cache (see `staged`);
-        # noise-free budgets draw no deviates
-        if noise != 0.0:
-            y = y + gaussian_noise(jax.random.wrap_key_data(draw[3]), y.shape, noise)
-        c = jax.tree.map(lambda x: x[draw[0]], conds)
-        rec = BenchRecord(ts, y, rig.channels)
-        a, b, _ = regression_design(rig, rec, c, names=joint_names)
-        # both fits from one design in one batched solve: two independent LAPACK solves after a
-        # while_loop in one graph can deadlock jaxlib 0.10.2's CPU runtime
-        # (docs/decisions/0007-monte-carlo-worker-processes.md)
-        est = jax.vmap(lambda m: scaled_lstsq(a * m, b)[0][:6])(masks)
-        err = (est - drift) * units.EARTH_RATE_DEG_PER_HOUR
-        return err[0], err[1]
+        return bt.identify(draw[0], y, jax.random.wrap_key_data(draw[3]))
 
     e_only, e_joint = monte_carlo(staged(simulate, identify), (sidx, dchi, theta, keys),
                                   chunk_size=chunk_size, progress=progress,
                                   devices=jax.devices()[:1] if processes is None else None,
                                   vectorized=True, processes=processes)
-    drift_only = {s: e_only[sidx == i] for i, s in enumerate(schemes)}
-    joint = {s: e_joint[sidx == i] for i, s in enumerate(schemes)}
-    return MountingBudget(schemes, drift_only, joint, n_draws)
+    drift_only = {s: e_only[sidx == i] for i, s in enumerate(bt.schemes)}
+    joint = {s: e_joint[sidx == i] for i, s in enumerate(bt.schemes)}
+    return MountingBudget(bt.schemes, drift_only, joint, n_draws)
+
+
+@dataclasses.dataclass(frozen=True)
+class MountingBudgetStats:
+    """The budget as statistics (:func:`mounting_budget_stats`): per fit (``drift_only``,
+    ``joint``), scheme and drift parameter, the RMS error, the bias (mean) and the quantiles of
+    the error, each with its standard error, in deg/h. `stats` is the underlying
+    :class:`~gyrojax.analysis.streaming.MonteCarloStats`."""
+
+    schemes: tuple[str, ...]
+    stats: object
+
+    def _leaf(self, which: str):
+        return self.stats[f"[{which!r}]"]
+
+    @property
+    def n_draws(self) -> int:
+        return self.stats.n_trials
+
+    def rms(self, which: str = "drift_only") -> dict:
+        r = self._leaf(which).rms.reshape(len(self.schemes), -1)
+        return {s: r[i] for i, s in enumerate(self.schemes)}
+
+    def rms_se(self, which: str = "drift_only") -> dict:
+        """Standard error of :meth:`rms`."""
+        r = self._leaf(which).rms_se.reshape(len(self.schemes), -1)
+        return {s: r[i] for i, s in enumerate(self.schemes)}
+
+    def to_xarray(self, quantiles=(0.5, 0.95)):
+        """``xarray.Dataset`` over ``fit`` x ``scheme`` x ``parameter`` (x ``quantile``): ``rms``,
+        ``rms_se``, ``bias``, ``bias_se``, ``std``, ``min``, ``max``, ``error_quantile`` (deg/h)."""
+        import xarray as xr
+
+        shape = (len(self.schemes), len(DRIFT_NAMES))
+        fits = ("drift_only", "joint")
+        out = {}
+        for name, get in (("rms", lambda s: s.rms), ("rms_se", lambda s: s.rms_se),
+                          ("bias", lambda s: s.mean), ("bias_se", lambda s: s.sem),
+                          ("std", lambda s: s.std), ("min", lambda s: s.min),
+                          ("max", lambda s: s.max)):
+            out[name] = (("fit", "scheme", "parameter"),
+                         np.stack([get(self._leaf(f)).reshape(shape) for f in fits]))
+        if self._leaf("joint").hist is not None:
+            out["error_quantile"] = (("fit", "quantile", "scheme", "parameter"), np.stack(
+                [np.stack([self._leaf(f).quantile(q).reshape(shape) for q in quantiles])
+                 for f in fits]))
+        ds = xr.Dataset(out, coords={"fit": list(fits), "scheme": list(self.schemes),
+                                     "parameter": list(DRIFT_NAMES),
+                                     **({"quantile": list(quantiles)} if "error_quantile" in out
+                                        else {})},
+                        attrs={"unit": "deg/h", "n_draws": self.stats.n_trials,
+                               "nonfinite": self.stats.nonfinite})
+        return ds
+
+    def markdown(self) -> str:
+        ds = self.to_xarray()
+        rows = ["| scheme | fit | " + " | ".join(DRIFT_NAMES) + " |",
+                "|---|---|" + "---|" * len(DRIFT_NAMES)]
+        for fit, label in (("drift_only", "drift only"), ("joint", "drift + mounting")):
+            for s in self.schemes:
+                cells = [f"{float(r):.2e} ± {float(e):.1e}" for r, e in zip(
+                    ds["rms"].sel(fit=fit, scheme=s).values,
+                    ds["rms_se"].sel(fit=fit, scheme=s).values)]
+                rows.append(f"| {s} | {label} | " + " | ".join(cells) + " |")
+        return "\n".join(rows)
+
+    def to_json(self) -> dict:
+        ds = self.to_xarray()
+        out = {"n_draws": int(self.stats.n_trials), "unit": "deg/h",
+               "nonfinite": int(self.stats.nonfinite), "statistic": "RMS over draws, with its "
+               "standard error; bias (mean) with its standard error; quantiles of the error"}
+        for fit in ("drift_only", "joint"):
+            out[fit] = {s: {p: {k: float(ds[k].sel(fit=fit, scheme=s, parameter=p))
+                                for k in ("rms", "rms_se", "bias", "bias_se")}
+                            for p in DRIFT_NAMES} for s in self.schemes}
+        return out
+
+
+BUDGET_BINS = np.concatenate([-np.logspace(1, -6, 400), [0.0], np.logspace(-6, 1, 400)])
+"""Histogram edges of the budget's drift errors (deg/h): log-spaced from 1e-6 to 10 on either
+side of 0, ~4 % wide, for the quantiles."""
+
+
+def mounting_budget_stats(key: PRNGKeyArray, n_draws: int, latitude_deg: float = 55.75, *,
+                          schemes=SCHEMES, drift: float = 0.01, dchi_std_arcmin: float = 1.0,
+                          theta_std_arcmin: float = 10.0, noise_arcsec: float = 0.0,
+                          hours: float = 24.0, sample_s: float = 60.0,
+                          alpha20_deg: float = 0.0, block_size: int = 256,
+                          scheduler: str | None = None, client=None, resume=None,
+                          progress: bool = False, stop_after: int | None = None
+                          ) -> MountingBudgetStats:
+    """The mounting-error budget of :func:`mounting_error_budget` as statistics, for budgets of
+    any size: draw ``i`` comes from ``fold_in(key, i)`` (its ``dchi``, ``theta`` and noise key;
+    every scheme sees the same draw), each block of `block_size` draws is reduced to mergeable
+    statistics in its compiled program, and nothing per draw reaches the host. The result is the
+    same bit for bit whatever runs it: this process (`scheduler` ``None``), a local Dask
+    cluster (``"local"``), a scheduler address or `client`. `resume`, `progress`, `stop_after`:
+    as in :func:`~gyrojax.analysis.streaming.monte_carlo_stats`. Other arguments as in
+    :func:`mounting_error_budget`.
+
+    **Returns:** a :class:`MountingBudgetStats` (``to_xarray()``, ``to_json()``, ``markdown()``).
+    """
+    from .streaming import monte_carlo_stats
+
+    _check_budget(n_draws, dchi_std_arcmin, theta_std_arcmin, noise_arcsec)
+    bt = _BudgetTrial(latitude_deg, schemes, drift, noise_arcsec, hours, sample_s, alpha20_deg)
+    ns = len(bt.schemes)
+    dchi_std = dchi_std_arcmin * units.ARCMIN
+    theta_std = theta_std_arcmin * units.ARCMIN
+
+    def draw(k):
+        k1, k2, k3 = jax.random.split(k, 3)
+        return (jax.random.normal(k1, (3,)) * dchi_std, jax.random.normal(k2, (2,)) * theta_std,
+                jax.random.key_data(k3))
+
+    def first(d):  # one draw, every scheme: the ODE solves, vmapped over the whole block
+        dchi, theta, _ = d
+        return jax.vmap(lambda i: bt.simulate(i, dchi, theta))(jnp.arange(ns))
+
+    def second(d, ys):  # the regressions, in cache-sized sub-batches (see `staged`)
+        noise_key = jax.random.wrap_key_data(d[2])
+        e_only, e_joint = jax.vmap(lambda i, y: bt.identify(i, y, noise_key))(jnp.arange(ns), ys)
+        return {"drift_only": e_only, "joint": e_joint}
+
+    stats = monte_carlo_stats(staged(first, second, batch_size=2), draw, key, n_draws,
+                              vectorized=True, block_size=block_size, bins=BUDGET_BINS,
+                              scheduler=scheduler, client=client, resume=resume,
+                              progress=progress, stop_after=stop_after)
+    return MountingBudgetStats(bt.schemes, stats)
