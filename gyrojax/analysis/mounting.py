@@ -14,6 +14,7 @@ identification error with and without the mounting errors estimated jointly.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -355,6 +356,21 @@ def mounting_budget_stats(key: PRNGKeyArray, n_draws: int, latitude_deg: float =
     from .streaming import monte_carlo_stats
 
     _check_budget(n_draws, dchi_std_arcmin, theta_std_arcmin, noise_arcsec)
+    config = (float(latitude_deg), tuple(schemes), float(drift), float(dchi_std_arcmin),
+              float(theta_std_arcmin), float(noise_arcsec), float(hours), float(sample_s),
+              float(alpha20_deg))
+    schemes, trial, draw = _budget_functions(*config)
+    stats = monte_carlo_stats(trial, draw, key, n_draws, vectorized=True, block_size=block_size,
+                              bins=BUDGET_BINS, scheduler=scheduler, client=client,
+                              resume=resume, progress=progress, stop_after=stop_after)
+    return MountingBudgetStats(schemes, stats)
+
+
+@functools.lru_cache(maxsize=8)
+def _budget_functions(latitude_deg, schemes, drift, dchi_std_arcmin, theta_std_arcmin,
+                      noise_arcsec, hours, sample_s, alpha20_deg):
+    """The budget's ``(schemes, trial, draw)``, the same function objects for the same budget
+    (so a second budget reuses the compiled block program, here and on the workers)."""
     bt = _BudgetTrial(latitude_deg, schemes, drift, noise_arcsec, hours, sample_s, alpha20_deg)
     ns = len(bt.schemes)
     dchi_std = dchi_std_arcmin * units.ARCMIN
@@ -374,8 +390,4 @@ def mounting_budget_stats(key: PRNGKeyArray, n_draws: int, latitude_deg: float =
         e_only, e_joint = jax.vmap(lambda i, y: bt.identify(i, y, noise_key))(jnp.arange(ns), ys)
         return {"drift_only": e_only, "joint": e_joint}
 
-    stats = monte_carlo_stats(staged(first, second, batch_size=2), draw, key, n_draws,
-                              vectorized=True, block_size=block_size, bins=BUDGET_BINS,
-                              scheduler=scheduler, client=client, resume=resume,
-                              progress=progress, stop_after=stop_after)
-    return MountingBudgetStats(bt.schemes, stats)
+    return bt.schemes, staged(first, second, batch_size=2), draw

@@ -33,7 +33,6 @@ import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -188,40 +187,52 @@ class MonteCarloStats:
                                  "block_size": self.block_size})
 
 
+_PROGRAMS: dict = {}
+"""Compiled block programs of this process (the caller's, or a Dask worker's), by study token:
+a second study with the same functions, block size and bins reuses one, whatever its key and
+number of trials (both are arguments of the program)."""
+_MAX_PROGRAMS = 16
+
+
 class _Study:
-    """What every worker needs, sent once: the functions, the key, the sizes, the bins. Holds
-    its compiled block program per process (not pickled)."""
+    """What every worker needs, sent once: the functions, the key, the sizes, the bins, and the
+    token its compiled block program is kept under."""
 
     def __init__(self, trial, draw, key_data, impl, n, block_size, bins, vectorized):
+        import cloudpickle
+
         self.trial, self.draw, self.vectorized = trial, draw, vectorized
         self.key_data, self.impl = key_data, impl
         self.n, self.block_size, self.bins = n, block_size, bins
-        self._compiled = None
-
-    def __getstate__(self):
-        state = dict(self.__dict__)
-        state["_compiled"] = None
-        return state
+        h = hashlib.sha256(cloudpickle.dumps((trial, draw)))
+        h.update(f"{impl}|{block_size}|{vectorized}".encode())
+        if bins is not None:
+            h.update(np.asarray(bins, float).tobytes())
+        self.token = h.hexdigest()
 
     def block(self, index: int) -> dict:
-        if self._compiled is None:
-            self._compiled = _block_program(self)
-        out = self._compiled(jnp.asarray(index * self.block_size))
+        prog = _PROGRAMS.get(self.token)
+        if prog is None:
+            if len(_PROGRAMS) >= _MAX_PROGRAMS:
+                _PROGRAMS.pop(next(iter(_PROGRAMS)))
+            prog = _PROGRAMS[self.token] = _block_program(
+                self.trial, self.draw, self.impl, self.block_size, self.bins, self.vectorized)
+        out = prog(jnp.asarray(self.key_data), jnp.asarray(self.n),
+                   jnp.asarray(index * self.block_size))
         return _host_block(jax.device_get(out), self.bins)
 
 
-def _block_program(study: _Study):
-    key = jax.random.wrap_key_data(jnp.asarray(study.key_data), impl=study.impl)
-    b, n, bins = study.block_size, study.n, study.bins
+def _block_program(trial, draw, impl, b, bins, vectorized):
+    """One block's statistics as a compiled function of ``(key_data, n, start)``."""
 
-    @eqx.filter_jit
-    def run(start):
+    @jax.jit
+    def run(key_data, n, start):
+        key = jax.random.wrap_key_data(key_data, impl=impl)
         idx = start + jnp.arange(b)
         valid = idx < n
-
         keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.minimum(idx, n - 1))
-        draws = jax.vmap(study.draw)(keys)
-        outs = study.trial(draws) if study.vectorized else jax.vmap(study.trial)(draws)
+        draws = jax.vmap(draw)(keys)
+        outs = trial(draws) if vectorized else jax.vmap(trial)(draws)
         return jax.tree.map(lambda x: _reduce(x.reshape(b, -1), valid, bins), outs)
 
     return run
