@@ -21,11 +21,10 @@ import argparse
 import os
 import subprocess
 import sys
-import time
 
 sys.path.insert(0, os.path.dirname(__file__))
 
-from _results import machine_line, publish  # noqa: E402
+from _results import first_and_best, machine_line, publish  # noqa: E402
 
 MEMORY_SCRIPT = """
 import sys, time
@@ -49,18 +48,6 @@ def _vmhwm_kb() -> int:
         return next(int(line.split()[1]) for line in fh if line.startswith("VmHWM"))
 
 
-def timed(fn, repeat):
-    t = time.perf_counter()
-    out = fn()
-    first = time.perf_counter() - t
-    best = float("inf")
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return out, first, best
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--draws", type=int, default=1024, help="draws per scheme (default 1024)")
@@ -72,10 +59,10 @@ def main():
     args = ap.parse_args()
 
     import jax
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     from gyrojax.analysis.mounting import mounting_budget_stats, mounting_error_budget
-    from gyrojax.analysis.streaming import _stats_equal
+    from gyrojax.analysis.streaming import _stats_equal, local_cluster
 
     key = jax.random.key(0)
     kw = dict(alpha20_deg=30.0, noise_arcsec=1.0)
@@ -87,22 +74,19 @@ def main():
         print(f"{label}: first {first:.1f} s, best {best:.2f} s, {trials / best:.0f} trials/s",
               flush=True)
 
-    _, f, b = timed(lambda: mounting_error_budget(key, n, chunk_size=4 * args.block, **kw),
+    _, f, b = first_and_best(lambda: mounting_error_budget(key, n, chunk_size=4 * args.block, **kw),
                     args.repeat)
     row("pool, this process", f, b)
-    _, f, b = timed(lambda: mounting_error_budget(key, n, chunk_size=4 * args.block,
+    _, f, b = first_and_best(lambda: mounting_error_budget(key, n, chunk_size=4 * args.block,
                                                   processes=2, **kw), args.repeat)
     row("pool, processes=2", f, b)
-    ref, f, b = timed(lambda: mounting_budget_stats(key, n, block_size=args.block, **kw),
+    ref, f, b = first_and_best(lambda: mounting_budget_stats(key, n, block_size=args.block, **kw),
                       args.repeat)
     row("stats, this process", f, b)
-    env = {"OPENBLAS_NUM_THREADS": "1",
-           "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
     rss = {}
     for workers in (1, 2):
-        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                          dashboard_address=":0", env=env) as cluster, Client(cluster) as client:
-            got, f, b = timed(lambda: mounting_budget_stats(key, n, block_size=args.block,
+        with local_cluster(workers) as cluster, Client(cluster) as client:
+            got, f, b = first_and_best(lambda: mounting_budget_stats(key, n, block_size=args.block,
                                                             client=client, **kw), args.repeat)
             peak = client.run(_vmhwm_kb)
             rss[workers] = max(peak.values()) / 1024

@@ -11,7 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gyrojax.analysis.streaming import LeafStats, _stats_equal, merge_stats, monte_carlo_stats
+from gyrojax.analysis.streaming import (
+    LeafStats,
+    _stats_equal,
+    local_cluster,
+    merge_stats,
+    monte_carlo_stats,
+)
 
 KEY = jax.random.key(11)
 BINS = np.linspace(-4.0, 4.0, 161)
@@ -113,13 +119,10 @@ def test_bad_arguments_name_the_value():
 
 @contextlib.contextmanager
 def _cluster(n_workers):
-    """A client of a local cluster of ``n_workers`` single-threaded worker processes."""
-    from distributed import Client, LocalCluster
+    """A client of :func:`local_cluster` with ``n_workers`` single-threaded worker processes."""
+    from distributed import Client
 
-    env = {"OPENBLAS_NUM_THREADS": "1",
-           "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
-    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                      dashboard_address=":0", env=env) as cluster, Client(cluster) as client:
+    with local_cluster(n_workers) as cluster, Client(cluster) as client:
         yield client
 
 

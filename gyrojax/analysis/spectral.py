@@ -596,12 +596,9 @@ def _selected_null(h, pn, w, rest, c_rest, nll_rest):
     Why: where the tested term's ratio is positive, the null fit lets a nuisance term (bias
     instability, when testing the rate random walk) take up the same low-frequency excess,
     and a nuisance inside its range makes the bootstrap law the interior one (``pi`` 1/2,
-    ``s`` 1): on white noise the rate random walk's test then rejected 0.010 at 0.05. Setting
-    weak nuisances to 0 errs the other way where the nuisance is truly present but weak; the
-    threshold trades the two (docs/decisions/0012-noise-identification.md; on 150 tuning
-    records each, rejection at 0.05 of the rate random walk's null test with white noise / with a weak bias
-    instability was
-    0.047 / 0.067 at a threshold of 1, 0.053 / 0.107 at 2.71, 0.053 / 0.167 at ``log n``)."""
+    ``s`` 1), which makes the test conservative. Setting weak nuisances to 0 errs the other way
+    where the nuisance is truly present but weak; :data:`NULL_SELECT_LR` trades the two
+    (docs/decisions/0012-noise-identification.md)."""
     white = LIK_TERMS.index("angle_random_walk")
     keep = [i for j, i in enumerate(rest) if c_rest[j] > 0]
     for i in [i for i in keep if i != white]:

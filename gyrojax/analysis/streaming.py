@@ -32,13 +32,15 @@ import os
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PRNGKeyArray
 
-__all__ = ["monte_carlo_stats", "MonteCarloStats", "LeafStats", "merge_stats"]
+__all__ = ["monte_carlo_stats", "MonteCarloStats", "LeafStats", "merge_stats", "local_cluster",
+           "WORKER_ENV"]
 
 MAX_COV = 64
 """Leaves of up to this many elements keep their full covariance; larger ones its diagonal."""
@@ -238,7 +240,21 @@ def _block_program(trial, draw, impl, b, bins, vectorized):
     return run
 
 
-def _reduce(x, valid, bins):
+class _BlockStats(NamedTuple):
+    """One leaf's statistics over one block, as the compiled program returns them."""
+
+    n: jax.Array
+    nonfinite: jax.Array
+    mean: jax.Array
+    m2: jax.Array
+    sq_mean: jax.Array
+    sq_m2: jax.Array
+    min: jax.Array
+    max: jax.Array
+    hist: jax.Array | None
+
+
+def _reduce(x, valid, bins) -> _BlockStats:
     """One block's statistics of ``x`` ``(B, k)`` over the rows ``valid`` and finite."""
     ok = valid & jnp.all(jnp.isfinite(x), axis=1)
     w = ok.astype(x.dtype)
@@ -257,31 +273,56 @@ def _reduce(x, valid, bins):
     sq_m2 = jnp.sum(((sq - sq_mean) * w[:, None]) ** 2, axis=0)
     lo = jnp.min(jnp.where(ok[:, None], x, jnp.inf), axis=0)
     hi = jnp.max(jnp.where(ok[:, None], x, -jnp.inf), axis=0)
-    out = {"n": cnt, "nonfinite": jnp.sum(valid & ~ok), "mean": mean, "m2": m2,
-           "sq_mean": sq_mean, "sq_m2": sq_m2, "min": lo, "max": hi}
+    hist = None
     if bins is not None:
-        edges = jnp.asarray(bins)
-        idx = jnp.searchsorted(edges, x0, side="right")  # 0: below, len(edges): above
+        idx = jnp.searchsorted(jnp.asarray(bins), x0, side="right")  # 0: below, len: above
         cols = jnp.broadcast_to(jnp.arange(x.shape[1]), idx.shape)
-        out["hist"] = jnp.zeros((x.shape[1], len(bins) + 1), x.dtype).at[cols, idx].add(
+        hist = jnp.zeros((x.shape[1], len(bins) + 1), x.dtype).at[cols, idx].add(
             jnp.broadcast_to(w[:, None], idx.shape))
-    return out
+    return _BlockStats(cnt, jnp.sum(valid & ~ok), mean, m2, sq_mean, sq_m2, lo, hi, hist)
 
 
 def _host_block(tree, bins) -> dict:
     """The block's statistics as ``{path: LeafStats}`` (numpy)."""
     flat, _ = jax.tree_util.tree_flatten_with_path(
-        tree, is_leaf=lambda x: isinstance(x, dict) and "m2" in x)
+        tree, is_leaf=lambda x: isinstance(x, _BlockStats))
     out = {}
     for path, s in flat:
-        k = np.asarray(s["mean"]).shape[0]
+        k = np.asarray(s.mean).shape[0]
         out[jax.tree_util.keystr(path)] = LeafStats(
-            n=int(s["n"]), nonfinite=int(s["nonfinite"]), mean=np.asarray(s["mean"]),
-            m2=np.asarray(s["m2"]), sq_mean=np.asarray(s["sq_mean"]),
-            sq_m2=np.asarray(s["sq_m2"]), min=np.asarray(s["min"]), max=np.asarray(s["max"]),
-            hist=None if bins is None else np.asarray(s["hist"]).reshape(k, -1),
+            n=int(s.n), nonfinite=int(s.nonfinite), mean=np.asarray(s.mean), m2=np.asarray(s.m2),
+            sq_mean=np.asarray(s.sq_mean), sq_m2=np.asarray(s.sq_m2), min=np.asarray(s.min),
+            max=np.asarray(s.max), hist=None if s.hist is None else np.asarray(s.hist),
             edges=None if bins is None else np.asarray(bins), shape=(k,))
     return out
+
+
+class _Finished:
+    """The finished blocks: those of the contiguous prefix ``0 .. prefix_n - 1`` merged as they
+    arrive (left to right, the same fold as merging every block at the end, so the same bits),
+    and the blocks beyond a gap kept apart until it closes. Memory and the resume file stay the
+    size of a few blocks however many are done."""
+
+    def __init__(self, prefix_n: int = 0, prefix: dict | None = None, pending=None):
+        self.prefix_n, self.prefix, self.pending = prefix_n, prefix, dict(pending or {})
+
+    def __contains__(self, index: int) -> bool:
+        return index < self.prefix_n or index in self.pending
+
+    def __len__(self) -> int:
+        return self.prefix_n + len(self.pending)
+
+    def add(self, index: int, stats: dict) -> None:
+        self.pending[index] = stats
+        while self.prefix_n in self.pending:
+            block = self.pending.pop(self.prefix_n)
+            self.prefix = block if self.prefix is None else merge_stats([self.prefix, block])
+            self.prefix_n += 1
+
+    def merged(self) -> dict:
+        blocks = ([] if self.prefix is None else [self.prefix]) + [
+            self.pending[i] for i in sorted(self.pending)]
+        return merge_stats(blocks)
 
 
 # -- the resume file -------------------------------------------------------------------------
@@ -295,9 +336,9 @@ def _fingerprint(study: _Study) -> str:
     return h.hexdigest()[:16]
 
 
-def _load_resume(path: Path, fingerprint: str) -> dict:
+def _load_resume(path: Path, fingerprint: str) -> _Finished:
     if not path.exists():
-        return {}
+        return _Finished()
     with np.load(path, allow_pickle=False) as z:
         got = str(z["fingerprint"])
         if got != fingerprint:
@@ -305,13 +346,15 @@ def _load_resume(path: Path, fingerprint: str) -> dict:
                 f"resume: {path} holds another study (fingerprint {got}, this one {fingerprint}: "
                 "key, number of trials, block size or bins differ); give a new file or the "
                 "same study")
+        prefix_n = int(z["prefix_n"])
         blocks = {}
         for name in z.files:
-            if not name.startswith("b"):
+            if "|" not in name:
                 continue
-            index, leaf, field = name[1:].split("|", 2)
-            blocks.setdefault(int(index), {}).setdefault(leaf, {})[field] = z[name]
-    return {i: {leaf: _leaf_from(d) for leaf, d in b.items()} for i, b in blocks.items()}
+            index, leaf, field = name.split("|", 2)
+            blocks.setdefault(index, {}).setdefault(leaf, {})[field] = z[name]
+    stats = {i: {leaf: _leaf_from(d) for leaf, d in b.items()} for i, b in blocks.items()}
+    return _Finished(prefix_n, stats.pop("prefix", None), {int(i): b for i, b in stats.items()})
 
 
 def _leaf_from(d: dict) -> LeafStats:
@@ -321,17 +364,20 @@ def _leaf_from(d: dict) -> LeafStats:
                      hist=hist, edges=d.get("edges"), shape=tuple(int(v) for v in d["shape"]))
 
 
-def _save_resume(path: Path, fingerprint: str, blocks: dict) -> None:
+def _save_resume(path: Path, fingerprint: str, finished: _Finished) -> None:
     from ..io import atomic_write
 
-    arrays = {"fingerprint": np.asarray(fingerprint)}
-    for i, leaves in blocks.items():
+    arrays = {"fingerprint": np.asarray(fingerprint), "prefix_n": np.asarray(finished.prefix_n)}
+    named = {str(i): b for i, b in finished.pending.items()}
+    if finished.prefix is not None:
+        named["prefix"] = finished.prefix
+    for name, leaves in named.items():
         for leaf, s in leaves.items():
             for f in _FIELDS + ("edges",):
                 v = getattr(s, f)
                 if v is not None:
-                    arrays[f"b{i}|{leaf}|{f}"] = np.asarray(v)
-            arrays[f"b{i}|{leaf}|shape"] = np.asarray(s.shape)
+                    arrays[f"{name}|{leaf}|{f}"] = np.asarray(v)
+            arrays[f"{name}|{leaf}|shape"] = np.asarray(s.shape)
 
     def write(tmp):
         with open(tmp, "wb") as fh:
@@ -347,21 +393,32 @@ def _run_block(study: _Study, index: int):
     return index, study.block(index)
 
 
+WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+              "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
+"""The environment of :func:`local_cluster`'s workers: one thread for BLAS and XLA's Eigen (a
+trial's least-squares problems are small; threads on top of one process per core contend)."""
+
+
+def local_cluster(n_workers: int | None = None):
+    """A ``distributed.LocalCluster`` of `n_workers` single-threaded worker processes (default:
+    one per core this process may use), with :data:`WORKER_ENV`; close it (or use it as a
+    context manager) when done."""
+    from distributed import LocalCluster
+
+    if n_workers is None:
+        n_workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
+            else os.cpu_count()
+    return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                        dashboard_address=":0", env=WORKER_ENV)
+
+
 def _client_for(scheduler, client):
     if client is not None:
         return client, None
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     if scheduler == "local" or str(scheduler).startswith("local:"):
-        env = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
-               "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
-        if scheduler == "local":
-            workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
-                else os.cpu_count()
-        else:
-            workers = int(scheduler.split(":", 1)[1])
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=":0", env=env)
+        cluster = local_cluster(None if scheduler == "local" else int(scheduler.split(":", 1)[1]))
         return Client(cluster), cluster
     return Client(scheduler), None
 
@@ -387,8 +444,9 @@ def monte_carlo_stats(trial: Callable, draw: Callable, key: PRNGKeyArray, n: int
       single-threaded worker process per core, closed at the end), ``"local:N"`` (``N``
       workers) or a scheduler address.
     - `client`: an existing ``distributed.Client`` (takes precedence over `scheduler`).
-    - `resume`: a file keeping every finished block's statistics; blocks already there are
-      skipped. **Raises** `ValueError` if it holds another study.
+    - `resume`: a file keeping the finished blocks' statistics (those of the contiguous prefix
+      merged into one); blocks already there are skipped. **Raises** `ValueError` if it holds
+      another study.
     - `checkpoint_s`: seconds between writes of `resume`.
     - `progress`: a progress bar over blocks (tqdm), a "compiling" line until the first block
       returns, and the Dask dashboard's address when there is one.
@@ -419,7 +477,7 @@ def monte_carlo_stats(trial: Callable, draw: Callable, key: PRNGKeyArray, n: int
     n_blocks = math.ceil(n / block_size)
     path = None if resume is None else Path(resume)
     fingerprint = _fingerprint(study)
-    done = _load_resume(path, fingerprint) if path is not None else {}
+    done = _load_resume(path, fingerprint) if path is not None else _Finished()
     todo = [i for i in range(n_blocks) if i not in done]
     if stop_after is not None:
         todo = todo[:max(int(stop_after), 0)]
@@ -430,7 +488,7 @@ def monte_carlo_stats(trial: Callable, draw: Callable, key: PRNGKeyArray, n: int
     def record(index, stats):
         nonlocal last_save, computed
         nonlocal bar
-        done[index] = stats
+        done.add(index, stats)
         computed += 1
         if progress and bar is None:  # after the "compiling" line, at the first block
             bar = _progress_bar(n_blocks, len(done) - 1)
@@ -458,7 +516,7 @@ def monte_carlo_stats(trial: Callable, draw: Callable, key: PRNGKeyArray, n: int
     if not done:
         raise ValueError("monte_carlo_stats: no block was computed (stop_after=0 and nothing "
                          "to resume)")
-    leaves = merge_stats([done[i] for i in sorted(done)])
+    leaves = done.merged()
     return MonteCarloStats(leaves=leaves, n_trials=int(n), block_size=int(block_size),
                            n_blocks=n_blocks, computed=computed)
 
@@ -469,9 +527,7 @@ def _run_dask(study, todo, scheduler, client, record, progress):
     cl, cluster = _client_for(scheduler, client)
     try:
         if progress:
-            link = getattr(cl, "dashboard_link", None)
-            if link:
-                print(f"monte_carlo_stats: Dask dashboard {link}", flush=True)
+            print(f"monte_carlo_stats: Dask dashboard {cl.dashboard_link}", flush=True)
             print("monte_carlo_stats: compiling the block program on each worker...", flush=True)
         if not todo:
             return

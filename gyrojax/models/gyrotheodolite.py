@@ -1,32 +1,29 @@
 """Gyrotheodolite sensing element — docs/rigs/gyrotheodolite.md.
 
-State ``x = (alpha, alpha_dot, beta, beta_dot)`` (rad, rad/s); only ``alpha`` is measured. Frame
-(docs/rigs/gyrotheodolite.md): SE frame x = main axis (North), y = Up, z = East; ``alpha`` about the vertical,
-``beta`` tilt about z; the centre of mass a distance l below the suspension. Equations (1) with
+State ``x = (alpha, alpha_dot, beta, beta_dot)`` (rad, rad/s); only ``alpha`` is measured. Frame:
+SE frame x = main axis (North), y = Up, z = East; ``alpha`` about the vertical, ``beta`` tilt about
+z; the centre of mass a distance l below the suspension. Equations (1) with
 ``k_alpha = H omega3 cos(phi)(1 + kappa)``, ``D = F_KC + f_alpha``:
 
 $J_y \\ddot\\alpha + H\\dot\\beta + D\\dot\\alpha + k_\\alpha \\alpha = mgl(\\gamma n_X + \\beta n_Z)$,
 $J_z \\ddot\\beta - H\\dot\\alpha + f_\\beta\\dot\\beta + mgl\\,\\beta = mgl\\,n_X + H\\omega_3\\sin\\varphi$.
 
-Vibration (docs/rigs/gyrotheodolite.md): ``n_X = n_m cos(eps_v + psi0) sin(omega t)``, ``n_Z = n_m sin(eps_v
-+ psi0) sin(omega t)`` in g.
+Vibration: ``n_X = n_m cos(eps_v + psi0) sin(omega t)``,
+``n_Z = n_m sin(eps_v + psi0) sin(omega t)`` in g.
 
 Roll ``gamma`` about the main axis (**assumed**; the source gives no model): the steady-state
 response of a pendulous roll mode driven like the tilt mode of (1),
 $J_x\\ddot\\gamma + f_\\gamma\\dot\\gamma + mgl\\,\\gamma = mgl\\,n_Z$ (roll about the spin axis
 has no gyroscopic coupling). With ``roll_rate_coupling=True`` (default) the azimuth equation also
-carries the kinematic term of docs/rigs/gyrotheodolite.md: the azimuth rate seen about the horizontal axis
-``z`` of the rolled SE, $-\\dot\\alpha\\gamma$, adds to the Earth-rate term, i.e. ``+ H alpha_dot gamma``
-on the
-right of the first equation. This is the mechanism behind the compensation formula
-(docs/rigs/gyrotheodolite.md); without
-vibration both additions vanish and the rig is exactly (1).
+carries the kinematic term: the azimuth rate seen about the horizontal axis ``z`` of the rolled
+SE, $-\\dot\\alpha\\gamma$, adds to the Earth-rate term, i.e. ``+ H alpha_dot gamma`` on the right
+of the first equation. This is the mechanism behind the compensation formula; without vibration
+both additions vanish and the rig is exactly (1).
 
-Parameters (nominal; the docs/rigs/gyrotheodolite.md assumed values are the defaults of
-:meth:`default_params`):
-``H`` (N m s), ``J_y``, ``J_z``, ``J_x`` (kg m^2), ``mgl`` (N m), ``f_alpha``, ``f_beta``,
-``f_gamma``, ``F_KC`` (N m s), ``kappa`` (1). ``J_x`` and ``f_gamma`` (roll mode) are assumed equal
-to ``J_z``, ``f_beta``.
+Parameters (nominal; the assumed values of docs/rigs/gyrotheodolite.md are the defaults of
+:meth:`default_params`): ``H`` (N m s), ``J_y``, ``J_z``, ``J_x`` (kg m^2), ``mgl`` (N m),
+``f_alpha``, ``f_beta``, ``f_gamma``, ``F_KC`` (N m s), ``kappa`` (1). ``J_x`` and ``f_gamma``
+(roll mode) are assumed equal to ``J_z``, ``f_beta``.
 
 Bench-test parameters (null 0, so the defaults are exactly (1) released from rest in the
 meridian): ``index_offset`` A, the azimuth of the meridian from the instrument's index line (the
