@@ -8,17 +8,29 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gyrojax.analysis.montecarlo import monte_carlo, staged
+from gyrojax.analysis.montecarlo import monte_carlo, shutdown_processes, staged
 from gyrojax.analysis.mounting import mounting_error_budget
 
 
-def test_chunked_monte_carlo_equals_direct_vmap():
+@pytest.fixture(scope="module", autouse=True)
+def _stop_the_workers():
+    """The kept local cluster of ``processes=`` serves this module's tests; stopped after them
+    (idle workers still poll)."""
+    yield
+    shutdown_processes()
+
+
+def test_chunked_monte_carlo_equals_direct_vmap(capsys):
+    """Chunks (the last padded) give vmap's outputs; the progress bar says "compiling" until
+    the first chunk returns, and counts every draw."""
     draws = {"a": jnp.arange(10.0), "b": jnp.arange(20.0).reshape(10, 2)}
 
     def fn(d):
         return {"s": d["a"] + d["b"].sum(), "v": d["b"] * d["a"]}
 
     out = monte_carlo(fn, draws, chunk_size=3, progress=True)  # 4 chunks, the last padded
+    err = capsys.readouterr().err
+    assert "compiling" in err and "10/10" in err, err
     ref = jax.vmap(fn)(draws)
     np.testing.assert_allclose(out["s"], ref["s"])
     np.testing.assert_allclose(out["v"], ref["v"])
@@ -118,9 +130,9 @@ def _qr_trial(c):
     at run time, in the worker, through a host callback)."""
 
     def compiled(x):
-        from gyrojax.analysis.montecarlo import _batched
+        from gyrojax.analysis.streaming import _COMPILED
 
-        return np.full(x.shape, _batched.cache_info().misses, dtype=np.int64)
+        return np.full(x.shape, _COMPILED[0], dtype=np.int64)
 
     def fn(d):
         r = jnp.linalg.qr(jnp.outer(d["b"], c))[1]
@@ -132,7 +144,7 @@ def _qr_trial(c):
 
 
 def test_worker_processes_equal_this_process_and_compile_once():
-    """``processes=2``: the chunks (101 draws in chunks of 16, the last padded) run in two
+    """``processes=2``: the chunks (101 draws in chunks of 16, the last padded) run on two Dask
     worker processes and give the in-process outputs bit for bit; a second call with the same
     function compiles nothing new in the workers, a new function once."""
     c = jnp.linspace(0.0, 1.0, 5)
@@ -168,13 +180,35 @@ def test_worker_processes_are_pinned_one_per_core():
     assert set(out.tolist()) == set(float(c) for c in cores), out  # one core each, both used
 
 
+def test_an_unguarded_script_runs_once_with_worker_processes(tmp_path):
+    """A script without ``if __name__ == "__main__"`` that calls ``monte_carlo(...,
+    processes=2)`` with a function of its own runs its body once (the workers do not import it
+    again, as ``multiprocessing``'s spawn would) and gets the in-process outputs."""
+    script = tmp_path / "budget.py"
+    script.write_text(textwrap.dedent("""
+        import numpy as np
+        from gyrojax.analysis import monte_carlo
+        print("BODY RUNS", flush=True)
+        def trial(x):
+            return x ** 2 + 1
+        out = monte_carlo(trial, np.arange(40.0), chunk_size=8, processes=2)
+        assert np.array_equal(out, np.arange(40.0) ** 2 + 1), out
+        print("OK", flush=True)
+    """))
+    res = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                         timeout=300, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.count("BODY RUNS") == 1 and "OK" in res.stdout, res.stdout
+
+
 def test_worker_error_is_raised_with_its_traceback_and_the_pool_recovers():
     def bad(x):
         def boom(x):
             raise FloatingPointError("trial 3 diverged")
         return jax.pure_callback(boom, jax.ShapeDtypeStruct(x.shape, x.dtype), x)
 
-    with pytest.raises(RuntimeError, match=r"(?s)worker process \d.*failed.*trial 3 diverged"):
+    with pytest.raises(RuntimeError, match=r"(?s)chunk \d \(draws \d-\d\) failed on a Dask "
+                       r"worker.*trial 3 diverged"):
         monte_carlo(bad, np.arange(8.0), chunk_size=4, processes=2, vectorized=True)
     out = monte_carlo(lambda x: 2 * x, np.arange(8.0), chunk_size=4, processes=2)
     np.testing.assert_array_equal(out, 2 * np.arange(8.0))

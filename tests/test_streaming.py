@@ -5,16 +5,19 @@ on the same trials, the merge against a one-pass computation, resume after an in
 import contextlib
 import os
 import signal
+import subprocess
+import sys
+import textwrap
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from gyrojax.analysis.cluster import local_cluster
 from gyrojax.analysis.streaming import (
     LeafStats,
     _stats_equal,
-    local_cluster,
     merge_stats,
     monte_carlo_stats,
 )
@@ -67,6 +70,63 @@ def test_statistics_are_numpys_on_the_same_trials():
     np.testing.assert_allclose(x.rms_se, se, rtol=1e-10)
     ds = res.to_xarray(quantiles=(0.5,))
     assert ds.attrs["n_trials"] == n and ds["x_rms"].shape == (3,)
+
+
+def test_kept_outputs_are_the_trials_on_disk_and_leave_the_statistics(tmp_path):
+    """``outputs=DIR``: one NetCDF file per block (the last block's 40 padding trials dropped),
+    read back lazily by ``load_outputs`` as the trials recomputed key by key, in trial order;
+    the statistics are those of the run without outputs."""
+    from gyrojax.analysis import load_outputs
+
+    n = 600
+    res = monte_carlo_stats(trial, draw, KEY, n, block_size=128, outputs=tmp_path / "out")
+    ref = monte_carlo_stats(trial, draw, KEY, n, block_size=128)
+    files = sorted((tmp_path / "out").iterdir())
+    assert [f.name for f in files] == [f"block-{i:08d}.nc" for i in range(5)]
+    ds = load_outputs(tmp_path / "out")
+    out = jax.tree.map(np.asarray, outputs(n))
+    assert ds["x"].shape == (n, 3) and ds["s"].shape == (n,)
+    np.testing.assert_array_equal(ds["trial"].values, np.arange(n))
+    np.testing.assert_allclose(ds["x"].values, out["x"], rtol=1e-13, atol=1e-15)
+    np.testing.assert_array_equal(np.isnan(ds["s"].values), np.isnan(out["s"]))
+    for leaf in ("['x']", "['s']"):
+        assert res[leaf].n == ref[leaf].n and res[leaf].nonfinite == ref[leaf].nonfinite
+        np.testing.assert_allclose(res[leaf].mean, ref[leaf].mean, rtol=1e-13)
+        np.testing.assert_allclose(res[leaf].rms, ref[leaf].rms, rtol=1e-13)
+    with pytest.raises(FileNotFoundError, match="no block"):
+        load_outputs(tmp_path)
+
+
+def test_blocks_spread_over_every_device_of_the_process():
+    """``devices=``: with two (forced) host devices, blocks alternate between them and the
+    statistics are those of one device, bit for bit (a trial without LAPACK: several host
+    devices in one process deadlock jaxlib 0.10.2's batched LAPACK)."""
+    code = textwrap.dedent("""
+        import jax, jax.numpy as jnp
+        from gyrojax.analysis.streaming import _stats_equal, monte_carlo_stats
+        assert len(jax.devices()) == 2, jax.devices()
+        used = set()
+        put = jax.device_put
+        def spy(x, device=None, **kw):
+            if device is not None:
+                used.add(str(device))
+            return put(x, device, **kw)
+        jax.device_put = spy
+        key = jax.random.key(3)
+        def draw(k):
+            return jax.random.normal(k, (4,))
+        def trial(x):
+            return {"y": jnp.sin(x) * jnp.cumsum(x), "z": x @ x}
+        one = monte_carlo_stats(trial, draw, key, 1000, block_size=100)
+        both = monte_carlo_stats(trial, draw, key, 1000, block_size=100, devices=jax.devices())
+        assert both.computed == 10 and _stats_equal(one.leaves, both.leaves)
+        print("DEVICES", len(used))
+    """)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "DEVICES 2" in res.stdout, res.stdout
 
 
 def test_merged_blocks_equal_a_one_pass_computation():

@@ -38,6 +38,7 @@ from .observability import (
 )
 from .streaming import LeafStats as LeafStats
 from .streaming import MonteCarloStats as MonteCarloStats
+from .streaming import load_outputs as load_outputs
 from .streaming import monte_carlo_stats as monte_carlo_stats
 from .vibration import (
     compensation_monte_carlo as compensation_monte_carlo,

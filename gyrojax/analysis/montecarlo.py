@@ -6,12 +6,14 @@ is padded, so the jitted batch function compiles once); each chunk is split over
 along a one-dimensional ``("batch",)`` mesh with ``jax.shard_map``, so every device runs the batch
 function on its own slice with no communication (a vmapped ODE solve's while loop never waits on
 another device's lanes). The same call uses every CPU device
-(``XLA_FLAGS=--xla_force_host_platform_device_count=N``) or GPU of this process (not other hosts:
-beyond one process, :func:`~gyrojax.analysis.monte_carlo_stats` runs on Dask). On the CPU,
-``processes=k`` instead hands the chunks to ``k`` worker processes, one pinned to each core (one
-process's graph runs on one core). A progress bar (tqdm) advances between chunks. During the run
-BLAS/LAPACK (OpenBLAS, through ``threadpoolctl``) uses one thread: a trial's least-squares problems
-are small, and jaxlib already spreads a batch's LAPACK calls over XLA's threads.
+(``XLA_FLAGS=--xla_force_host_platform_device_count=N``) or GPU of this process. On the CPU,
+``processes=k`` instead hands the chunks to ``k`` Dask worker processes, one pinned to each core
+(one process's graph runs on one core; :mod:`gyrojax.analysis.cluster`), and ``client=`` to any
+Dask cluster. For budgets too large to keep every output,
+:func:`~gyrojax.analysis.monte_carlo_stats` reduces them to statistics where they are computed.
+A progress bar (tqdm) advances between chunks. During the run BLAS/LAPACK (OpenBLAS, through
+``threadpoolctl``) uses one thread: a trial's least-squares problems are small, and jaxlib
+already spreads a batch's LAPACK calls over XLA's threads.
 """
 
 from __future__ import annotations
@@ -77,7 +79,8 @@ def staged(first: Callable, second: Callable, *, batch_size: int = 8) -> Callabl
 
 def monte_carlo(fn: Callable, draws: PyTree, *, chunk_size: int = 1024, devices=None,
                 progress: bool | str = False, vectorized: bool = False,
-                blas_threads: int | None = 1, processes: int | str | None = None):
+                blas_threads: int | None = 1, processes: int | str | None = None,
+                client=None):
     """Evaluate ``fn`` on every draw; returns the stacked outputs as numpy arrays.
 
     **Arguments:**
@@ -98,16 +101,22 @@ def monte_carlo(fn: Callable, draws: PyTree, *, chunk_size: int = 1024, devices=
       (the ESG regression's 1440 x 11 QRs) spread over XLA's threads; OpenBLAS's own threads on
       top only contend: on 2 cores one thread ran the ESG benchmark's trials 1.45x faster
       (docs/decisions/0006-esg-monte-carlo-hot-path.md). Restored when the call returns.
+    - `processes`: run the chunks on this many Dask worker processes of this machine instead
+      (CPU only; :func:`~gyrojax.analysis.cluster.pool_client`), each pinned to one core and
+      running its chunks on its own CPU device; ``"all"``: one per core this process may use.
+      ``None`` (default): in this process. This is how a CPU Monte Carlo uses every core: one
+      process runs a trial's graph on one core, and several host devices in one process
+      deadlock jaxlib 0.10.2's batched LAPACK (below). The workers stay up between calls and
+      keep their compiled batch functions by a token of ``fn`` (pickled by value with
+      ``cloudpickle``), so calling again with the same ``fn`` compiles nothing
+      (:func:`shutdown_processes` stops them).
+    - `client`: a ``distributed.Client``: run the chunks as tasks on its cluster (any Dask
+      cluster: a scheduler address, ``dask-jobqueue`` on SLURM or PBS), compiled once per
+      worker as with `processes`.
 
-    - `processes`: run the chunks on this many worker processes instead (CPU only), each
-      pinned to one core and running its chunks on its own CPU device; ``"all"``: one per core
-      this process may use. ``None`` (default): in this process. This is how a CPU Monte Carlo
-      uses every core: one process runs a trial's graph on one core, and several host devices
-      in one process deadlock jaxlib 0.10.2's batched LAPACK (below). The workers stay up
-      between calls, so passing the same ``fn`` again reuses their compilations
-      (:func:`shutdown_processes` stops them); ``fn`` goes to them through ``cloudpickle``.
-      On 2 cores the ESG benchmark's trials ran 1.7-2.0x faster than in one process
-      (benchmarks/RESULTS.md).
+    **Raises:** ``ValueError`` naming a bad `chunk_size`, `blas_threads` or `processes`;
+    ``TypeError`` if `processes` or `client` is given and ``fn`` cannot be pickled;
+    ``RuntimeError`` naming the chunk whose trial failed on a worker, with the worker's error.
 
     With jaxlib 0.10.2 on the CPU and several host devices, a graph with batched LAPACK calls
     (QR, SVD: every least-squares fit) can deadlock: each device's LAPACK call waits on the shared
@@ -122,7 +131,7 @@ def monte_carlo(fn: Callable, draws: PyTree, *, chunk_size: int = 1024, devices=
     if blas_threads is not None and (not isinstance(blas_threads, int) or blas_threads < 1):
         raise ValueError(f"monte_carlo: blas_threads={blas_threads!r}; give a positive int "
                          "(threads for BLAS/LAPACK during the run) or None to leave it alone")
-    workers = _worker_count(processes, devices)
+    workers = _worker_count(processes, devices, client)
     if workers is None:
         devices = list(devices or jax.devices())
         nd = len(devices)
@@ -138,18 +147,14 @@ def monte_carlo(fn: Callable, draws: PyTree, *, chunk_size: int = 1024, devices=
 
         bar = tqdm(total=n, desc=progress if isinstance(progress, str) else "monte carlo",
                    unit="draw")
+        bar.set_postfix_str("compiling")  # cleared when the first chunk returns
     try:
         if workers is None:
             outs = _run_here(fn, host, bounds, chunk, devices, bool(vectorized), blas_threads,
                              bar)
         else:
-            from . import _processes
-
-            outs = _processes.run_chunks(
-                fn, [_padded(host, lo, hi, chunk) for lo, hi in bounds], workers,
-                {"chunk_size": chunk, "vectorized": bool(vectorized),
-                 "blas_threads": blas_threads},
-                lambda i: bar is not None and bar.update(bounds[i][1] - bounds[i][0]))
+            outs = _run_dask(fn, host, bounds, chunk, bool(vectorized), blas_threads,
+                             client, workers, bar)
     finally:
         if bar is not None:
             bar.close()
@@ -161,17 +166,23 @@ def monte_carlo(fn: Callable, draws: PyTree, *, chunk_size: int = 1024, devices=
 def shutdown_processes():
     """Stop the worker processes of ``monte_carlo(..., processes=...)`` (they start again on the
     next such call; they also stop when Python exits)."""
-    from . import _processes
+    from .cluster import shutdown_pool
 
-    _processes.shutdown()
+    shutdown_pool()
 
 
-def _worker_count(processes, devices) -> int | None:
-    if processes is None:
+def _worker_count(processes, devices, client) -> int | None:
+    """Workers to balance the chunks over (``None``: run in this process)."""
+    if processes is None and client is None:
         return None
     if devices is not None:
         raise ValueError("monte_carlo: give devices (shard each chunk in this process) or "
-                         "processes (one worker process per core), not both")
+                         "processes/client (worker processes), not both")
+    if client is not None:
+        if processes is not None:
+            raise ValueError("monte_carlo: give processes (a cluster of this machine) or client "
+                             "(a cluster of yours), not both")
+        return max(1, sum(w["nthreads"] for w in client.scheduler_info()["workers"].values()))
     if processes != "all" and (isinstance(processes, bool) or not isinstance(processes, int)
                                or processes < 1):
         raise ValueError(f"monte_carlo: processes={processes!r}; give a positive int, 'all' "
@@ -181,7 +192,7 @@ def _worker_count(processes, devices) -> int | None:
                          f"JAX's backend here is {jax.default_backend()!r}; use devices= (every "
                          "device of this backend by default) and processes=None")
     if processes == "all":
-        from ._processes import available_cores
+        from .cluster import available_cores
 
         return len(available_cores())
     return processes
@@ -200,18 +211,79 @@ def _padded(host, lo: int, hi: int, chunk: int):
     return jax.tree.map(take, host)
 
 
+def _advance(bar, k: int) -> None:
+    """Move the progress bar on by ``k`` draws (and clear its "compiling" note)."""
+    if bar is not None:
+        if bar.n == 0:
+            bar.set_postfix_str("")
+        bar.update(k)
+
+
+def _blas_limit(blas_threads):
+    return (contextlib.nullcontext() if blas_threads is None
+            else threadpool_limits(blas_threads, user_api="blas"))
+
+
 def _run_here(fn, host, bounds, chunk, devices, vectorized, blas_threads, bar):
     mesh = Mesh(np.array(devices), ("batch",))
     sharding = NamedSharding(mesh, PartitionSpec("batch"))
     batched = _batched(fn, vectorized, mesh)
-    limit = (contextlib.nullcontext() if blas_threads is None
-             else threadpool_limits(blas_threads, user_api="blas"))
     outs = []
-    with limit:
+    with _blas_limit(blas_threads):
         for lo, hi in bounds:
             chunk_draws = jax.tree.map(lambda x: jax.device_put(jnp.asarray(x), sharding),
                                        _padded(host, lo, hi, chunk))
             outs.append(jax.tree.map(np.asarray, batched(chunk_draws)))
-            if bar is not None:
-                bar.update(hi - lo)
+            _advance(bar, hi - lo)
+    return outs
+
+
+class _Chunks:
+    """What a Dask worker needs to run ``monte_carlo``'s chunks, sent to it once; the compiled
+    batch function is kept in the worker by a token of ``fn``, the chunk and ``vectorized``."""
+
+    def __init__(self, fn, chunk: int, vectorized: bool, blas_threads):
+        from .streaming import token_of
+
+        self.fn, self.vectorized, self.blas_threads = fn, vectorized, blas_threads
+        self.token = token_of("chunks", fn, chunk, vectorized)
+
+    def run(self, draws):
+        from .streaming import cached_program
+
+        batched = cached_program(self.token, lambda: _batched.__wrapped__(
+            self.fn, self.vectorized, Mesh(np.array(jax.devices()[:1]), ("batch",))))
+        with _blas_limit(self.blas_threads):
+            return jax.tree.map(np.asarray, batched(jax.tree.map(jnp.asarray, draws)))
+
+
+def _run_chunk(job: _Chunks, index: int, draws):
+    """A Dask task: one chunk's outputs."""
+    return index, job.run(draws)
+
+
+def _run_dask(fn, host, bounds, chunk, vectorized, blas_threads, client, workers, bar):
+    from distributed import as_completed
+
+    from .cluster import pool_client
+
+    job = _Chunks(fn, chunk, vectorized, blas_threads)  # raises TypeError if not picklable
+    cl = client if client is not None else pool_client(workers)
+    shared = cl.scatter(job, broadcast=True, hash=False)
+    futures = [cl.submit(_run_chunk, shared, i, _padded(host, lo, hi, chunk), pure=False)
+               for i, (lo, hi) in enumerate(bounds)]
+    outs = [None] * len(bounds)
+    try:
+        for fut in as_completed(futures):
+            try:
+                i, out = fut.result()
+            except Exception as e:  # noqa: BLE001 - the trial's own error, re-raised with where
+                i = futures.index(fut)
+                raise RuntimeError(f"monte_carlo: chunk {i} (draws {bounds[i][0]}-"
+                                   f"{bounds[i][1] - 1}) failed on a Dask worker: "
+                                   f"{type(e).__name__}: {e}") from e
+            outs[i] = out
+            _advance(bar, bounds[i][1] - bounds[i][0])
+    finally:
+        cl.cancel([f for f in futures if not f.done()])
     return outs

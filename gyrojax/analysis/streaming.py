@@ -25,10 +25,12 @@ the result says how many.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import hashlib
 import math
 import os
+import re
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -39,8 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PRNGKeyArray
 
-__all__ = ["monte_carlo_stats", "MonteCarloStats", "LeafStats", "merge_stats", "local_cluster",
-           "WORKER_ENV"]
+__all__ = ["monte_carlo_stats", "MonteCarloStats", "LeafStats", "merge_stats", "load_outputs"]
 
 MAX_COV = 64
 """Leaves of up to this many elements keep their full covariance; larger ones its diagonal."""
@@ -190,42 +191,82 @@ class MonteCarloStats:
 
 
 _PROGRAMS: dict = {}
-"""Compiled block programs of this process (the caller's, or a Dask worker's), by study token:
-a second study with the same functions, block size and bins reuses one, whatever its key and
-number of trials (both are arguments of the program)."""
+"""Compiled programs of this process (the caller's, or a Dask worker's), by token: a second study
+with the same functions, block size and bins reuses one, whatever its key and number of trials
+(both are arguments of the program); a second ``monte_carlo`` call with the same trial function
+and chunk reuses its batch function."""
 _MAX_PROGRAMS = 16
+_COMPILED = [0]  # programs built in this process (read by the tests through a host callback)
+
+
+def token_of(*objs) -> str:
+    """A hex digest of ``objs`` pickled by value (``cloudpickle``: closures, lambdas, notebook
+    functions): equal for the same functions and constants, in any process.
+
+    **Raises:** ``TypeError`` naming what cannot be pickled (e.g. a lock closed over)."""
+    import cloudpickle
+
+    try:
+        return hashlib.sha256(cloudpickle.dumps(objs)).hexdigest()
+    except Exception as e:  # noqa: BLE001 - pickling raises many types
+        raise TypeError(f"the trial function cannot be pickled to send it to the workers: {e} "
+                        "(close over arrays and plain values, not locks, files or clients)"
+                        ) from e
+
+
+def cached_program(token: str, build: Callable[[], Callable]) -> Callable:
+    """This process's program under `token`, built by ``build()`` on first use (at most
+    ``_MAX_PROGRAMS`` kept, the oldest dropped first)."""
+    prog = _PROGRAMS.get(token)
+    if prog is None:
+        if len(_PROGRAMS) >= _MAX_PROGRAMS:
+            _PROGRAMS.pop(next(iter(_PROGRAMS)))
+        prog = _PROGRAMS[token] = build()
+        _COMPILED[0] += 1
+    return prog
 
 
 class _Study:
-    """What every worker needs, sent once: the functions, the key, the sizes, the bins, and the
-    token its compiled block program is kept under."""
+    """What every worker needs, sent once: the functions, the key, the sizes, the bins, whether
+    the per-trial outputs come back too, and the token its compiled block program is kept
+    under."""
 
-    def __init__(self, trial, draw, key_data, impl, n, block_size, bins, vectorized):
-        import cloudpickle
-
+    def __init__(self, trial, draw, key_data, impl, n, block_size, bins, vectorized,
+                 keep_outputs=False):
         self.trial, self.draw, self.vectorized = trial, draw, vectorized
         self.key_data, self.impl = key_data, impl
         self.n, self.block_size, self.bins = n, block_size, bins
-        h = hashlib.sha256(cloudpickle.dumps((trial, draw)))
-        h.update(f"{impl}|{block_size}|{vectorized}".encode())
-        if bins is not None:
-            h.update(np.asarray(bins, float).tobytes())
-        self.token = h.hexdigest()
+        self.keep_outputs = keep_outputs
+        self.token = token_of("block", trial, draw, impl, block_size, vectorized, keep_outputs,
+                              None if bins is None else np.asarray(bins, float))
 
-    def block(self, index: int) -> dict:
-        prog = _PROGRAMS.get(self.token)
-        if prog is None:
-            if len(_PROGRAMS) >= _MAX_PROGRAMS:
-                _PROGRAMS.pop(next(iter(_PROGRAMS)))
-            prog = _PROGRAMS[self.token] = _block_program(
-                self.trial, self.draw, self.impl, self.block_size, self.bins, self.vectorized)
-        out = prog(jnp.asarray(self.key_data), jnp.asarray(self.n),
-                   jnp.asarray(index * self.block_size))
-        return _host_block(jax.device_get(out), self.bins)
+    def launch(self, index: int, device=None):
+        """Start block `index` (on `device`, else JAX's default); returns its device arrays
+        without waiting for them (JAX dispatches asynchronously)."""
+        prog = cached_program(self.token, lambda: _block_program(
+            self.trial, self.draw, self.impl, self.block_size, self.bins, self.vectorized,
+            self.keep_outputs))
+        args = (np.asarray(self.key_data), np.asarray(self.n),
+                np.asarray(index * self.block_size))
+        return prog(*(jnp.asarray(a) if device is None else jax.device_put(a, device)
+                      for a in args))
+
+    def finish(self, index: int, out) -> tuple[dict, object]:
+        """Block `index`'s statistics ``{path: LeafStats}`` and its per-trial outputs (numpy,
+        the trials past `n` dropped; ``None`` unless kept) from :meth:`launch`'s arrays."""
+        stats, outs = jax.device_get(out)
+        if outs is not None:
+            k = min(self.block_size, self.n - index * self.block_size)
+            outs = jax.tree.map(lambda x: np.asarray(x)[:k], outs)
+        return _host_block(stats, self.bins), outs
+
+    def block(self, index: int) -> tuple[dict, object]:
+        return self.finish(index, self.launch(index))
 
 
-def _block_program(trial, draw, impl, b, bins, vectorized):
-    """One block's statistics as a compiled function of ``(key_data, n, start)``."""
+def _block_program(trial, draw, impl, b, bins, vectorized, keep_outputs):
+    """One block's statistics (and, if kept, its outputs) as a compiled function of
+    ``(key_data, n, start)``."""
 
     @jax.jit
     def run(key_data, n, start):
@@ -235,7 +276,8 @@ def _block_program(trial, draw, impl, b, bins, vectorized):
         keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.minimum(idx, n - 1))
         draws = jax.vmap(draw)(keys)
         outs = trial(draws) if vectorized else jax.vmap(trial)(draws)
-        return jax.tree.map(lambda x: _reduce(x.reshape(b, -1), valid, bins), outs)
+        stats = jax.tree.map(lambda x: _reduce(x.reshape(b, -1), valid, bins), outs)
+        return stats, (outs if keep_outputs else None)
 
     return run
 
@@ -389,38 +431,9 @@ def _save_resume(path: Path, fingerprint: str, finished: _Finished) -> None:
 # -- engines ---------------------------------------------------------------------------------
 
 def _run_block(study: _Study, index: int):
-    """A Dask task: one block's statistics (``study`` arrives once per worker)."""
-    return index, study.block(index)
-
-
-WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
-              "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
-"""The environment of :func:`local_cluster`'s workers: one thread for BLAS and XLA's Eigen (a
-trial's least-squares problems are small; threads on top of one process per core contend)."""
-
-
-def local_cluster(n_workers: int | None = None):
-    """A ``distributed.LocalCluster`` of `n_workers` single-threaded worker processes (default:
-    one per core this process may use), with :data:`WORKER_ENV`; close it (or use it as a
-    context manager) when done."""
-    from distributed import LocalCluster
-
-    if n_workers is None:
-        n_workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
-            else os.cpu_count()
-    return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                        dashboard_address=":0", env=WORKER_ENV)
-
-
-def _client_for(scheduler, client):
-    if client is not None:
-        return client, None
-    from distributed import Client
-
-    if scheduler == "local" or str(scheduler).startswith("local:"):
-        cluster = local_cluster(None if scheduler == "local" else int(scheduler.split(":", 1)[1]))
-        return Client(cluster), cluster
-    return Client(scheduler), None
+    """A Dask task: one block's statistics and kept outputs (``study`` arrives once per
+    worker)."""
+    return index, *study.block(index)
 
 
 def monte_carlo_stats(trial: Callable, draw: Callable, key: PRNGKeyArray, n: int, *,
@@ -428,7 +441,8 @@ def monte_carlo_stats(trial: Callable, draw: Callable, key: PRNGKeyArray, n: int
                       client=None, resume: str | os.PathLike | None = None,
                       checkpoint_s: float = 30.0, progress: bool = False,
                       stop_after: int | None = None, vectorized: bool = False,
-                      on_block: Callable[[int, int], None] | None = None) -> MonteCarloStats:
+                      on_block: Callable[[int, int], None] | None = None, devices=None,
+                      outputs: str | os.PathLike | None = None) -> MonteCarloStats:
     """Run ``n`` trials and return their statistics, never their outputs.
 
     **Arguments:**
@@ -457,6 +471,17 @@ def monte_carlo_stats(trial: Callable, draw: Callable, key: PRNGKeyArray, n: int
       in cache-sized sub-batches); otherwise it is vmapped over the block.
     - `on_block`: called as ``on_block(index, done)`` after each block arrives (``done``: blocks
       finished so far, resumed ones included).
+    - `devices`: the JAX devices of this process to run blocks on when `scheduler` and `client`
+      are ``None``: block ``i`` on ``devices[i % len(devices)]``, all of them busy at once
+      (several GPUs); the statistics are the same bit for bit as on one device of the kind.
+      Default: every device of JAX's default backend, but only the first CPU device (several
+      host devices in one process deadlock jaxlib 0.10.2's batched LAPACK:
+      docs/decisions/0007-monte-carlo-worker-processes.md; use `scheduler` ``"local"`` for
+      every core).
+    - `outputs`: a directory to keep every trial's outputs in too, one NetCDF file per block
+      (``block-00000012.nc``, written atomically as the block arrives; never all in memory);
+      :func:`load_outputs` opens them as one lazy ``xarray.Dataset``. For small studies: the
+      files hold ``n`` times the outputs' size.
 
     **Returns:** a :class:`MonteCarloStats`.
     """
@@ -473,7 +498,11 @@ def monte_carlo_stats(trial: Callable, draw: Callable, key: PRNGKeyArray, n: int
         if bins.ndim != 1 or len(bins) < 2 or not np.all(np.diff(bins) > 0):
             raise ValueError("monte_carlo_stats: bins must be increasing edges (at least 2)")
     study = _Study(trial, draw, np.asarray(jax.random.key_data(key)),
-                   str(jax.random.key_impl(key)), int(n), int(block_size), bins, vectorized)
+                   str(jax.random.key_impl(key)), int(n), int(block_size), bins, vectorized,
+                   keep_outputs=outputs is not None)
+    out_dir = None if outputs is None else Path(outputs)
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
     n_blocks = math.ceil(n / block_size)
     path = None if resume is None else Path(resume)
     fingerprint = _fingerprint(study)
@@ -485,9 +514,11 @@ def monte_carlo_stats(trial: Callable, draw: Callable, key: PRNGKeyArray, n: int
     last_save = time.monotonic()
     computed = 0
 
-    def record(index, stats):
+    def record(index, stats, outs=None):
         nonlocal last_save, computed
         nonlocal bar
+        if out_dir is not None:
+            _write_outputs(out_dir, index, index * study.block_size, outs)
         done.add(index, stats)
         computed += 1
         if progress and bar is None:  # after the "compiling" line, at the first block
@@ -504,8 +535,7 @@ def monte_carlo_stats(trial: Callable, draw: Callable, key: PRNGKeyArray, n: int
         if scheduler is None and client is None:
             if progress and todo:
                 print("monte_carlo_stats: compiling the block program...", flush=True)
-            for i in todo:
-                record(i, study.block(i))
+            _run_here(study, todo, _local_devices(devices), record)
         else:
             _run_dask(study, todo, scheduler, client, record, progress)
     finally:
@@ -521,10 +551,73 @@ def monte_carlo_stats(trial: Callable, draw: Callable, key: PRNGKeyArray, n: int
                            n_blocks=n_blocks, computed=computed)
 
 
+def _local_devices(devices) -> list:
+    if devices is not None:
+        devices = list(devices)
+        if not devices:
+            raise ValueError("monte_carlo_stats: devices=[]; give at least one JAX device")
+        return devices
+    return jax.devices()[:1] if jax.default_backend() == "cpu" else jax.devices()
+
+
+def _run_here(study, todo, devices, record):
+    """The blocks in this process, block ``todo[j]`` on ``devices[j % len(devices)]``: as many
+    in flight as there are devices (JAX dispatches asynchronously), collected in order."""
+    in_flight = collections.deque()
+    for j, i in enumerate(todo):
+        in_flight.append((i, study.launch(i, devices[j % len(devices)]
+                                          if len(devices) > 1 else None)))
+        if len(in_flight) >= len(devices):
+            i0, out = in_flight.popleft()
+            record(i0, *study.finish(i0, out))
+    while in_flight:
+        i0, out = in_flight.popleft()
+        record(i0, *study.finish(i0, out))
+
+
+def _var_name(path) -> str:
+    """An output leaf's variable name: ``['joint']`` -> ``joint``, ``[0]['a']`` -> ``o0_a``."""
+    parts = re.findall(r"\w+", jax.tree_util.keystr(path))
+    return "_".join(p if not p[0].isdigit() else f"o{p}" for p in parts) or "output"
+
+
+def _write_outputs(directory: Path, index: int, start: int, outs) -> None:
+    """Block `index`'s per-trial outputs as ``directory/block-{index:08d}.nc`` (atomically)."""
+    import xarray as xr
+
+    from ..io import atomic_write
+
+    flat, _ = jax.tree_util.tree_flatten_with_path(outs)
+    data = {}
+    for path, x in flat:
+        name = _var_name(path)
+        data[name] = (("trial", *(f"{name}_dim{j}" for j in range(1, x.ndim))), x)
+    k = len(flat[0][1])
+    ds = xr.Dataset(data, coords={"trial": start + np.arange(k)})
+    atomic_write(directory / f"block-{index:08d}.nc",
+                 lambda tmp: ds.to_netcdf(tmp, engine="h5netcdf"))
+
+
+def load_outputs(directory: str | os.PathLike):
+    """The per-trial outputs kept by ``monte_carlo_stats(..., outputs=directory)`` as one lazy
+    ``xarray.Dataset`` over ``trial`` (Dask-backed: nothing is read until asked).
+
+    **Raises:** ``FileNotFoundError`` if `directory` holds no block file."""
+    import xarray as xr
+
+    files = sorted(Path(directory).glob("block-*.nc"))
+    if not files:
+        raise FileNotFoundError(f"load_outputs: no block-*.nc file in {str(directory)!r}; "
+                                "run monte_carlo_stats(..., outputs=DIRECTORY) first")
+    return xr.open_mfdataset(files, combine="nested", concat_dim="trial", engine="h5netcdf")
+
+
 def _run_dask(study, todo, scheduler, client, record, progress):
     from distributed import as_completed
 
-    cl, cluster = _client_for(scheduler, client)
+    from .cluster import client_for
+
+    cl, cluster = client_for(scheduler, client)
     try:
         if progress:
             print(f"monte_carlo_stats: Dask dashboard {cl.dashboard_link}", flush=True)
@@ -532,10 +625,9 @@ def _run_dask(study, todo, scheduler, client, record, progress):
         if not todo:
             return
         shared = cl.scatter(study, broadcast=True, hash=False)
-        futures = cl.map(_run_block, [shared] * len(todo), todo, pure=False, retries=3)
+        futures = cl.map(_run_block, [shared] * len(todo), todo, pure=False)
         for fut in as_completed(futures):
-            index, stats = fut.result()
-            record(index, stats)
+            record(*fut.result())
     finally:
         if cluster is not None:
             cl.close()
