@@ -40,7 +40,10 @@ def gn_monte_carlo():
         res = fit_trajectory(rig, rec, cond, truth, free=free, throw=False)
         return res.values, res.stderr, res.converged
 
-    vals, ses, conv = jax.jit(jax.vmap(one))(keys)
+    # one fit after another (lax.map), not vmapped: a vmapped graph of while loops holding
+    # batched LAPACK calls can hang jaxlib 0.10.2's CPU runtime
+    # (docs/decisions/0007-monte-carlo-worker-processes.md); it hung here once in CI
+    vals, ses, conv = jax.jit(lambda ks: jax.lax.map(one, ks))(keys)
     jac = trajectory_jacobian(rig, truth, cond, TS_24H, free)
     crlb = np.sqrt(np.diag(np.asarray(cramer_rao(jac, sigma))))
     true = np.array([float(truth[n]) for n in free])

@@ -189,7 +189,7 @@ def _cluster(n_workers):
 @pytest.mark.slow  # starts Dask clusters (each worker imports JAX and compiles); CI runs it
 def test_dask_workers_give_the_in_process_bits():
     """The same statistics, bit for bit, from this process, a one-worker and a two-worker
-    ``distributed.LocalCluster``: blocks are reduced in their own compiled program and merged in
+    ``local_cluster``: blocks are reduced in their own compiled program and merged in
     block order, whoever computed them."""
     ref = monte_carlo_stats(trial, draw, KEY, 3000, block_size=256, bins=BINS)
     for n_workers in (1, 2):

@@ -10,11 +10,12 @@ squares (for the RMS and its standard error), min, max and, if asked, fixed-bin 
 quantiles). The client merges the blocks **in block order**, whoever computed them, so the result
 is bit-identical for any number of workers or devices and for the plain in-process call.
 
-Engines (``scheduler``): ``None`` runs the blocks in this process; ``"local"`` starts a
-``distributed.LocalCluster`` with one single-threaded worker process per core; an address
-(``"tcp://..."``) or ``client=`` runs the blocks as tasks on any Dask cluster (a laptop, an HPC
-allocation through ``dask-jobqueue``, the cloud). Each worker receives the study once
-(broadcast) and compiles its block program once; a lost worker's blocks are retried by Dask.
+Engines (``scheduler``): ``None`` runs the blocks in this process (on ``devices``); ``"local"``
+starts :func:`~gyrojax.analysis.cluster.local_cluster`, one pinned single-threaded worker process
+per core; an address (``"tcp://..."``) or ``client=`` runs the blocks as tasks on any Dask
+cluster (a laptop, an HPC allocation through ``dask-jobqueue``, the cloud). Each worker receives
+the study once (broadcast) and compiles its block program once; a lost worker's blocks are
+rescheduled by Dask (a block whose trial raises is not retried: the error reaches the caller).
 ``resume=FILE`` keeps the statistics of every finished block in ``FILE`` (written atomically every
 ``checkpoint_s`` and when the run stops, an interrupt included); a later call with the same file
 skips them.
@@ -454,9 +455,10 @@ def monte_carlo_stats(trial: Callable, draw: Callable, key: PRNGKeyArray, n: int
       depends on it only through floating-point rounding (not on workers or devices).
     - `bins`: histogram edges ``(bins + 1,)`` (increasing) applied to every output element, for
       quantiles; ``None``: no histogram.
-    - `scheduler`: ``None`` (this process), ``"local"`` (a ``distributed.LocalCluster``, one
-      single-threaded worker process per core, closed at the end), ``"local:N"`` (``N``
-      workers) or a scheduler address.
+    - `scheduler`: ``None`` (this process), ``"local"``
+      (:func:`~gyrojax.analysis.cluster.local_cluster`: one pinned single-threaded worker
+      process per core, closed at the end), ``"local:N"`` (``N`` workers) or a scheduler
+      address.
     - `client`: an existing ``distributed.Client`` (takes precedence over `scheduler`).
     - `resume`: a file keeping the finished blocks' statistics (those of the contiguous prefix
       merged into one); blocks already there are skipped. **Raises** `ValueError` if it holds
