@@ -47,8 +47,8 @@ class _Cluster(SpecCluster):
     errors logged by workers killed in the middle of a conversation)."""
 
     async def _close(self):
-        sched = self.scheduler
-        if sched is not None and getattr(sched, "workers", None):
+        sched = self.scheduler  # the in-process Scheduler of local_cluster's spec
+        if sched is not None and sched.workers:
             for w in list(sched.workers):
                 sched.close_worker(w)
             for _ in range(50):  # up to 5 s
