@@ -270,6 +270,46 @@ def test_ln100_pair_fit_determines_the_x_accelerometer_only(tmp_path):
     assert abs(par["sax"]["value"] - s0) < par["sax"]["undetermined_shift"]
 
 
+@pytest.mark.slow  # ~25 s: the whole diagnosis of 38,000 samples
+def test_ln100_pair_earth_rate_explains_the_z_gyros_flip():
+    """The LN-100 x-down/x-up pair: the whole Earth rate (the vertical part and, per pose, the
+    horizontal part of unknown heading) refitted alone removes at least 99.5 % of the held-out
+    gap and leaves no significant wz cell on the time, position and tau axes (a spectral line
+    present in every channel stays). Its reading puts the z axis about 84 deg from north in
+    the x-up pose and past 90 deg in the x-down pose; checked against the raw gyro means: the
+    z and y gyros' change between the poses is the horizontal rate's projections' change,
+    ``k_earth Omega cos(lat) (cos a_up - cos a_down)``, to 0.15 deg/h (the 2 deg/h flip of z).
+    The pair leaves open a rate common to both poses (the y and z biases take it): two mirror
+    readings, which differ in the y axis (near north or near south)."""
+    from gyrojax.datasets import REAL_DATA_SETS
+    from gyrojax.diagnose import diagnose
+    from gyrojax.estimate.multiposition import detect_static, segment_means
+
+    _root()
+    rec = REAL_DATA_SETS["ln100_pair"]()
+    rep = diagnose(rec, rig="imu", design_advice=False)
+    (rf,) = [r for r in rep.refits if r.effects == ["earth_rate"]]
+    print(f"held-out gap {rf.heldout_gap_before:.4g} -> {rf.heldout_gap_after:.4g}; "
+          f"{rf.reading['text']}")
+    assert rf.reduction >= 0.995
+    assert not [c for c in rf.remaining_cells if c["channel"] == "wz"
+                and c["axis"] in ("time", "position", "tau")]
+    reading = rf.reading
+    assert set(reading["open"]) >= {"bgy", "bgz"} and len(reading["readings"]) == 2
+    means, _ = segment_means(rec, detect_static(rec), ("wx", "wy", "wz"))  # down, up; rad/s
+    size = reading["k_earth"] * units.EARTH_RATE * np.cos(np.radians(51.0784))
+    for r in reading["readings"]:
+        down, up = r  # one chain per pose
+        assert 80.0 < up["axes_deg"]["z"] < 88.0 and down["axes_deg"]["z"] > 90.0
+        for i, ax in ((1, "y"), (2, "z")):
+            want = means[1][i] - means[0][i]
+            got = size * (np.cos(np.radians(up["axes_deg"][ax]))
+                          - np.cos(np.radians(down["axes_deg"][ax])))
+            assert abs(got - want) < 0.15 * units.DEG_PER_HOUR
+    ys = sorted(r[1]["axes_deg"]["y"] for r in reading["readings"])
+    assert ys[0] < 10.0 and ys[1] > 170.0
+
+
 @pytest.mark.slow
 def test_mpu6050_poses_gyro_x_scale_factor_agrees_with_its_authors(tmp_path):
     """``gyrojax fit dataset:mpu6050_multipos_calibration --rig imu``: the hand turns between the

@@ -361,17 +361,19 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
         remaining = [dict(x, q=float(q)) for x, q in zip(post_cells, qq) if q < alpha]
         resid_after[tuple(r.sig.name for r in combo)] = ea
         std_errors, estimable = _refit_uncertainty(combo, coeffs)
-        return Refit(effects=[r.sig.name for r in combo], coefficients=coeffs,
-                    std_errors=std_errors, estimable=estimable,
-                    units={nm: u for r in combo for nm, u in zip(r.sig.names, r.sig.units)},
-                    nominal_after=prob.display_nominal(p_refit),
-                    onestep={r.sig.name: _onestep_display(r) for r in combo},
-                    gap_train_after=float(np.mean(ea[:n] ** 2) - 1),
-                    heldout_gap_before=g_nom, heldout_gap_after=g_aug,
-                    reduction=(1 - g_aug / g_nom) if n_ho and g_nom > band[1] else None,
-                    heldout_null_band_after=list(band_aug),
-                    closure=bool(g_aug <= band_aug[1]) if n_ho else None,
-                    remaining_cells=remaining), ea[:n].reshape(-1), span
+        refit = Refit(effects=[r.sig.name for r in combo], coefficients=coeffs,
+                      std_errors=std_errors, estimable=estimable,
+                      units={nm: u for r in combo for nm, u in zip(r.sig.names, r.sig.units)},
+                      nominal_after=prob.display_nominal(p_refit),
+                      onestep={r.sig.name: _onestep_display(r) for r in combo},
+                      gap_train_after=float(np.mean(ea[:n] ** 2) - 1),
+                      heldout_gap_before=g_nom, heldout_gap_after=g_aug,
+                      reduction=(1 - g_aug / g_nom) if n_ho and g_nom > band[1] else None,
+                      heldout_null_band_after=list(band_aug),
+                      closure=bool(g_aug <= band_aug[1]) if n_ho else None,
+                      remaining_cells=remaining,
+                      reading=prob.refit_reading(tuple(r.sig.name for r in combo)))
+        return refit, ea[:n].reshape(-1), span
 
     refits = []
     resid_after = {}

@@ -2,12 +2,18 @@
 
 Rows are block means of the static samples (static intervals from
 :func:`gyrojax.estimate.multiposition.detect_static`; masked spans excluded), so long records stay
-small; the turns between poses are not modelled (the poses' up vectors are nuisance parameters,
-two small-angle terms per pose about the accelerometer's first guess). Rate-table runs (design D4:
-the record's conditions ``table_rate_s``, flat ``(t0, t1, rate_dps)`` triples, or the CLI's
-``--table-run``) are segments too: the IMU turns about the vertical at the commanded rate, and
-each run adds two nuisance terms, the horizontal Earth rate, which turns at minus the table rate
-in the body frame from a heading the stand does not record. Mean effects are screened
+small; the turns between poses are not rows (the poses' up vectors are nuisance parameters,
+two small-angle terms per pose about the accelerometer's first guess), but they carry north:
+:func:`~gyrojax.estimate.multiposition.turn_chains` joins still poses by the turns the record
+holds into chains, and the ``earth_rate`` effect is the whole Earth rate, ``k_earth`` (the
+vertical part) and two terms per chain (``earth<j>_c``, ``earth<j>_s``: the horizontal part
+``Omega cos(lat)`` at the chain's unknown heading; :meth:`IMUProblem.earth_reading` reads them).
+
+Rate-table runs (design D4: the record's conditions ``table_rate_s``, flat ``(t0, t1,
+rate_dps)`` triples, or the CLI's ``--table-run``) are segments too: the IMU turns about the
+vertical at the commanded rate, and each run adds two nominal terms, the horizontal Earth rate,
+which turns at minus the table rate in the body frame from a heading the stand does not record
+(a run is no chain member). Mean effects are screened
 on these rows exactly as for the other rigs, after **prewhitening**: an AR(p) noise model per
 channel (order by BIC, p <= 5), fitted to the residual of the nominal model plus *every* catalogued
 mean effect (so a catalogued drift is not taken for coloured noise), filters the residual and every
@@ -44,7 +50,13 @@ from .. import units
 from ..analysis.spectral import fit_noise_likelihood
 from ..datasets import masked
 from ..estimate import ScaledLevenbergMarquardt, convergence_note, solve_least_squares
-from ..estimate.multiposition import Segment, accel_units_problem, detect_static
+from ..estimate.multiposition import (
+    Segment,
+    accel_units_problem,
+    design_chain,
+    detect_static,
+    turn_chains,
+)
 from ..models.imu import (
     IMU_CHANNELS,
     MEAN_EFFECTS,
@@ -84,6 +96,7 @@ AUX_PREFIXES = ("temp", "tilt", "supply", "aux")  # auxiliary channels: not mode
 AUX_BINS = 5
 POSE_SCALE = 1e-2  # rad, scale of the pose terms (conditioning only)
 HRATE_SCALE = 1e-4  # rad/s, scale of a table run's horizontal Earth rate terms (conditioning)
+CHAIN_SCALE = 1.0  # a chain's horizontal Earth rate terms, in units of Omega cos(lat)
 MIN_NOISE_PIECE_S = 100.0  # s, shortest static piece that tests bias instability / RRW
 NOISE_NULL_DRAWS = 200  # bootstrap periodograms per noise term's boundary law (spectral.py)
 LONG_TAU_TERMS = ("bias_instability", "rate_random_walk")  # tested on those pieces only
@@ -110,8 +123,12 @@ class IMUProblem(AbstractGapProblem):
                "max_rows": "the most block-mean rows (default 1500)"}
     NOISE_UNITS = {"wx": (1.0, "rad/s"), "wy": (1.0, "rad/s"), "wz": (1.0, "rad/s"),
                    "ax": (1.0, "m/s^2"), "ay": (1.0, "m/s^2"), "az": (1.0, "m/s^2")}
-    CATALOGUE_NOTE = ("with --per-coefficient every parameter of a mean effect above is an effect "
-                      "of its own, named effect:parameter (e.g. g_sensitivity:gsxy)")
+    CATALOGUE_NOTE = ("earth_rate is the whole Earth rate: k_earth (its vertical part) and, per "
+                      "chain of still poses joined by turns the record holds, earth<j>_c and "
+                      "earth<j>_s (the horizontal part at the chain's unknown heading, in units "
+                      "of Omega cos(lat)); with --per-coefficient every parameter of another "
+                      "mean effect above is an effect of its own, named effect:parameter (e.g. "
+                      "g_sensitivity:gsxy)")
 
     @classmethod
     def catalogue(cls, **options) -> dict:
@@ -224,10 +241,15 @@ class IMUProblem(AbstractGapProblem):
             np.ones(len(self.pose_names))])
         self.effect_names = {e: tuple(n for n in self.space.effect_names(e) if n != "tau_w"
                                       and _relevant(n, self.channels)) for e in self.effects}
+        if "earth_rate" in self.effect_names:  # + each chain's horizontal Earth rate
+            heads = sorted(set(self.chains[0][self.seg[: self.n_train]]) - {-1})
+            self.effect_names["earth_rate"] += tuple(
+                _term_name(int(k), x) for k in heads for x in "CS")
         if per_coefficient:  # every coefficient of a many-coefficient effect an effect of its own
+            # (the Earth rate stays whole: its chains' terms are the heading's nuisance)
             self.effect_names = {k: v for e, names in self.effect_names.items() for k, v in (
-                [(coefficient_effect(e, n), (n,)) for n in names] if len(names) > 1
-                else [(e, names)])}
+                [(coefficient_effect(e, n), (n,)) for n in names]
+                if len(names) > 1 and e != "earth_rate" else [(e, names)])}
             if picked:  # the families asked for whole, and the coefficients asked for by name
                 whole = set(effects) - set(picked)
                 self.effect_names = {k: v for k, v in self.effect_names.items()
@@ -244,6 +266,7 @@ class IMUProblem(AbstractGapProblem):
         self.tau_grid_s = tuple(float(x) for x in np.geomspace(span / 30, span / 2, 6))
         self.lines = {}
         self._ar = None
+        self.earth_readings = {}
 
     # -- data reduction --------------------------------------------------------------------
     def _build_rows(self, block_s, max_rows):
@@ -282,6 +305,14 @@ class IMUProblem(AbstractGapProblem):
                     v = self.y[rows][:, acc].mean(0)
                     u0[k] = v / np.linalg.norm(v)
         self.u0 = u0
+        # the still poses' chains (joined by recorded turns): the horizontal Earth rate's frame
+        n = self.n_pose
+        self.chains = (np.full(n, -1), np.zeros((n, 3)), np.zeros((n, 3)))
+        self.chain_miss = []
+        if "earth_rate" in self.effects and any(c.startswith("w") for c in self.channels):
+            *chains, self.chain_miss = turn_chains(self.record, self.segments, u0,
+                                                   members=self.omega == 0)
+            self.chains = tuple(chains)
 
     def _pose_terms(self, poses, omega=None):
         """Nuisance terms of the poses ``poses``: each pose's two tilts (``pose<k>_a``, ``_b``:
@@ -294,11 +325,15 @@ class IMUProblem(AbstractGapProblem):
         return tuple(f"pose{k}_{x}" for k in poses for x in
                      ("ab" if self.has_accel else "") + ("cs" if gyro and omega[k] else ""))
 
-    def _geo(self, u0, omega):
-        """The compiled model's pose geometry: up vectors, tilt frames, table rates and the
-        block-mean gain of a sinusoid at the table rate (``sinc``, exact for full blocks)."""
+    def _geo(self, u0, omega, chains=None):
+        """The compiled model's pose geometry: up vectors, tilt frames, table rates, the
+        block-mean gain of a sinusoid at the table rate (``sinc``, exact for full blocks) and
+        the chains (``(head, a, b)`` of :func:`~gyrojax.estimate.multiposition.turn_chains`;
+        default the record's)."""
         e1, e2 = pose_frame(u0)
-        return (u0, e1, e2, omega, np.sinc(omega * self.block / self.rate_hz / (2 * np.pi)))
+        head, a, b = self.chains if chains is None else chains
+        return (u0, e1, e2, omega, np.sinc(omega * self.block / self.rate_hz / (2 * np.pi)),
+                np.maximum(head, 0), a, b)
 
     # -- model -----------------------------------------------------------------------------
     def _compiled(self, n_pose):
@@ -318,7 +353,7 @@ class IMUProblem(AbstractGapProblem):
         n_pose = len(geo[0])
         allp = _all_params(n_pose)
         pose = {} if design is not None else base.get("_pose", {})
-        full = np.array([pose.get(n, 0.0) / _pose_scale(n) if n.startswith("pose")
+        full = np.array([pose.get(n, 0.0) / _pose_scale(n) if _is_pose(n)
                          else float(base[n]) / _SPACE[n].scale for n in allp])
         idx = [allp.index(n) for n in names]
         full[idx] = 0.0 if vec is None else np.asarray(vec, float)
@@ -357,7 +392,7 @@ class IMUProblem(AbstractGapProblem):
         return tuple(jnp.asarray(np.interp(t, self.t, x)) for x in self.thermal)
 
     def _vector(self, params, names):
-        return jnp.asarray([params["_pose"][n] / _pose_scale(n) if n.startswith("pose")
+        return jnp.asarray([params["_pose"].get(n, 0.0) / _pose_scale(n) if _is_pose(n)
                             else params[n] / self.space[n].scale for n in names])
 
     def predict(self, params, extra=None):
@@ -385,7 +420,7 @@ class IMUProblem(AbstractGapProblem):
                          jnp.asarray(1.0 / self._scale_rows()), *model_args)
         note = convergence_note(sol, "the IMU fit of " + (
             "the nominal model" if set(names) <= set(self.nominal_names + self.pose_names)
-            else ", ".join(n for n in names if not n.startswith("pose")
+            else ", ".join(n for n in names if not _is_pose(n)
                            and n not in self.nominal_names)))
         if note is not None:
             self.notes.append(note)
@@ -395,7 +430,7 @@ class IMUProblem(AbstractGapProblem):
         out = dict(params)
         out["_pose"] = dict(params["_pose"])
         for i, n in enumerate(names):
-            if n.startswith("pose"):
+            if _is_pose(n):
                 out["_pose"][n] = float(vec[i]) * _pose_scale(n)
             else:
                 out[n] = float(vec[i]) * self.space[n].scale
@@ -562,17 +597,28 @@ class IMUProblem(AbstractGapProblem):
                 continue
             fam, prior = IMU_LIBRARY[effect_family_name(e)]
             pri = np.array([prior if prior is not None else
-                            PRIOR_BY_UNIT[self.space[n].display_unit] for n in names])
-            factor = np.array([self.space[n].display_factor / self.space[n].scale
+                            PRIOR_BY_UNIT[self._unit(n)] for n in names])
+            factor = np.array([1.0 / CHAIN_SCALE if _is_pose(n) else
+                               self.space[n].display_factor / self.space[n].scale
                                for n in names])
             slices = [np.stack([cols[n][g] for n in names], axis=2) / sigma[None, :, None]
                       for g in range(len(cols[names[0]]))]
             slices = [j.reshape(-1, len(names)) * factor * pri for j in slices]
             grid = tuple(x / 3600 for x in self.tau_grid_s) if _grid_effect(e) else ()
-            out.append(Signature(e, fam, names, tuple(self.space[n].display_unit for n in names),
+            out.append(Signature(e, fam, names, tuple(self._unit(n) for n in names),
                                  pri, np.stack(slices), grid, "decay time" if grid else "",
                                  "h" if grid else ""))
         return out
+
+    def _unit(self, name):
+        """Display unit of an effect coefficient (a chain's Earth-rate terms: Omega cos(lat))."""
+        return "1" if _is_pose(name) else self.space[name].display_unit
+
+    def _display(self, params, name):
+        """An effect coefficient of ``params`` in its display unit."""
+        if _is_pose(name):
+            return float(params["_pose"].get(name, 0.0))
+        return float(self.space[name].to_display(params[name]))
 
     # -- refits ----------------------------------------------------------------------------
     def refit(self, params0, sig_choices, sigma):
@@ -586,9 +632,80 @@ class IMUProblem(AbstractGapProblem):
                 p["tau_w"] = self.tau_grid_s[g]
         p = self._gn(p, tuple(free), np.arange(self.n_train))
         p = self._fit_heldout_poses(p)
-        coeffs = {n: float(self.space[n].to_display(p[n])) for sig, _ in sig_choices
-                  for n in sig.names}
+        coeffs = {n: self._display(p, n) for sig, _ in sig_choices for n in sig.names}
+        if any(effect_family_name(sig.name) == "earth_rate" for sig, _ in sig_choices):
+            self.earth_readings[tuple(sig.name for sig, _ in sig_choices)] = \
+                self.earth_reading(p)
         return self.predict(p), coeffs, p
+
+    def earth_reading(self, params) -> dict | None:
+        """The refitted Earth rate read as a size and a heading per chain (``None`` when the
+        refit has no chain term).
+
+        Each chain's two terms give its horizontal Earth rate in units of ``Omega cos(lat)``:
+        size ``k_h`` (the check of ``k_earth``) and north at ``heading_deg`` from the chain's
+        first pose's ``e1`` about up. Where the record leaves directions open (a rate common to
+        every chain is a gyro bias: two antipodal poses without a recorded turn between them),
+        the reading puts every chain's size at ``k_earth`` (optimistix, from several starts)
+        and lists the readings that fit, mirror images included.
+
+        **Returns:** ``{"k_earth", "chains": [{"poses", "k_h", "heading_deg", "axes_deg"}],
+        "open": gyro biases traded with the chains, "readings": [chains per reading],
+        "text"}``; ``axes_deg``: each body axis within 60 deg of horizontal in the chain's
+        first pose, its angle from north (deg)."""
+        head = self.chains[0]
+        terms = sorted({_pose_term(n)[0] for n in params["_pose"] if n.startswith("earth")})
+        if not terms or not np.isfinite(self.cond.latitude_deg):
+            return None
+        gyro = [i for i, c in enumerate(self.channels) if c.startswith("w")]
+        biases = tuple(n for n in self.nominal_names if n.startswith("bg"))
+        chain = tuple(_term_name(k, x) for k in terms for x in "CS")
+        free = biases + chain
+        x0 = np.asarray(self._vector(params, free))
+        jac = self._call(1, free, params, self.t, self.seg, x0)[:, gyro]
+        jac = jac.reshape(-1, len(free))
+        scale = np.maximum(np.linalg.norm(jac, axis=0), 1e-300)
+        _, sv, vt = np.linalg.svd(jac / scale, full_matrices=False)
+        null = vt[sv < OPEN_TOL * sv[0]]
+        k_e = float(params["k_earth"])
+        n_b = len(biases)
+        readings = [x0]
+        if len(null):
+            basis = (null / scale).T  # the open directions in per-scale units, each moving
+            basis = basis / np.linalg.norm(basis[n_b:], axis=0)  # the chains' terms by 1
+            readings = _size_readings(x0, basis, n_b, k_e)
+        out = []
+        for x in readings:
+            cs = np.asarray(x[n_b:]).reshape(-1, 2) * CHAIN_SCALE
+            out.append([self._chain_reading(k, c, s) for k, (c, s) in zip(terms, cs)])
+        opened = sorted({biases[i] for v in null for i in range(n_b) if abs(v[i]) > 0.05})
+        rec = {"k_earth": k_e, "chains": out[0] if out else [], "open": opened,
+               "readings": out}
+        rec["text"] = _earth_text(rec, [int(np.sum(head == k)) for k in terms])
+        return rec
+
+    def _chain_reading(self, k, c, s):
+        head, a, b = self.chains
+        psi = float(np.arctan2(s, c))
+        north = np.cos(psi) * a[k] + np.sin(psi) * b[k]
+        u = self.u0[k]
+        axes = {}
+        for i, ax in enumerate("xyz"):
+            proj = np.eye(3)[i] - u[i] * u
+            if np.linalg.norm(proj) > 0.5:
+                axes[ax] = float(np.degrees(np.arccos(np.clip(
+                    north @ proj / np.linalg.norm(proj), -1, 1))))
+        return {"poses": [int(j) for j in np.flatnonzero(head == k)], "k_h": float(np.hypot(c, s)),
+                "heading_deg": float(np.degrees(psi)), "axes_deg": axes}
+
+    def refit_reading(self, effects: tuple) -> dict | None:
+        """The Earth-rate reading of the refit of ``effects`` (:meth:`earth_reading`)."""
+        return self.earth_readings.get(tuple(effects))
+
+    def verdict_notes(self, verdict: dict) -> list:
+        """The Earth-rate reading of the verdict's refit, when it names earth_rate."""
+        r = self.earth_readings.get(tuple(verdict.get("effects") or ()))
+        return [r["text"]] if r else []
 
     # -- designs ---------------------------------------------------------------------------
     def designs(self):
@@ -646,6 +763,7 @@ class IMUProblem(AbstractGapProblem):
                 t = np.linspace(self.t[0], self.t[-1], len(seg))
                 u0 = ups / np.linalg.norm(ups, axis=1, keepdims=True)
                 omega = np.zeros(len(u0))
+                chains = design_chain(u0)
             else:  # the record, then the table's runs
                 table_up, table_rate = table_runs()
                 step = self.block / self.rate_hz
@@ -655,7 +773,9 @@ class IMUProblem(AbstractGapProblem):
                 seg = np.concatenate([self.seg, self.n_pose + np.repeat(np.arange(n_run), per)])
                 u0 = np.concatenate([self.u0, table_up])
                 omega = np.concatenate([self.omega, table_rate])
-            geo = self._geo(u0, omega)
+                chains = tuple(np.concatenate([x, np.zeros((n_run,) + x.shape[1:], x.dtype)
+                                               - (x.ndim == 1)]) for x in self.chains)
+            geo = self._geo(u0, omega, chains)
             names = self.nominal_names + self._pose_terms(range(len(u0)), omega)
             # every pose at its first guess, as the effects' columns are (``_call`` with a
             # design): one linearisation point, so the poses absorb what they structurally can
@@ -821,20 +941,84 @@ _COMPILED: dict = {}
 _SPACE = IMURig().param_space
 
 
+def horizontal_earth_rate(cond) -> float:
+    """``Omega cos(lat)`` in rad/s at the conditions' latitude (0 where it is unknown)."""
+    lat = cond.latitude_deg
+    return 0.0 if np.isnan(lat) else float(units.EARTH_RATE * np.cos(np.radians(lat)))
+
+
 def _params(vec, names, base, n_pose):
     """Parameter dict and pose terms from the free vector ``vec`` (per-scale units) over
     ``base``."""
     p = dict(base)
     pose = base.get("_pose", {})
-    terms = {x: jnp.asarray([pose.get(f"pose{k}_{x}", 0.0) for k in range(n_pose)])
-             for x in "abcs"}
+    terms = {x: jnp.asarray([pose.get(_term_name(k, x), 0.0) for k in range(n_pose)])
+             for x in "abcsCS"}
     for i, n in enumerate(names):
-        if n.startswith("pose"):
-            k, x = n[4:].split("_")
-            terms[x] = terms[x].at[int(k)].set(vec[i] * _pose_scale(n))
+        if _is_pose(n):
+            k, x = _pose_term(n)
+            terms[x] = terms[x].at[k].set(vec[i] * _pose_scale(n))
         else:
             p[n] = vec[i] * _SPACE[n].scale
     return p, terms
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _size_fit(x0, basis, z0, n_b, k_e):
+    """Move ``x0`` along ``basis`` (the directions the record leaves open) from ``z0`` until
+    every chain's horizontal rate has size ``k_e`` (Levenberg-Marquardt, optimistix)."""
+    def resid(z, _):
+        cs = (x0 + basis @ z)[n_b:].reshape(-1, 2) * CHAIN_SCALE
+        return jnp.sqrt(jnp.sum(cs ** 2, axis=1) + 1e-30) - k_e
+
+    sol = solve_least_squares(resid, z0, None, max_steps=100)
+    return sol.value, resid(sol.value, None)
+
+
+SIZE_STARTS = 12  # starts of the size-constrained Earth-rate reading
+OPEN_TOL = 1e-2  # singular value (of the largest) below which a direction is left open
+
+
+def _size_readings(x0, basis, n_b, k_e):
+    """The distinct points ``x0 + basis z`` whose chains all have size ``k_e``, from
+    ``SIZE_STARTS`` seeded starts (none when no start reaches it)."""
+    rng = np.random.default_rng(0)
+    found = []
+    for _ in range(SIZE_STARTS):
+        z, r = _size_fit(jnp.asarray(x0), jnp.asarray(basis),
+                         jnp.asarray(rng.normal(size=basis.shape[1]) * max(k_e, 0.1)),
+                         n_b, k_e)
+        x = np.asarray(x0 + basis @ np.asarray(z))
+        if np.max(np.abs(np.asarray(r))) < 1e-6 * max(k_e, 1e-3) and not any(
+                np.allclose(x, y, atol=1e-5) for y in found):
+            found.append(x)
+    return found
+
+
+def _earth_text(rec, n_poses) -> str:
+    """One line of :meth:`IMUProblem.earth_reading`."""
+    def chain(c, n):
+        axes = ", ".join(f"{ax} {v:.0f} deg" for ax, v in c["axes_deg"].items())
+        return (f"chain of pose {c['poses'][0]} ({n} pose{'s' if n != 1 else ''}): "
+                f"{c['k_h']:.3f} x Omega cos(lat), axes from north: {axes}")
+
+    text = (f"Earth rate: k_earth {rec['k_earth']:.4f} of the vertical part; horizontal part: "
+            + "; ".join(chain(c, n) for c, n in zip(rec["chains"], n_poses)))
+    if rec["open"]:
+        many = len(rec["readings"])
+        text += (f". The record leaves open a rate common to its chains (it is the bias of "
+                 f"{', '.join(rec['open'])}): the size k_earth Omega cos(lat) fixes it up to "
+                 f"{many} reading{'s' if many != 1 else ''}")
+        if many > 1:
+            first = rec["readings"][0]
+            differ = sorted({ax for r in rec["readings"][1:] for c0, c in zip(first, r)
+                             for ax in c["axes_deg"]
+                             if abs(c["axes_deg"][ax] - c0["axes_deg"].get(ax, np.nan)) > 45})
+            alt = "; ".join(", ".join(f"{ax} {v:.0f}" for ax, v in c["axes_deg"].items())
+                            for r in rec["readings"][1:] for c in r)
+            text += (f" (the other: {alt} deg from north); they differ in the north of "
+                     f"{', '.join(differ) or 'no axis'}, which its bias absorbs")
+    return text
 
 
 def _local_slope(t, x, at, half):
@@ -856,7 +1040,29 @@ def _grid_effect(name: str) -> bool:
     return effect_family_name(name) == "warmup_transient"
 
 
+def _is_pose(name: str) -> bool:
+    """A term of the compiled model's pose part: ``pose<k>_<a|b|c|s>`` (a pose's tilts and a
+    table run's horizontal Earth rate) or ``earth<k>_<c|s>`` (a chain's horizontal Earth rate,
+    ``k`` its first pose)."""
+    return name.startswith(("pose", "earth"))
+
+
+def _pose_term(name: str):
+    """``(pose index, term letter)`` of a pose-part name; a chain's terms are ``C`` and ``S``."""
+    if name.startswith("earth"):
+        k, x = name[5:].split("_")
+        return int(k), x.upper()
+    k, x = name[4:].split("_")
+    return int(k), x
+
+
+def _term_name(k: int, x: str) -> str:
+    return f"earth{k}_{x.lower()}" if x in "CS" else f"pose{k}_{x}"
+
+
 def _pose_scale(name):
+    if name.startswith("earth"):
+        return CHAIN_SCALE
     return HRATE_SCALE if name[-1] in "cs" else POSE_SCALE
 
 
@@ -866,8 +1072,9 @@ _ALL_SCALAR = tuple(n for n in _SPACE.names if _SPACE[n].effect in (None,) + MEA
 
 
 def _all_params(n_pose):
-    """The compiled model's vector: every mean-model parameter, then each pose's four terms."""
-    return _ALL_SCALAR + tuple(f"pose{k}_{x}" for k in range(n_pose) for x in "abcs")
+    """The compiled model's vector: every mean-model parameter, then each pose's four terms and
+    the two horizontal-Earth-rate terms of a chain starting there."""
+    return _ALL_SCALAR + tuple(_term_name(k, x) for k in range(n_pose) for x in "abcsCS")
 
 
 _FIT_STEPS = 30  # optimistix steps of an IMU fit
@@ -877,10 +1084,11 @@ def _build(n_pose, cond, ch_idx):
     allp = _all_params(n_pose)
     ch = np.asarray(ch_idx)
     base = {n: 0.0 for n in _SPACE.names}
+    horizontal = horizontal_earth_rate(cond)
 
     def f(vec, tau_w, t, seg, geo, thermal):
         p, x = _params(vec, allp, base | {"tau_w": tau_w}, n_pose)
-        u0, e1, e2, omega, gain = geo
+        u0, e1, e2, omega, gain, head, ca, cb = geo
         u = u0[seg] + x["a"][seg][:, None] * e1[seg] + x["b"][seg][:, None] * e2[seg]
         u = u / jnp.linalg.norm(u, axis=1, keepdims=True)
         # a table run turns the IMU about the vertical: body rate omega * up, plus the
@@ -888,6 +1096,10 @@ def _build(n_pose, cond, ch_idx):
         c, s = x["c"][seg] * gain[seg], x["s"][seg] * gain[seg]
         cw, sw = jnp.cos(omega[seg] * t), jnp.sin(omega[seg] * t)
         h = (c * cw + s * sw)[:, None] * e1[seg] + (s * cw - c * sw)[:, None] * e2[seg]
+        # a still pose's horizontal Earth rate: its chain's two terms along the chain's
+        # horizontal frame carried to the pose (zero off the chains)
+        hd = head[seg]
+        h = h + horizontal * (x["C"][hd][:, None] * ca[seg] + x["S"][hd][:, None] * cb[seg])
         return imu_measure(p, u, t, cond, omega[seg][:, None] * u + h, thermal)[:, ch]
 
     def jvps(vec, dirs, *args):

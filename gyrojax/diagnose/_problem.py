@@ -184,6 +184,11 @@ class AbstractGapProblem(abc.ABC):
         """Gap-map cells at the record's full rate, reported and never decided on."""
         return []
 
+    def refit_reading(self, effects: tuple) -> dict | None:
+        """The rig's physical reading of its last refit of ``effects`` (JSON-ready), or
+        ``None``."""
+        return None
+
     def verdict_notes(self, verdict: dict) -> list:
         """Lines the verdict adds for this rig (e.g. a noise model to try)."""
         return []

@@ -134,6 +134,8 @@ class Refit(_Record):
       after inside that band; ``None`` without a held-out part).
     - ``remaining_cells``: gap-map cells still significant after the refit.
     - ``screened``: False for the refits of ``refit_all`` beyond the screened candidates.
+    - ``reading``: the rig's physical reading of the refit, where it has one (the IMU's
+      Earth rate: size and heading per chain of poses, :meth:`IMUProblem.earth_reading`).
     """
 
     effects: list[str]
@@ -151,6 +153,7 @@ class Refit(_Record):
     closure: bool | None
     remaining_cells: list[dict]
     screened: bool = True
+    reading: dict | None = None
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True, eq=True)

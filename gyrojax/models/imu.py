@@ -15,14 +15,15 @@ quantization Q: a differenced white sequence), bias instability (flicker, simula
 Gauss-Markov processes), rate random walk (K) and outliers (a contamination fraction).
 
 **Nominal model** = the biases ``bgx.. baz`` with the nominal scale (the poses' directions are
-nuisance parameters of the fit). **Effects** (stable names): ``earth_rate`` (``k_earth``,
-1 = the full vertical Earth rate), ``scale_factor``, ``misalignment`` (6 off-diagonal terms per
-triad: the symmetric part is non-orthogonality, the antisymmetric part an axis rotation, which the
-poses absorb for the accelerometer), ``g_sensitivity`` (9 terms), ``time_drift``,
-``warmup_transient`` (decay time ``tau_w`` on a grid), ``temperature`` and ``temperature_rate``
-(biases per ``Delta T`` and per ``dT/dt``, one per channel; they need the IMU's temperature:
-a ``temp*`` channel in the diagnosis, ``temperature_c`` in the simulator), ``quantization``,
-``bias_instability``, ``rate_random_walk``, ``outliers``.
+nuisance parameters of the fit). **Effects** (stable names): ``earth_rate`` (``k_earth``, 1 = the
+full vertical Earth rate; the diagnosis adds the horizontal part, one heading per chain of poses
+joined by recorded turns: :mod:`gyrojax.diagnose`), ``scale_factor``, ``misalignment`` (6
+off-diagonal terms per triad: the symmetric part is non-orthogonality, the antisymmetric part an
+axis rotation, which the poses absorb for the accelerometer), ``g_sensitivity`` (9 terms),
+``time_drift``, ``warmup_transient`` (decay time ``tau_w`` on a grid), ``temperature`` and
+``temperature_rate`` (biases per ``Delta T`` and per ``dT/dt``, one per channel; they need the
+IMU's temperature: a ``temp*`` channel in the diagnosis, ``temperature_c`` in the simulator),
+``quantization``, ``bias_instability``, ``rate_random_walk``, ``outliers``.
 
 The IMU is algebraic on a static stand (no equations of motion), so :class:`IMURig` gives the
 parameter space and the measurement function, not a diffrax vector field; :func:`simulate_imu`
@@ -291,6 +292,13 @@ def _turn(u0, u1):
 _rotvecs_to_matrices = jax.jit(jax.vmap(rotvec_to_matrix))
 
 
+def _about(v, axis, angles):
+    """``v`` turned about the unit ``axis`` by each of ``angles`` (rad, right-handed):
+    ``(len(angles), 3)`` (Rodrigues)."""
+    c, s = np.cos(angles)[:, None], np.sin(angles)[:, None]
+    return v * c + np.cross(axis, v) * s + axis * np.dot(axis, v) * (1 - c)
+
+
 def simulate_imu(params, poses, *, rate_hz: float = 100.0, turn_s: float = 2.0,
                  latitude_deg: float = float("nan"), gravity: float = units.G0,
                  arw=0.0, vrw=0.0, key=None, noise=None,
@@ -305,10 +313,11 @@ def simulate_imu(params, poses, *, rate_hz: float = 100.0, turn_s: float = 2.0,
       ``k_g``, ``q_a``, ``b_a``, ``k_a``, ``eps_out``).
     - `key`: PRNG key (required when any noise is non-zero).
     - `heading_deg`: where given (with ``latitude_deg``), the horizontal Earth rate
-      ``k_earth Omega cos(lat)`` is added along north, which lies at ``heading_deg`` from each
-      pose's :func:`pose_frame` ``e1`` about up at the pose's start and turns with the table
-      (at minus the table rate in the body frame); the turns between poses carry none. Off by
-      default, as in the diagnosis' model (a hand-placed stand records no heading).
+      ``k_earth Omega cos(lat)`` is added along north, which lies at ``heading_deg`` from the
+      first pose's :func:`pose_frame` ``e1`` about up at the record's start and stays fixed in
+      space: in the body frame it turns with every turn between poses and every table run (at
+      minus the table rate), as a real stand's Earth rate does. Off by default (no horizontal
+      Earth rate).
     - `temperature_c`: the IMU's temperature (deg C) as a function of time (s), where the
       temperature effects act (``Delta T`` from ``T_REF_C`` and ``dT/dt``); the record does not
       carry it (add a ``temp`` channel as a real test would measure it).
@@ -321,17 +330,24 @@ def simulate_imu(params, poses, *, rate_hz: float = 100.0, turn_s: float = 2.0,
     """
     dt = 1.0 / rate_hz
     ups, rates, spans, table, t_now = [], [], [], [], 0.0
+    north = None  # the body-frame north unit vector, carried through every pose and turn
+    if heading_deg is not None and not np.isnan(latitude_deg) and poses:
+        e1, e2 = pose_frame(np.asarray(poses[0].up, float)[None])
+        h = np.radians(heading_deg)
+        north = np.cos(h) * e1[0] + np.sin(h) * e2[0]
+        horizontal = (float(params["k_earth"]) * units.EARTH_RATE
+                      * np.cos(np.radians(latitude_deg)))
     for k, pose in enumerate(poses):
         u = np.asarray(pose.up, float) / np.linalg.norm(pose.up)
         n_s = int(round(pose.dwell_s * rate_hz))
         ups.append(np.tile(u, (n_s, 1)))
         w_k = np.tile(np.radians(pose.rate_dps) * u, (n_s, 1))
-        if heading_deg is not None and not np.isnan(latitude_deg):
-            e1, e2 = pose_frame(u[None])
-            ang = np.radians(heading_deg) - np.radians(pose.rate_dps) * np.arange(n_s) * dt
-            w_k = w_k + (float(params["k_earth"]) * units.EARTH_RATE
-                         * np.cos(np.radians(latitude_deg))
-                         * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2))
+        if north is not None:
+            # on the table north turns about up at minus the table rate (body frame)
+            ang = -np.radians(pose.rate_dps) * np.arange(n_s + 1) * dt
+            nk = _about(north, u, ang)
+            w_k = w_k + horizontal * nk[:-1]
+            north = nk[-1]
         rates.append(w_k)
         spans += [t_now, t_now + (n_s - 1) * dt]
         if pose.rate_dps != 0.0:
@@ -344,8 +360,13 @@ def simulate_imu(params, poses, *, rate_hz: float = 100.0, turn_s: float = 2.0,
             w = rv / (n_t * dt)
             # attitude during the turn: u(t) = R(-w t) u  (up vector in the turning body frame)
             tt = (np.arange(n_t) + 0.5) * dt
-            ups.append(np.asarray(_rotvecs_to_matrices(jnp.asarray(-w * tt[:, None]))) @ u)
-            rates.append(np.tile(w, (n_t, 1)))
+            mats = np.asarray(_rotvecs_to_matrices(jnp.asarray(-w * tt[:, None])))
+            ups.append(mats @ u)
+            w_t = np.tile(w, (n_t, 1))
+            if north is not None:
+                w_t = w_t + horizontal * (mats @ north)
+                north = np.asarray(rotvec_to_matrix(jnp.asarray(-rv))) @ north
+            rates.append(w_t)
             t_now += n_t * dt
     up = np.concatenate(ups)
     rate = np.concatenate(rates)

@@ -177,11 +177,11 @@ def mean_families(design: IMUDesign | None = None) -> tuple:
                  for f, names in _effect_params(design).items() for n in names)
 
 
-def _lambda_scale(params, design, names, b, n_train_frac):
+def _lambda_scale(params, design, names, b, n_train_frac, heading_deg=None):
     """The factor that scales ``b`` to unit efficient noncentrality on the train samples, and
     the effect's visibility there (:func:`~gyrojax.validation.esg.truth_visibility`): truth
-    side."""
-    jn, jb, _ = _train_jacobian(params, design, names, n_train_frac)
+    side (``heading_deg``: the record's horizontal Earth rate, scaled by ``k_earth``)."""
+    jn, jb, _ = _train_jacobian(params, design, names, n_train_frac, heading_deg)
     q = orthonormal_basis(jn)
     jt = jb - q @ (q.T @ jb)
     return 1.0 / math.sqrt(float(b @ (jt.T @ jt) @ b)), truth_visibility(jb, jt)
@@ -208,18 +208,39 @@ def _remainder_lambda(params, design, term):
                 cols.setdefault(fam, []).append(jb[:, k:k + len(fn)])
             k += len(fn)
         d = (np.asarray(term)[idx] / sig).reshape(-1)
+    if "earth_rate" in cols:  # + the horizontal Earth rate of an unknown heading (one chain)
+        size = units.EARTH_RATE * math.cos(math.radians(design.latitude_deg)) / sig[0]
+        h = [np.pad(north_in_body(design, a)[idx] * size, ((0, 0), (0, 3))).reshape(-1, 1)
+             for a in (0.0, 90.0)]
+        cols["earth_rate"] = [np.concatenate([c] + h, axis=1) for c in cols["earth_rate"]]
 
     return remainder_after_library(d, jn, cols)
 
 
-def _train_jacobian(params, design, names, n_train_frac):
+def north_in_body(design, heading_deg) -> np.ndarray:
+    """``(samples, 3)``: the body-frame unit north of ``design``'s record whose north lies at
+    ``heading_deg`` from the first pose's ``e1`` (:func:`~gyrojax.models.imu.simulate_imu`),
+    read off the simulator's horizontal Earth rate."""
+    p = _SPACE.make({"k_earth": 1.0})
+    kw = dict(rate_hz=design.rate_hz, turn_s=design.turn_s, latitude_deg=design.latitude_deg)
+    with_h = np.asarray(simulate_imu(p, design.all_poses, heading_deg=heading_deg, **kw).y)
+    without = np.asarray(simulate_imu(p, design.all_poses, **kw).y)
+    return (with_h - without)[:, :3] / (units.EARTH_RATE
+                                         * math.cos(math.radians(design.latitude_deg)))
+
+
+def _train_jacobian(params, design, names, n_train_frac, heading_deg=None):
     """Whitened Jacobians of the train static samples (truth side): the nominal parameters with
-    each pose's two tilt angles, and ``names``; and the samples' indices in the record."""
+    each pose's two tilt angles, and ``names``; and the samples' indices in the record. With
+    ``heading_deg`` the record carries the horizontal Earth rate too (``k_earth`` of it)."""
     rec = simulate_imu(params, design.all_poses, rate_hz=design.rate_hz, turn_s=design.turn_s,
                        latitude_deg=design.latitude_deg)
     idx, seg = _static_samples(rec)
     n_tr = int(round((1 - n_train_frac) * idx.size))
     idx, seg = idx[:n_tr], seg[:n_tr]
+    north = np.zeros((len(idx), 3)) if heading_deg is None else \
+        north_in_body(design, heading_deg)[idx] * units.EARTH_RATE * math.cos(
+            math.radians(design.latitude_deg))
     t = np.asarray(rec.t)[idx]
     ups = np.array([np.asarray(p.up) / np.linalg.norm(p.up) for p in design.all_poses])
     omega = jnp.radians(jnp.array([p.rate_dps for p in design.all_poses]))[seg]
@@ -234,7 +255,8 @@ def _train_jacobian(params, design, names, n_train_frac):
         e1, e2 = pose_frame(ups)
         u = jnp.asarray(ups)[seg] + da[seg][:, None] * e1[seg] + db[seg][:, None] * e2[seg]
         u = u / jnp.linalg.norm(u, axis=1, keepdims=True)
-        return imu_measure(p, u, jnp.asarray(t), cond, omega[:, None] * u)
+        return imu_measure(p, u, jnp.asarray(t), cond,
+                           omega[:, None] * u + p["k_earth"] * jnp.asarray(north))
 
     n_par = len(nominal) + len(names) + 2 * len(ups)
     j = np.asarray(jax.jacfwd(model)(jnp.zeros(n_par)))
@@ -272,8 +294,12 @@ def _hidden(rng, family, p, design, lam):
             tau = float(rng.uniform(0.05, 0.4) * design.span_s)
             p["tau_w"] = tau
             truth["tau_s"] = tau
+        heading = None
+        if effect_family_name(family) == "earth_rate":  # the whole Earth rate: a heading
+            heading = float(rng.uniform(0.0, 360.0))
+            truth["heading_deg"] = heading
         b = rng.standard_normal(len(names))
-        scale, visibility = _lambda_scale(p, design, names, b, design.holdout)
+        scale, visibility = _lambda_scale(p, design, names, b, design.holdout, heading)
         b = b * math.sqrt(lam) * scale
         for n, v in zip(names, b):
             p[n] = p[n] + v
@@ -359,7 +385,7 @@ def generate(out_dir, n_cases: int, *, seed: int = 0, design: IMUDesign | None =
         key, sub = jax.random.split(key)
         rec = simulate_imu(p, design.all_poses, rate_hz=design.rate_hz, turn_s=design.turn_s,
                            latitude_deg=design.latitude_deg, arw=design.arw * units.DEG / 60,
-                           vrw=design.vrw / 60, key=sub)
+                           vrw=design.vrw / 60, key=sub, heading_deg=truth.get("heading_deg"))
         temp = None
         if temperature:
             temp, extra = _temperature(rng, np.asarray(rec.t))
