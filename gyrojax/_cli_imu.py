@@ -77,6 +77,10 @@ def simulate(args):
                           f"at most {MAX_SAMPLES:,}: fewer or shorter poses, or sample slower")
     lat = float("nan") if args.latitude is None else args.latitude
     IMUConditions(lat)  # ValueError (exit 2) before the work: a latitude outside [-90, 90]
+    heading = getattr(args, "heading", None)
+    if heading is not None and (np.isnan(lat) or not np.isfinite(heading)):
+        raise UsageError(f"--heading {heading:g} needs --latitude (the horizontal Earth rate is "
+                          "Omega cos(latitude)) and a finite angle in degrees")
     space = IMURig().param_space
     sets = parse_sets(args.set, space)
     given = {k: space[k].from_display(v) for k, v in DEFAULT_ERRORS.items()}
@@ -87,14 +91,15 @@ def simulate(args):
     poses = cube_poses(args.poses, args.dwell, seed=args.seed)
     rec = simulate_imu(params, poses, rate_hz=rate_hz, turn_s=TURN_S, latitude_deg=lat,
                        arw=args.arw * units.DEG / 60, vrw=args.vrw / 60,
-                       key=jax.random.key(args.seed))
+                       key=jax.random.key(args.seed), heading_deg=heading)
     rec = rec.with_conditions(rig="imu", arw_deg_per_sqrt_h=args.arw,
                               vrw_mps_per_sqrt_h=args.vrw, seed=args.seed)
     save_record(rec, out, units=IMURig.CHANNEL_UNITS)
     shown = [k for k in space.names if float(params[k]) != space[k].null or k in sets]
     print(f"wrote {out}: {rec.n_samples} samples, {args.poses} poses of {args.dwell:g} s at "
           f"{rate_hz:g} Hz, ARW {args.arw:g} deg/sqrt(h), VRW {args.vrw:g} m/s/sqrt(h)"
-          + ("" if np.isnan(lat) else f", latitude {lat:g} deg"))
+          + ("" if np.isnan(lat) else f", latitude {lat:g} deg")
+          + ("" if heading is None else f", north at {heading:g} deg from the first pose's e1"))
     print(space.table(params, names=shown))
     emit_json({"record": str(out), "samples": int(rec.n_samples), "poses": args.poses,
                "parameters": space.display_json(params, shown)}, args.json)
@@ -275,6 +280,10 @@ class IMUCommands(AbstractRigCommands):
             group.add_argument("--vrw", type=float, default=0.05,
                                help="imu: accelerometer velocity random walk in m/s/sqrt(h) "
                                     "(default 0.05)")
+            group.add_argument("--heading", type=float, metavar="DEG",
+                               help="imu: with --latitude, the horizontal Earth rate too, north "
+                                    "at DEG from the first pose's e1 about up, carried through "
+                                    "the turns (default: the vertical part only)")
         if command == "diagnose":
             group.add_argument("--per-coefficient", action="store_true",
                                help="imu: screen every coefficient of a many-coefficient "

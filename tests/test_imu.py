@@ -1095,6 +1095,7 @@ def test_earth_rate_refit_reads_the_heading_of_a_multiposition_record():
     assert reading["chains"][0]["poses"] == list(range(12)) and not reading["open"]
 
 
+@pytest.mark.slow  # ~20 s: three records diagnosed to the screening
 def test_earth_rate_tests_what_the_poses_and_their_turns_can_show():
     """The earth_rate effect's tested directions (the score test's dof) count what the design
     shows of the whole Earth rate: one still pose, none (the gyro biases absorb a constant
@@ -1121,3 +1122,24 @@ def test_earth_rate_tests_what_the_poses_and_their_turns_can_show():
         e = np.asarray(prob.standardize(prob.y - prob.predict(p0), sigma)).reshape(-1)
         (row,) = [r for r in screen(e, jn, sigs) if r.sig.name == "earth_rate"]
         assert row.dof == dof, sig.names
+
+
+def test_cli_simulates_the_horizontal_earth_rate_at_a_heading(tmp_path, capsys):
+    """``gyrojax simulate --rig imu --latitude 45 --heading 30``: the record's gyros carry the
+    horizontal Earth rate, which the same simulation without ``--heading`` lacks by exactly
+    Omega cos(45 deg) in size, turns included; ``--heading`` without a latitude is refused by
+    name (exit 2)."""
+    from gyrojax.io import load_record
+
+    common = ["simulate", "--rig", "imu", "--poses", "3", "--dwell", "5", "--arw", "0",
+              "--vrw", "0", "--latitude", "45"]
+    assert main([*common, "--heading", "30", "--out", str(tmp_path / "h.nc")]) == 0
+    assert main([*common, "--out", str(tmp_path / "v.nc")]) == 0
+    d = np.asarray(load_record(tmp_path / "h.nc").y - load_record(tmp_path / "v.nc").y)
+    size = np.linalg.norm(d[:, :3], axis=1)
+    np.testing.assert_allclose(size, units.EARTH_RATE * np.cos(np.radians(45.0)), rtol=1e-6)
+    assert np.all(d[:, 3:] == 0)
+    capsys.readouterr()
+    assert main(["simulate", "--rig", "imu", "--heading", "30", "--out",
+                 str(tmp_path / "x.nc")]) == 2
+    assert "--heading 30 needs --latitude" in capsys.readouterr().err
