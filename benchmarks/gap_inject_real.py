@@ -32,8 +32,11 @@ Writes the section ``gap_inject_real`` of RESULTS.md.
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -131,9 +134,35 @@ def main(argv=None):
     ap.add_argument("--lambdas", nargs="+", type=float, default=list(LAMBDAS))
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
+    ap.add_argument("--worker-json", help=argparse.SUPPRESS)  # one record, rows to this file
     args = ap.parse_args(argv)
-    rng = np.random.default_rng(args.seed)
+    if args.worker_json:
+        return _worker(args)
+    # every record in a fresh process: each record's diagnoses compile programs of their own,
+    # and one process holding the programs of several long records ran out of the kernel's
+    # memory maps (LLVM "Cannot allocate memory", then a segfault)
     rows, per_record, t_all = [], {}, time.perf_counter()
+    for k, name in enumerate(args.records):
+        with tempfile.TemporaryDirectory() as tmp:
+            path = os.path.join(tmp, "rows.json")
+            cmd = [sys.executable, __file__, "--records", name, "--effects", *args.effects,
+                   "--lambdas", *map(str, args.lambdas), "--seed", str(args.seed + k),
+                   "--worker-json", path]
+            subprocess.run(cmd, check=True)
+            with open(path) as fh:
+                got = json.load(fh)
+        rows += got["rows"]
+        per_record[name] = tuple(got["record"])
+        # after every record: a long run stopped early keeps what it measured
+        publish(args.out, "gap_inject_real", _lines(rows, per_record, args,
+                                                    time.perf_counter() - t_all))
+
+
+def _worker(args):
+    """Diagnose the records of ``args`` as they are and injected; write the rows and each
+    record's ``(verdict, seconds as it is, median seconds injected)`` to ``--worker-json``."""
+    rng = np.random.default_rng(args.seed)
+    rows, per_record = [], {}
     for name in args.records:
         rec = REAL_DATA_SETS[name]()
         t0 = time.perf_counter()
@@ -147,7 +176,7 @@ def main(argv=None):
                     if k not in nominal}
         ident = {c.name: bool(c.identifiable) for c in base.ranking}
         level0 = base.multiplicity.get("level", base.alpha)
-        det0 = {c.name: c.q is not None and c.q < level0 for c in base.ranking}
+        det0 = {c.name: bool(c.q is not None and c.q < level0) for c in base.ranking}
         times = []
         print(f"{name}: {base.verdict.kind} {base.verdict.effects}, {t_base:.0f} s")
         for effect in args.effects:
@@ -169,17 +198,18 @@ def main(argv=None):
                 top = max(rep.ranking, key=lambda c: c.posterior).name
                 rows.append(dict(
                     record=name, effect=effect, lam=lam, identifiable=ident[effect],
-                    detected=cand.q is not None and cand.q < level, detected0=det0[effect],
-                    named=effect in (rep.verdict.effects or []), top=top == effect,
+                    detected=bool(cand.q is not None and cand.q < level),
+                    detected0=bool(det0[effect]),
+                    named=effect in (rep.verdict.effects or []), top=bool(top == effect),
                     recovery=recovery(_refit(rep, effect), _refit(base, effect), shown),
                     verdict=f"{rep.verdict.kind} {rep.verdict.effects}"))
                 r = rows[-1]
                 print(f"  {effect} lambda {lam:g}: detected {r['detected']}, named "
                       f"{r['named']}, top {r['top']}, recovery {r['recovery']}, {r['verdict']}")
-        per_record[name] = (base, t_base, float(np.median(times)) if times else float("nan"))
-        # after every record: a long run stopped early keeps what it measured
-        publish(args.out, "gap_inject_real", _lines(rows, per_record, args,
-                                                    time.perf_counter() - t_all))
+        verdict = f"{base.verdict.kind} ({', '.join(base.verdict.effects or [])})"
+        per_record[name] = (verdict, t_base, float(np.median(times)) if times else float("nan"))
+    with open(args.worker_json, "w") as fh:
+        json.dump({"rows": rows, "record": per_record[name]}, fh)
 
 
 def _lines(rows, per_record, args, total_s):
@@ -187,16 +217,16 @@ def _lines(rows, per_record, args, total_s):
              "(`benchmarks/gap_inject_real.py`)", "", machine_line(), "",
              f"Records {', '.join(per_record)} (of {', '.join(args.records)}); effects "
              f"{', '.join(args.effects)} at lambda "
-             f"{'/'.join(f'{x:g}' for x in args.lambdas)} (seed {args.seed}), one random "
+             f"{'/'.join(f'{x:g}' for x in args.lambdas)} (seed {args.seed} + the record's "
+             "index), one random "
              f"direction each, added to the samples; {len(rows)} cases in {total_s:.0f} s. "
              "Rates over the identifiable cases (the effect has directions the record shows); "
              "named = in the verdict's effects; recovery = median of the refit's change over "
              "the injected coefficients (1 = all of it).", "",
              "| record | verdict as it is | diagnosis s (as it is / median injected) |",
              "|---|---|---|"]
-    for name, (base, t_base, t_inj) in per_record.items():
-        lines.append(f"| `{name}` | {base.verdict.kind} ({', '.join(base.verdict.effects or [])})"
-                     f" | {t_base:.0f} / {t_inj:.0f} |")
+    for name, (verdict, t_base, t_inj) in per_record.items():
+        lines.append(f"| `{name}` | {verdict} | {t_base:.0f} / {t_inj:.0f} |")
     lines += ["", "| record | effect | lambda | detected (as it is) | named | top | recovery |",
               "|---|---|---|---|---|---|---|"]
     for name in per_record:
