@@ -243,7 +243,8 @@ def _imu_rebuild(design, truth):
     the train samples (whitened), and its noise-free record. The signal is the noise-free record
     of ``design``'s poses with the effect minus the one without; the nominal columns are central
     differences of the record in the six biases and in two tilts of every pose's up vector
-    (about two axes orthogonal to it from scipy's null space: any pair spans the same tilts)."""
+    (about two axes orthogonal to it from scipy's null space: any pair spans the same tilts).
+    An ``earth_rate`` case carries the whole Earth rate, north at its sealed heading."""
     import scipy.linalg
 
     from gyrojax.models.imu import IMURig, Pose, simulate_imu
@@ -253,7 +254,8 @@ def _imu_rebuild(design, truth):
 
     def sim(p, poses=None):
         r = simulate_imu(p, poses or design.all_poses, rate_hz=design.rate_hz,
-                         turn_s=design.turn_s, latitude_deg=design.latitude_deg)
+                         turn_s=design.turn_s, latitude_deg=design.latitude_deg,
+                         heading_deg=truth.get("heading_deg"))
         return np.asarray(r.y) / sig, np.asarray(r.t), np.asarray(r.conditions["static_s"])
 
     base = sp.make() | ({"tau_w": jnp.asarray(truth["tau_s"])} if "tau_s" in truth else {})
