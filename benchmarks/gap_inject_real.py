@@ -83,16 +83,15 @@ def injected_samples(record: BenchRecord, nominal: dict, coef: dict, tau_w: floa
     return out
 
 
-def sized_case(prob, params0, sigma, effect, lam, rng):
+def sized_case(prob, q, sigs, effect, lam, rng):
     """A random direction of ``effect``'s coefficients scaled to noncentrality ``lam`` on the
-    train rows (the diagnosis' whitened signature, nominal projected out): ``(coef SI, display
-    values, decay time)``, or ``None`` where the record shows none of it."""
-    jn, sigs = prob.jacobians(params0, sigma)
+    train rows (the diagnosis' whitened signatures ``sigs``, the nominal basis ``q`` of the
+    train rows projected out): ``(coef SI, display values, decay time)``, or ``None`` where the
+    record shows none of it."""
     (sig,) = [s for s in sigs if s.name == effect]
     m = prob.n_train * len(prob.channels)
     g = int(rng.integers(sig.jac.shape[0]))  # a decay time of the grid (warm-up)
     j = sig.jac[g][:m]
-    q = orthonormal_basis(jn[:m])
     jt = j - q @ (q.T @ j)
     z = rng.standard_normal(len(sig.names))
     lam0 = float(np.sum((jt @ z) ** 2))
@@ -171,6 +170,8 @@ def _worker(args):
         prob = rigs.get("imu").problem_for(rec, holdout=0.25)
         params0 = prob.fit_nominal()
         sigma = prob.noise_level(None)[0]
+        jn, sigs = prob.jacobians(params0, sigma)  # once per record: every case scales by it
+        q = orthonormal_basis(jn[: prob.n_train * len(prob.channels)])
         nominal = {k: float(params0[k]) for k in prob.nominal_names}
         nominal |= {k: 0.0 for k in ("bgx", "bgy", "bgz", "bax", "bay", "baz")
                     if k not in nominal}
@@ -183,7 +184,7 @@ def _worker(args):
             if effect not in ident:
                 continue
             for lam in args.lambdas:
-                case = sized_case(prob, params0, sigma, effect, lam, rng)
+                case = sized_case(prob, q, sigs, effect, lam, rng)
                 if case is None:
                     rows.append(dict(record=name, effect=effect, lam=lam, identifiable=False))
                     continue

@@ -77,7 +77,7 @@ def simulate(args):
                           f"at most {MAX_SAMPLES:,}: fewer or shorter poses, or sample slower")
     lat = float("nan") if args.latitude is None else args.latitude
     IMUConditions(lat)  # ValueError (exit 2) before the work: a latitude outside [-90, 90]
-    heading = getattr(args, "heading", None)
+    heading = args.heading  # every rig's options are on the parser (cli._rig_groups)
     if heading is not None and (np.isnan(lat) or not np.isfinite(heading)):
         raise UsageError(f"--heading {heading:g} needs --latitude (the horizontal Earth rate is "
                           "Omega cos(latitude)) and a finite angle in degrees")

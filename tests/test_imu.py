@@ -1008,15 +1008,6 @@ def test_imu_diagnosis_pieces_by_hand():
     assert rows["outliers"]["p"] == pytest.approx(min(1.0, min(p_ch) * n_ch), rel=1e-12)
 
 
-def _north_truth(poses, heading_deg, **kw):
-    """The body-frame unit north the simulator puts into each sample (independent of the
-    chains: read off its horizontal Earth rate)."""
-    p = SPACE.make({"k_earth": 1.0})
-    with_h = np.asarray(simulate_imu(p, poses, heading_deg=heading_deg, **kw).y)
-    without = np.asarray(simulate_imu(p, poses, **kw).y)
-    return (with_h - without)[:, :3] / (units.EARTH_RATE * np.cos(np.radians(kw["latitude_deg"])))
-
-
 def test_turn_chains_carry_north_through_the_recorded_turns():
     """North, fixed in space, propagated through the gyros' turns: on a 12-pose record with
     gyro biases of 0.02 rad/s the chain's frame gives every pose's body-frame north within
@@ -1026,13 +1017,15 @@ def test_turn_chains_carry_north_through_the_recorded_turns():
     turn masked out of the record starts a new chain there, and a gyro scale error of 25 %
     (the turns read 22 deg short) breaks the chain at every turn."""
     from gyrojax.estimate.multiposition import turn_chains
+    from gyrojax.validation.imu import IMUDesign, north_in_body
 
-    poses = cube_poses(12, 20.0, seed=3)
-    kw = dict(rate_hz=50.0, latitude_deg=45.0)
+    design = IMUDesign()  # 12 poses of 20 s, 2-s turns, 50 Hz, 45 deg N
     p = SPACE.make(BIAS | {"k_earth": 1.0})
-    rec = simulate_imu(p, poses, heading_deg=40.0, arw=0.3 * units.DEG / 60, vrw=0.05 / 60,
-                       key=jax.random.PRNGKey(1), **kw)
-    north = _north_truth(poses, 40.0, **kw)
+    rec = simulate_imu(p, design.poses, heading_deg=40.0, arw=0.3 * units.DEG / 60,
+                       vrw=0.05 / 60, key=jax.random.PRNGKey(1), rate_hz=design.rate_hz,
+                       turn_s=design.turn_s, latitude_deg=design.latitude_deg)
+    # the simulator's own north, read off its horizontal Earth rate (not the chains)
+    north = north_in_body(design, 40.0)
 
     def chains(r):
         segs = detect_static(r)
