@@ -308,6 +308,13 @@ def test_ln100_pair_earth_rate_explains_the_z_gyros_flip():
             assert abs(got - want) < 0.15 * units.DEG_PER_HOUR
     ys = sorted(r[1]["axes_deg"]["y"] for r in reading["readings"])
     assert ys[0] < 10.0 and ys[1] > 170.0
+    # the verdict names the Earth rate first, with its share of the held-out gap, and says
+    # where the rest lies (the line in every channel, no wz cell on the time axis)
+    v = rep.verdict
+    assert v.kind in ("partial", "attributed") and v.effects[0] == "earth_rate"
+    assert v.explained["of"] == "held-out" and v.explained["shares"]["earth_rate"] >= 0.995
+    assert v.headline().startswith("earth_rate")
+    assert "time (" not in v.remainder or "wz" not in v.remainder.split("time (")[1].split(")")[0]
 
 
 @pytest.mark.slow

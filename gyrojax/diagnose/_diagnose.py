@@ -4,15 +4,17 @@ Stage 0 fits the nominal model on the train split and whitens its residual by th
 (given, or estimated from first differences of the residual, which a smooth gap barely touches).
 Stage 1 maps the gap (time x channel, known lines, the largest unlisted line, test position and
 condition x channel where the rig has positions, Allan tau band x channel; the Ljung-Box lag axis
-is reported and never decided on). Stage 2 screens the
-library by efficient score tests with posteriors and an ambiguity set, with one greedy forward
-step for a second effect. Stage 3 reports confounding (visible fraction, no-signature directions,
-aliases by name) and design advice. Stage 4 refits the candidates and measures the held-out gap
-before and after. Stage 5 gives the verdict. Multiplicity: weighted Benjamini-Hochberg over
-every gap-map cell and every library test together; detection = any q < alpha. The weights are
-fixed before the data: the library's tests (the catalogued effects and noise-model terms, the
-hypotheses the diagnosis is for) hold ``library_share`` of the total weight, the gap map's many
-and strongly correlated cells the rest (docs/diagnosis.md "FDR across the whole gap map and library").
+is reported and never decided on). Stage 2 screens the library by efficient score tests with
+posteriors and an ambiguity set. Stage 3 reports confounding (visible fraction, no-signature
+directions, aliases by name) and design advice. Stage 4 refits the candidates and measures the
+held-out gap before and after; where the top effect's refit leaves a localised gap, forward
+selection adds effects one at a time, each by a conditional score test on the refit residual
+and, where the held-out part can show it, by a lower held-out gap. Stage 5 gives the verdict.
+Multiplicity: weighted Benjamini-Hochberg over every gap-map cell and every library test
+together; detection = any q < alpha. The weights are fixed before the data: the library's tests
+(the catalogued effects and noise-model terms, the hypotheses the diagnosis is for) hold
+``library_share`` of the total weight, the gap map's many and strongly correlated cells the rest
+(docs/diagnosis.md "FDR across the whole gap map and library").
 With equal weights a 3-dof library test at noncentrality 16 competed with ~100-200 map cells.
 
 Calibrated level: the map's dyadic windows are nested and the library's signatures nearly
@@ -53,7 +55,7 @@ from ._noise_tests import lag_cells
 from ._records import Refit, Verdict
 from ._report import GapReport
 from ._rows import _onestep_display, candidate_record
-from ._screening import Screen, ambiguity_set, screen, screen_designs
+from ._screening import ambiguity_set, screen, screen_designs
 from ._signatures import (
     canonical_correlations,
     indistinguishable_classes,
@@ -66,6 +68,7 @@ from ._verdict import (
     _shift_hidden,
     _verdict,
     _with_noise,
+    earns_place,
 )
 
 __all__ = ["diagnose", "default_prior", "library"]
@@ -104,10 +107,13 @@ def _check_record(record: BenchRecord, holdout: float):
                          "need at least 60 - record longer or lower --holdout")
 
 
-def _greedy_second(e, span, rows, first: Screen, alpha):
-    """Rescore the library on the residual ``e`` of the first effect's refit, with the span of
-    the nominal and first-effect Jacobians projected out; Bonferroni over the rest."""
-    others = [r.sig for r in rows if r is not first and r.dof > 0]
+def _next_effect(e, span, rows, chosen, alpha):
+    """The conditional score test of the effects not in ``chosen``: rescore them on the residual
+    ``e`` of the refit with ``chosen``, the span of the nominal and chosen Jacobians projected
+    out; the best, where it is significant after Bonferroni over the rest and has a signature
+    left, else ``None``."""
+    names = {r.sig.name for r in chosen}
+    others = [r.sig for r in rows if r.sig.name not in names and r.dof > 0]
     if not others:
         return None
     resc = screen(e, span, others)
@@ -159,7 +165,8 @@ def checked_effects(effects) -> tuple | None:
 
 def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
              holdout: float = 0.25, alpha: float = 0.05, noise_std=None,
-             design_advice: bool = True, max_refits: int = 3, prior: str | None = None,
+             design_advice: bool = True, max_refits: int = 3, max_effects: int = 3,
+             prior: str | None = None,
              library_share: float = 0.5, refit_all: bool = False, null_draws: int = 499,
              progress=None, **options) -> GapReport:
     """Diagnose the gap between the rig's nominal model and ``record``.
@@ -182,6 +189,15 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
     - `noise_std`: measurement noise per channel (SI); default estimated from the residual.
     - `design_advice`: compute the design advisor for confounded, weak or ambiguous effects.
     - `order`: ESG model, ``"exact"`` (5.1) or the paper's first-order ``"first"`` (3.1).
+    - `max_refits`: the most members of the ambiguity set refitted one by one.
+    - `max_effects`: the most catalogued effects one verdict names together. Where the top
+      effect's refit leaves significant cells, the rest of the library is rescored on its
+      residual (a conditional score test, Bonferroni over the rest); the best joins the refit
+      where it is significant and, where the held-out part can show it, lowers the held-out
+      gap; and so on up to `max_effects`. The verdict is ``attributed`` to the first such set
+      that leaves no significant cell, ``partial`` where the set explains at least 90 % of the
+      gap with cells left (``Verdict.explained``: each effect's share, ``remainder``: where the
+      rest lies), else ``unexplained``.
     - `prior`: Bayes-factor prior of the posteriors: ``"design"`` (the equal mixture of the next
       two), ``"shape"`` (coefficients spread as their prior scales, sized to expect
       noncentrality 32 on this record's design), ``"zellner"`` (g-prior expecting 32),
@@ -229,6 +245,9 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
 
     **Returns:** a :class:`GapReport` (``.to_json()``, ``.markdown()``).
     """
+    if max_effects < 1:
+        raise ValueError(f"max_effects={max_effects}; give at least 1 (the most effects one "
+                         "verdict names together)")
     if null_draws < 0 or (null_draws and np.floor(alpha * (null_draws + 1) + 1e-9) < 1):
         raise ValueError(f"null_draws={null_draws} with alpha={alpha}: give 0 (plain weighted "
                          f"BH) or at least {int(np.ceil(1 / alpha)) - 1} draws (default 499)")
@@ -378,24 +397,38 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
     refits = []
     resid_after = {}
     second = None
+    chain = []  # the nested refits of the effects that earned their place, top effect first
     if detected:
         singles = {}
         for r in amb[:max_refits]:
             if r.dof > 0:
                 singles[r.sig.name] = run_refit([r])
                 refits.append(singles[r.sig.name][0])
-        # greedy forward step: the top effect's refit leaves a localised gap -> rescore the rest
-        # of the library on the refit residual with the top effect's signature in the span
-        if top is not None and top.sig.name in singles and singles[top.sig.name][0].remaining_cells:
-            _, e_post, span = singles[top.sig.name]
-            second = _greedy_second(e_post, span, rows, top, alpha)
-            if second is not None:
-                partner = next(r for r in rows if r.sig.name == second.sig.name)
-                refits.append(run_refit([top, partner])[0])
+        # forward selection: while the refit leaves a localised gap, the rest of the library
+        # is rescored on its residual with the chosen effects' signatures in the span (a
+        # conditional score test); the best joins where it is significant and, where the
+        # held-out part can show it, lowers the held-out gap (_verdict.earns_place)
+        if top is not None and top.sig.name in singles:
+            combo = [top]
+            refit, e_post, span = singles[top.sig.name]
+            chain = [refit]
+            while refit.remaining_cells and len(combo) < max_effects:
+                found = _next_effect(e_post, span, rows, combo, alpha)
+                if found is None:
+                    break
+                second = second or found
+                partner = next(r for r in rows if r.sig.name == found.sig.name)
+                nxt = run_refit(combo + [partner])
+                refits.append(nxt[0])
+                if not earns_place(refit, nxt[0]):
+                    break
+                combo.append(partner)
+                chain.append(nxt[0])
+                refit, e_post, span = nxt
     timings["refit_s"] = time.perf_counter() - t0
 
-    verdict = _verdict(detected, rows, amb, refits, second, top, level, cells, g_nom, band,
-                       _shift_hidden(rows, cells, jn_all, s_full))
+    verdict = _verdict(detected, rows, amb, refits, chain, top, level, cells, g_nom, band,
+                       _shift_hidden(rows, cells, jn_all, s_full), g_train=g_nom_train)
     verdict = _with_noise(verdict, noise_rows, alpha, refits)
     if refit_all:
         t0 = time.perf_counter()

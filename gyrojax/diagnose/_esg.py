@@ -316,7 +316,7 @@ class ESGProblem(AbstractGapProblem):
     def verdict_notes(self, verdict) -> list[str]:
         """A gap the white model cannot place may be flicker it does not model: say so, and
         how to test it (measured: ``benchmarks/RESULTS.md``, ``gap_blind_nulls_flicker``)."""
-        if self.noise_model != "white" or verdict["kind"] not in ("ambiguous", "unexplained"):
+        if self.noise_model != "white" or verdict["kind"] not in ("ambiguous", "partial", "unexplained"):
             return []
         return ["the nominal noise model is white: flicker on the gimbal angles reads as a slow "
                 "gap (on 24 h records a flicker floor near the white noise's scatter over the "

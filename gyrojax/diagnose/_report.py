@@ -43,7 +43,8 @@ class GapReport:
     - `design_advice`: per flagged effect and candidate design, MDE / prior scale alone and with
       the closest rival effect fitted too (the ranking key: the advised design first), the
       largest correlation with another effect and whether that is <= 0.9 (separable).
-    - `verdict`: kind (no-gap | attributed | ambiguous | confounded | unexplained) and effects.
+    - `verdict`: kind (no-gap | attributed | partial | ambiguous | confounded | unexplained),
+      effects and, for an attribution, each effect's share of the gap (:class:`Verdict`).
     """
 
     rig: str
@@ -132,8 +133,11 @@ class GapReport:
         v = self.verdict
         lines = [f"# Gap diagnosis ({self.rig})", ""]
         eff = ", ".join(v.effects or []) or "-"
+        head = v.headline()
         lines.append(f"**Verdict: {v.kind}** ({eff})" + (f" - {v.reason}" if v.reason
-                                                            else ""))
+                                                            and v.reason != head else ""))
+        if head and not (v.reason or "").startswith(head):
+            lines.append(head[0].upper() + head[1:])
         g0, g1 = v.heldout_gap_before, v.heldout_gap_after
         band = self.gap.get("heldout_null_band") or [None, None]
         if g0 is not None and math.isfinite(g0):

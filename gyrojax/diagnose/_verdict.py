@@ -55,7 +55,7 @@ def _with_noise(verdict, noise_rows, alpha, refits=()):
     slow = [e for e in (verdict.get("effects") or []) if effect_family_name(e) in SLOW_MEAN]
     rival = [x["name"] for x in noise_rows if x["name"] in STOCHASTIC_SLOW
              and not x.get("significant") and x.get("p_nominal", 1.0) < alpha]
-    if slow and rival and verdict["kind"] in ("attributed", "ambiguous", "unexplained"):
+    if slow and rival and verdict["kind"] in ("attributed", "partial", "ambiguous", "unexplained"):
         verdict.update(kind="ambiguous", effects=list(dict.fromkeys(
             (verdict.get("effects") or []) + rival)),
             reason=f"{', '.join(slow)} and {', '.join(rival)} both explain the slow residual of "
@@ -63,7 +63,7 @@ def _with_noise(verdict, noise_rows, alpha, refits=()):
                    "random walk (repeat the run: a drift repeats, a random walk does not)")
         verdict.update(_heldout_leans(slow, refits, verdict))
     walks = [x["name"] for x in sig if x["name"] in STOCHASTIC_SLOW]
-    if slow and walks and verdict["kind"] == "unexplained":
+    if slow and walks and verdict["kind"] in ("unexplained", "partial"):
         # the noise model's random walk is significant beside a slow mean effect that does not
         # explain the gap: say which way the held-out part leans (kind and effects unchanged)
         verdict.update(_heldout_leans(slow, refits, verdict))
@@ -219,10 +219,10 @@ def _refit_uncertainty(combo, coefficients: dict) -> tuple[dict, list]:
 
 
 def _pair_also(pair, chosen, g_nom) -> str:
-    """What the two-effect refit did where the verdict stays with one effect's (both leave
-    significant cells): said when it predicts more of the held-out part, which the user would
-    otherwise read only in the refit table (the Xsens record: 123 -> 40.5 with the scale
-    factors, -> 0.48 with misalignment too)."""
+    """What the largest refit of the effects that earned their place did where the verdict
+    stays with one effect's (the set leaves significant cells and explains too little of the
+    gap to be named with a remainder): said when it predicts more of the held-out part, which
+    the user would otherwise read only in the refit table."""
     if pair is None or pair is chosen:
         return ""
     after, before = pair["heldout_gap_after"], chosen["heldout_gap_after"]
@@ -234,8 +234,89 @@ def _pair_also(pair, chosen, g_nom) -> str:
             "stay significant")
 
 
-def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band,
-             shift_hidden=()):
+PARTIAL_SHARE = 0.9  # the share of the gap the named set must explain to be named with a remainder
+
+
+def earns_place(before, after) -> bool:
+    """Whether an effect that passed its conditional score test (after the effects before it
+    were refitted: ``before``) also earns its place on the held-out part, where the held-out
+    part can show it: where the held-out gap of ``before`` lies above its null band, the refit
+    with the effect added (``after``) must lower it; where it lies inside, the added effect must
+    keep it inside (a mimic of the train residual that spoils the prediction is out). Without a
+    held-out part the score test decides."""
+    if before["closure"] is None:
+        return True
+    if before["closure"] is False:
+        return bool(after["heldout_gap_after"] < before["heldout_gap_after"])
+    return after["closure"] is True
+
+
+def explained_shares(chain, g_nom, band, g_train) -> dict | None:
+    """How much of the gap each effect of the nested refits ``chain`` explains, each after the
+    ones before it: ``{"of": "held-out" | "train", "shares": {effect: share}, "total": share}``
+    (shares of the nominal model's gap; they add up to ``total``, at most 1: a gap after below
+    0, the noise's expectation, counts as 0). The held-out gap where it
+    lies above the nominal model's null band (there it measures what the refits predict); the
+    train gap otherwise (no held-out part, or a held-out gap the noise can make). ``None``
+    without a refit or a positive gap to share."""
+    if not chain:
+        return None
+    heldout = g_nom is not None and np.isfinite(g_nom) and g_nom > band[1]
+    g0, key = (g_nom, "heldout_gap_after") if heldout else (g_train, "gap_train_after")
+    if g0 is None or not g0 > 0:
+        return None
+    gaps = [g0] + [max(rf[key], 0.0) for rf in chain]  # below 0 is noise: nothing left
+    return {"of": "held-out" if heldout else "train",
+            "shares": {rf["effects"][-1]: float((a - b) / g0)
+                       for rf, a, b in zip(chain, gaps, gaps[1:])},
+            "total": float(1 - gaps[-1] / g0)}
+
+
+def remainder_text(cells, limit: int = 3) -> str:
+    """Where the significant cells ``cells`` left after a refit lie, in a few words: per axis
+    (largest excess first), the channels and then the cells (largest first, at most ``limit``),
+    e.g. ``"time (ay; 0.00-0.01 h, 0.09-0.10 h), tau (ay; tau 26 s)"``."""
+    if not cells:
+        return "no significant cell"
+    by_axis: dict = {}
+    for x in cells:
+        a = by_axis.setdefault(x["axis"], {"excess": 0.0, "ch": {}, "win": {}})
+        ex = max(float(x.get("excess") or 0.0), 0.0)
+        a["excess"] += ex
+        a["ch"][x["channel"]] = a["ch"].get(x["channel"], 0.0) + ex
+        a["win"][x["cell"]] = a["win"].get(x["cell"], 0.0) + ex
+    parts = []
+    for axis, a in sorted(by_axis.items(), key=lambda kv: -kv[1]["excess"]):
+        chans = sorted(a["ch"], key=lambda k: -a["ch"][k])
+        wins = sorted(a["win"], key=lambda k: -a["win"][k])
+        text = (", ".join(chans) + "; " + ", ".join(wins[:limit])
+                + (", ..." if len(wins) > limit else ""))
+        parts.append(f"{axis} ({text})")
+    return ", ".join(parts)
+
+
+def headline(verdict) -> str | None:
+    """The verdict in one line where it names effects with their shares of the gap: "earth_rate
+    explains 99.8 % of the held-out gap, time_drift 0.1 %; remainder: frequency (wx, ...)";
+    ``None`` elsewhere."""
+    ex = verdict.get("explained")
+    if not ex or verdict.get("kind") not in ("attributed", "partial"):
+        return None
+    items = list(ex["shares"].items())
+    text = ", ".join(f"{e} {100 * x:.1f} %" for e, x in items[1:])
+    first = f"{items[0][0]} explains {100 * items[0][1]:.1f} % of the {ex['of']} gap"
+    if len(items) > 1:
+        first = (f"{' + '.join(e for e, _ in items)} explain {100 * ex['total']:.1f} % of the "
+                 f"{ex['of']} gap ({items[0][0]} {100 * items[0][1]:.1f} %, {text})")
+    return f"{first}; remainder: {verdict.get('remainder') or 'no significant cell'}"
+
+
+def _verdict(detected, rows, amb, refits, chain, top, alpha, cells, g_nom, band,
+             shift_hidden=(), g_train=None):
+    """Stage 5 (docs/diagnosis.md "Verdicts"). ``chain``: the nested refits of the effects that
+    earned their place, the top effect's alone first (:func:`earns_place`); ``refits``: every
+    refit (the ambiguity set's singles among them); ``g_nom``, ``band``: the nominal model's
+    held-out gap and null band; ``g_train``: its train gap. Returns the verdict's fields."""
     base = {"heldout_gap_before": g_nom, "heldout_null_band": list(band)}
     if not detected:
         return {"kind": "no-gap", "effects": [], "heldout_gap_after": None, **base,
@@ -287,20 +368,27 @@ def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band
                 "posterior": {r.sig.name: r.posterior for r in amb},
                 "reason": "no single effect holds 90 % of the posterior; see design_advice",
                 **_heldout_by_member(names, single, base)}
-    chosen = next((rf for rf in refits if rf["effects"] == [top.sig.name]), None)
-    pair = (next((rf for rf in refits if len(rf["effects"]) == 2), None)
-            if second is not None else None)
-    if pair is not None and not pair["remaining_cells"]:
-        chosen = pair
-    if chosen is None:
+    if not chain:
         return {"kind": "unexplained", "effects": [], "heldout_gap_after": None, **base,
                 "reason": "no refit available"}
+    # the first nested refit that leaves no significant cell, else the top effect's alone
+    chosen = next((rf for rf in chain if not rf["remaining_cells"]), chain[0])
     if chosen["remaining_cells"]:
+        last = chain[-1]
+        ex = explained_shares(chain, g_nom, band, g_train)
+        if ex is not None and ex["total"] >= PARTIAL_SHARE and not _does_not_transfer(last):
+            v = {"kind": "partial", "effects": last["effects"],
+                 "heldout_gap_after": last["heldout_gap_after"], **base,
+                 "posterior": {r.sig.name: r.posterior for r in amb},
+                 "cells": [f"{x['axis']} {x['cell']} {x['channel']}"
+                           for x in last["remaining_cells"]][:10],
+                 "explained": ex, "remainder": remainder_text(last["remaining_cells"])}
+            return dict(v, reason=headline(v))
         cells_left = [f"{x['axis']} {x['cell']} {x['channel']}" for x in chosen["remaining_cells"]]
         return {"kind": "unexplained", "effects": chosen["effects"],
                 "heldout_gap_after": chosen["heldout_gap_after"], **base, "cells": cells_left[:10],
                 "reason": "after refitting the best catalogued effect(s) the localised gap map "
-                          "still has significant cells" + _pair_also(pair, chosen, g_nom)}
+                          "still has significant cells" + _pair_also(last, chosen, g_nom)}
     if _does_not_transfer(chosen):
         return {"kind": "unexplained", "effects": chosen["effects"],
                 "heldout_gap_after": chosen["heldout_gap_after"], **base,
@@ -312,5 +400,6 @@ def _verdict(detected, rows, amb, refits, second, top, alpha, cells, g_nom, band
     return {"kind": "attributed", "effects": chosen["effects"],
             "heldout_gap_after": chosen["heldout_gap_after"], **base,
             "posterior": {r.sig.name: r.posterior for r in amb},
-            "p": {r.sig.name: r.p for r in amb}}
-
+            "p": {r.sig.name: r.p for r in amb},
+            "explained": explained_shares(chain[:chain.index(chosen) + 1], g_nom, band, g_train),
+            "remainder": remainder_text([])}
