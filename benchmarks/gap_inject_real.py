@@ -17,7 +17,10 @@ Scores, per record, effect and lambda:
 - detected: the effect's library test is significant (q under the report's level); beside it,
   whether it already is on the record as it is (a large unmodelled gap lifts every test that
   overlaps it, so detection there says little);
-- named: the injected effect is among the verdict's effects;
+- named: the injected effect is among the verdict's effects; beside it, whether the record as
+  it is already names it (then naming says little), and the share over the cases where it
+  does not; and the share over the separable cases (the effect is in no class of effects the
+  record as it is cannot tell apart, ``GapReport.ambiguity["classes"]``);
 - top: the injected effect has the highest posterior;
 - recovery: the refit of that effect alone on the injected record less the same refit on the
   record as it is, projected on the injected coefficients (1 = all of it), over the
@@ -27,6 +30,8 @@ Writes the section ``gap_inject_real`` of RESULTS.md.
 
     python benchmarks/gap_inject_real.py                       # 5 records x 5 effects x 4 lambda
     python benchmarks/gap_inject_real.py --records ln100_pair --lambdas 32
+    python benchmarks/gap_inject_real.py --rows-out rows.json   # keep every case's scores
+    python benchmarks/gap_inject_real.py --from-rows rows.json  # the section again, no rerun
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ from _results import fmt_rate, machine_line, publish  # noqa: E402
 from gyrojax import rigs  # noqa: E402
 from gyrojax.datasets import REAL_DATA_SETS  # noqa: E402
 from gyrojax.diagnose import diagnose  # noqa: E402
+from gyrojax.io import write_json  # noqa: E402
 from gyrojax.models.imu import IMU_CHANNELS, IMURig, accel_matrix, gyro_matrix  # noqa: E402
 from gyrojax.record import BenchRecord  # noqa: E402
 from gyrojax.validation._scoring import orthonormal_basis, rate  # noqa: E402
@@ -133,10 +139,20 @@ def main(argv=None):
     ap.add_argument("--lambdas", nargs="+", type=float, default=list(LAMBDAS))
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "RESULTS.md"))
+    ap.add_argument("--rows-out", help="also write every case's scores (JSON) to this file")
+    ap.add_argument("--from-rows", help="write the section from a --rows-out file, diagnosing "
+                                        "nothing")
     ap.add_argument("--worker-json", help=argparse.SUPPRESS)  # one record, rows to this file
     args = ap.parse_args(argv)
     if args.worker_json:
         return _worker(args)
+    if args.from_rows:
+        with open(args.from_rows) as fh:
+            got = json.load(fh)
+        args.records = list(got["record"])
+        publish(args.out, "gap_inject_real", _lines(
+            got["rows"], {k: tuple(v) for k, v in got["record"].items()}, args, got["total_s"]))
+        return None
     # every record in a fresh process: each record's diagnoses compile programs of their own,
     # and one process holding the programs of several long records ran out of the kernel's
     # memory maps (LLVM "Cannot allocate memory", then a segfault)
@@ -152,6 +168,9 @@ def main(argv=None):
                 got = json.load(fh)
         rows += got["rows"]
         per_record[name] = tuple(got["record"])
+        if args.rows_out:
+            write_json({"rows": rows, "record": per_record,
+                        "total_s": time.perf_counter() - t_all}, args.rows_out)
         # after every record: a long run stopped early keeps what it measured
         publish(args.out, "gap_inject_real", _lines(rows, per_record, args,
                                                     time.perf_counter() - t_all))
@@ -176,6 +195,8 @@ def _worker(args):
         nominal |= {k: 0.0 for k in ("bgx", "bgy", "bgz", "bax", "bay", "baz")
                     if k not in nominal}
         ident = {c.name: bool(c.identifiable) for c in base.ranking}
+        named0 = set(base.verdict.effects or [])
+        alike = {e for c in base.ambiguity["classes"] if len(c) > 1 for e in c}
         level0 = base.multiplicity.get("level", base.alpha)
         det0 = {c.name: bool(c.q is not None and c.q < level0) for c in base.ranking}
         times = []
@@ -201,7 +222,8 @@ def _worker(args):
                     record=name, effect=effect, lam=lam, identifiable=ident[effect],
                     detected=bool(cand.q is not None and cand.q < level),
                     detected0=bool(det0[effect]),
-                    named=effect in (rep.verdict.effects or []), top=bool(top == effect),
+                    named=effect in (rep.verdict.effects or []), named0=effect in named0,
+                    separable=effect not in alike, top=bool(top == effect),
                     recovery=recovery(_refit(rep, effect), _refit(base, effect), shown),
                     verdict=f"{rep.verdict.kind} {rep.verdict.effects}"))
                 r = rows[-1]
@@ -222,13 +244,16 @@ def _lines(rows, per_record, args, total_s):
              "index), one random "
              f"direction each, added to the samples; {len(rows)} cases in {total_s:.0f} s. "
              "Rates over the identifiable cases (the effect has directions the record shows); "
-             "named = in the verdict's effects; recovery = median of the refit's change over "
-             "the injected coefficients (1 = all of it).", "",
+             "named = in the verdict's effects (in brackets: named by the record as it is; not "
+             "separable: in a class of effects the record as it is cannot tell apart); "
+             "recovery = median of the refit's change over the injected coefficients (1 = all "
+             "of it).", "",
              "| record | verdict as it is | diagnosis s (as it is / median injected) |",
              "|---|---|---|"]
     for name, (verdict, t_base, t_inj) in per_record.items():
         lines.append(f"| `{name}` | {verdict} | {t_base:.0f} / {t_inj:.0f} |")
-    lines += ["", "| record | effect | lambda | detected (as it is) | named | top | recovery |",
+    lines += ["", "| record | effect | lambda | detected (as it is) | named (as it is) | top "
+              "| recovery |",
               "|---|---|---|---|---|---|---|"]
     for name in per_record:
         for effect in args.effects:
@@ -242,19 +267,25 @@ def _lines(rows, per_record, args, total_s):
                     lines.append(f"| `{name}` | {effect} | {lam:g} | not identifiable | | | |")
                     continue
                 rec = "-" if r["recovery"] is None else f"{r['recovery']:.2f}"
+                sep = "" if r["separable"] else ", not separable"
                 lines.append(f"| `{name}` | {effect} | {lam:g} | {r['detected']} "
-                             f"({r['detected0']}) | "
-                             f"{r['named']} | {r['top']} | {rec} |")
-    lines += ["", "| lambda | detected | not detected as it is, detected | named | top | "
-              "recovery (median) |", "|---|---|---|---|---|---|"]
+                             f"({r['detected0']}) | {r['named']} ({r['named0']}{sep}) | "
+                             f"{r['top']} | {rec} |")
+    lines += ["", "| lambda | detected | not detected as it is, detected | named | not named "
+              "as it is, named | separable, named | separable and not named as it is, named "
+              "| top | recovery (median) |", "|---|---|---|---|---|---|---|---|---|"]
     for lam in args.lambdas:
         sel = [r for r in rows if r["lam"] == lam and r["identifiable"]]
         recs = [r["recovery"] for r in sel if r["recovery"] is not None]
         fresh = [r["detected"] for r in sel if not r["detected0"]]
         med = f"{np.median(recs):.2f} (n={len(recs)})" if recs else "-"
+        named = [_share(r["named"] for r in sub) for sub in (
+            sel, [r for r in sel if not r["named0"]], [r for r in sel if r["separable"]],
+            [r for r in sel if r["separable"] and not r["named0"]])]
         lines.append(f"| {lam:g} | {fmt_rate(_share(r['detected'] for r in sel))} | "
-                     f"{fmt_rate(_share(fresh))} | {fmt_rate(_share(r['named'] for r in sel))} | "
-                     f"{fmt_rate(_share(r['top'] for r in sel))} | {med} |")
+                     f"{fmt_rate(_share(fresh))} | "
+                     + " | ".join(fmt_rate(x) for x in named)
+                     + f" | {fmt_rate(_share(r['top'] for r in sel))} | {med} |")
     return lines
 
 
