@@ -1855,6 +1855,16 @@ def test_verdict_names_a_set_of_effects_with_each_ones_share_of_the_gap():
     v = verdict([single, refit(["scale_factor", "misalignment"], 0.05, True, [])])
     assert v["kind"] == "attributed" and v["effects"] == ["scale_factor", "misalignment"]
     assert Verdict(**v).headline().endswith("; remainder: no significant cell")
+    # the report says the headline once: as the reason, or on its own line
+    from gyrojax.diagnose._report import verdict_lines
+
+    partial = Verdict(**verdict([single, pair]))
+    assert verdict_lines(partial) == [
+        "**Verdict: partial** (scale_factor, misalignment)", partial.headline()]
+    noted = dataclasses.replace(partial, reason=partial.reason + "; the noise model lacks x")
+    assert verdict_lines(noted) == [f"**Verdict: partial** (scale_factor, misalignment) - "
+                                    f"{noted.reason}"]
+    assert verdict_lines(Verdict(**v))[1].startswith("scale_factor + misalignment explain")
     # the top effect alone leaves no cell: attributed to it alone
     v = verdict([refit(["scale_factor"], 0.05, True, [])])
     assert v["effects"] == ["scale_factor"] and v["explained"]["shares"] == {

@@ -19,6 +19,19 @@ ADVICE_SHOWN = 3  # design-advice rows per effect in the Markdown summary (the J
 UNITS_CHECK_RATIO = 30.0
 
 
+def verdict_lines(v) -> list[str]:
+    """The report's first lines: the verdict's kind and effects with its reason, then its
+    headline (each named effect's share of the gap and where the rest lies) unless the reason
+    already says it."""
+    eff = ", ".join(v.effects or []) or "-"
+    head = v.headline()
+    reason = v.reason if v.reason and v.reason != head else None
+    lines = [f"**Verdict: {v.kind}** ({eff})" + (f" - {reason}" if reason else "")]
+    if head and not (reason or "").startswith(head):
+        lines.append(head)  # effect names as the catalogue spells them
+    return lines
+
+
 @dataclasses.dataclass
 class GapReport:
     """Outcome of :func:`gyrojax.diagnose.diagnose`.
@@ -132,12 +145,7 @@ class GapReport:
     def markdown(self) -> str:
         v = self.verdict
         lines = [f"# Gap diagnosis ({self.rig})", ""]
-        eff = ", ".join(v.effects or []) or "-"
-        head = v.headline()
-        lines.append(f"**Verdict: {v.kind}** ({eff})" + (f" - {v.reason}" if v.reason
-                                                            and v.reason != head else ""))
-        if head and not (v.reason or "").startswith(head):
-            lines.append(head[0].upper() + head[1:])
+        lines += verdict_lines(v)
         g0, g1 = v.heldout_gap_before, v.heldout_gap_after
         band = self.gap.get("heldout_null_band") or [None, None]
         if g0 is not None and math.isfinite(g0):
