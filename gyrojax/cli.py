@@ -272,6 +272,8 @@ def cmd_diagnose(args):
     commands = _commands(args)
     if not 0 < args.alpha < 0.5:
         raise UsageError(f"--alpha {args.alpha}: give a significance level in (0, 0.5)")
+    if args.max_effects < 1:
+        raise UsageError(f"--max-effects {args.max_effects}: give at least 1")
     if args.null_draws != 0 and args.null_draws < int(round(1 / args.alpha)) - 1:
         raise UsageError(f"--null-draws {args.null_draws}: too few for --alpha {args.alpha}; "
                          f"give 0 (no calibration) or at least {int(round(1 / args.alpha)) - 1}"
@@ -284,7 +286,7 @@ def cmd_diagnose(args):
     record = commands.load(args)
     report = diagnose(record, rig=args.rig, effects=effects, holdout=args.holdout,
                       alpha=args.alpha, noise_std=noise, refit_all=args.refit_all,
-                      null_draws=args.null_draws, prior=args.prior,
+                      max_effects=args.max_effects, null_draws=args.null_draws, prior=args.prior,
                       progress=stage_printer("diagnose"), **options)
     print(report.markdown())
     if args.json == "-":
@@ -462,6 +464,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--holdout", type=float, default=0.25,
                    help="fraction of the record (its end) held out for the before/after gap "
                         "(default 0.25)")
+    p.add_argument("--max-effects", type=int, default=3,
+                   help="the most catalogued effects one verdict names together, each added "
+                        "by its score test after the ones before it are refitted (default 3; "
+                        "1: the top effect alone)")
     p.add_argument("--refit-all", action="store_true",
                    help="also refit every other catalogued effect, so each candidate carries "
                         "its held-out gap after and reduction (the verdict is unchanged)")

@@ -1973,6 +1973,8 @@ def test_bad_input_errors():
         diagnose(rec, holdout=0.95)
     with pytest.raises(ValueError, match="null_draws=10 with alpha=0.05: give 0"):
         diagnose(rec, null_draws=10)
+    with pytest.raises(ValueError, match="max_effects=0; give at least 1"):
+        diagnose(rec, max_effects=0)
 
 
 def test_cli_diagnose(tmp_path, capsys):
@@ -1999,6 +2001,8 @@ def test_cli_diagnose(tmp_path, capsys):
     assert main(["diagnose", str(path), "--effects", "wobble"]) == 2
     assert "unknown effect" in capsys.readouterr().err
     assert main(["diagnose", str(path), "--rig", "schuler"]) == 2
+    assert main(["diagnose", str(path), "--max-effects", "0"]) == 2
+    assert "--max-effects 0: give at least 1" in capsys.readouterr().err
 
 
 def test_builtin_record_gap_is_its_hidden_base_misalignment():
