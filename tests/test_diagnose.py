@@ -946,8 +946,9 @@ def test_pipeline_pieces_by_hand():
     """The pipeline's small pieces against hand computations on synthetic inputs.
     - The weighted-BH weights: the library's share split over its tests, the rest over the
       map's cells.
-    - The greedy second effect: Bonferroni over the rest of the library. The best of the other
-      three at p is taken at alpha = 4 p, not at alpha = 2 p.
+    - The next effect of forward selection: Bonferroni over the rest of the library. The best of
+      the other three at p is taken at alpha = 4 p, not at alpha = 2 p; an effect already
+      chosen is not rescored.
     - The signature consistency: the cosine between the finest windows' positive excess (a
       negative one counts 0) and the effect's predicted energy in them (both ends of a window
       included).

@@ -156,7 +156,7 @@ def test_first_order_nominal_screens_each_left_out_coefficient(tmp_path, capsys)
 @pytest.mark.slow  # ~30 s: a K = 22 diagnosis of its own
 def test_two_hidden_coefficients_are_attributed_as_a_pair(tmp_path):
     """Two g^2 terms left out of a first-order nominal (D_ii_y and D_ss_z, -0.03 deg/h/g^2
-    each): the best single refit leaves most of the held-out gap, the greedy second step
+    each): the best single refit leaves most of the held-out gap, forward selection
     (docs/diagnosis.md stage 4) adds the other, and the verdict attributes the pair: the held-out gap
     below its null band, both coefficients within 3 standard errors of the generating values."""
     from gyrojax.diagnose._platform import FIRST_ORDER_TERMS

@@ -320,7 +320,9 @@ def orthonormal_basis(j):
 def remainder_after_library(d, jn, cols) -> dict:
     """Truth side of goal G9: the noncentrality of a whitened out-of-library term ``d``
     (train rows) left after the nominal parameters (columns ``jn``) and the best catalogue fit
-    the diagnosis can make (one effect, or a pair: its greedy second step) are fitted.
+    of one effect or a pair are fitted (the diagnosis' forward selection can name up to
+    ``max_effects`` = 3; the truth side stops at pairs, so a three-effect mimic counts
+    here as outside the catalogue).
     ``cols``: family -> list of column blocks (one per grid value). Returns the
     nominal-projected lambda, the remainder after the best fit (one effect or a pair), after
     the best single effect, and that effect.

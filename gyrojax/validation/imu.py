@@ -190,8 +190,9 @@ def _lambda_scale(params, design, names, b, n_train_frac, heading_deg=None):
 def _remainder_lambda(params, design, term):
     """Truth side of goal G9: the noncentrality of an additive term ``term`` (n, 6) on the
     train static samples (whitened) that is left after the nominal parameters (biases, pose
-    angles) and the best catalogue fit the diagnosis can make (one mean effect, or a pair: its
-    greedy second step) are fitted; the transient over a grid of decay times. Returns
+    angles) and the best catalogue fit of one mean effect or a pair are fitted (the diagnosis
+    can name up to three: the truth side stops at pairs); the transient over a grid of decay
+    times. Returns
     the nominal-projected lambda, the remainder after the best fit (one effect or a pair), after
     the best single effect, and that effect."""
     span = design.span_s
