@@ -231,8 +231,7 @@ def _worker(args):
                       f"{r['named']}, top {r['top']}, recovery {r['recovery']}, {r['verdict']}")
         verdict = f"{base.verdict.kind} ({', '.join(base.verdict.effects or [])})"
         per_record[name] = (verdict, t_base, float(np.median(times)) if times else float("nan"))
-    with open(args.worker_json, "w") as fh:
-        json.dump({"rows": rows, "record": per_record[name]}, fh)
+    write_json({"rows": rows, "record": per_record[name]}, args.worker_json)
 
 
 def _lines(rows, per_record, args, total_s):

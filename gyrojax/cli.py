@@ -194,8 +194,9 @@ def cmd_demo(args):
     print(f"\ndiagnosis verdict: {v['kind']} ({', '.join(v.get('effects') or []) or '-'}); "
           f"held-out gap {v['heldout_gap_before']:.3g} -> "
           f"{'-' if after is None else f'{after:.3g}'} (0 = model and data agree)")
-    if gap.verdict.headline():
-        print(gap.verdict.headline())
+    head = gap.verdict.headline()
+    if head:
+        print(head)
     if args.json == "-":
         emit_json(summary, "-")
     outputs = [(args.json if args.json != "-" else None, json_writer(summary))]

@@ -234,6 +234,11 @@ def _pair_also(pair, chosen, g_nom) -> str:
             "stay significant")
 
 
+def _cell_names(cells) -> list[str]:
+    """Gap-map cells as the verdict lists them: ``"<axis> <cell> <channel>"``."""
+    return [f"{x['axis']} {x['cell']} {x['channel']}" for x in cells]
+
+
 PARTIAL_SHARE = 0.9  # the share of the gap the named set must explain to be named with a remainder
 
 
@@ -333,7 +338,7 @@ def _verdict(detected, rows, amb, refits, chain, top, alpha, cells, g_nom, band,
                           f"the train design that have one on the whole record: "
                           f"{', '.join(shift_hidden)}"}
     if not sig_rows:
-        where = [f"{x['axis']} {x['cell']} {x['channel']}" for x in cells if x.get("significant")]
+        where = _cell_names(x for x in cells if x.get("significant"))
         return {"kind": "unexplained", "effects": [], "heldout_gap_after": None, **base,
                 "cells": where[:10],
                 "reason": "the gap map is significant but no catalogued effect's score test is"}
@@ -380,11 +385,10 @@ def _verdict(detected, rows, amb, refits, chain, top, alpha, cells, g_nom, band,
             v = {"kind": "partial", "effects": last["effects"],
                  "heldout_gap_after": last["heldout_gap_after"], **base,
                  "posterior": {r.sig.name: r.posterior for r in amb},
-                 "cells": [f"{x['axis']} {x['cell']} {x['channel']}"
-                           for x in last["remaining_cells"]][:10],
+                 "cells": _cell_names(last["remaining_cells"])[:10],
                  "explained": ex, "remainder": remainder_text(last["remaining_cells"])}
             return dict(v, reason=headline(v))
-        cells_left = [f"{x['axis']} {x['cell']} {x['channel']}" for x in chosen["remaining_cells"]]
+        cells_left = _cell_names(chosen["remaining_cells"])
         return {"kind": "unexplained", "effects": chosen["effects"],
                 "heldout_gap_after": chosen["heldout_gap_after"], **base, "cells": cells_left[:10],
                 "reason": "after refitting the best catalogued effect(s) the localised gap map "
