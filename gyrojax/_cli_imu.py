@@ -290,6 +290,11 @@ class IMUCommands(AbstractRigCommands):
                                     "effect as an effect of its own (g_sensitivity:gsxy, "
                                     "misalignment:mgxy, ...; K = 40 on six channels): which "
                                     "term of the error model, not only which family")
+            group.add_argument("--statics-only", action="store_true",
+                               help="imu: leave out the turns between still poses (by default "
+                                    "each turn's misclosure, the pose before propagated through "
+                                    "the gyros against the pose after, is a residual block of "
+                                    "its own)")
             group.add_argument("--table-run", action="append", metavar="T0:T1:RATE",
                                help="imu: a constant-rate table run about the vertical, from "
                                     "T0 to T1 s (from the record start) at RATE deg/s (ccw seen "
@@ -306,7 +311,8 @@ class IMUCommands(AbstractRigCommands):
         return load_imu(args)
 
     def diagnose_options(self, args):
-        return {"per_coefficient": True if args.per_coefficient else None}
+        return {"per_coefficient": True if args.per_coefficient else None,
+                "turns": False if args.statics_only else None}
 
     def noise_std(self, args):
         if args.noise_arcsec is not None:

@@ -277,20 +277,32 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
         return prob.standardize(resid, sigma)
 
     ho_dof = prob.heldout_dof
+    # the whitened residual as one vector: the rows (n c train, then held-out) and, where the
+    # problem has a second block (the IMU's turns), its entries; reordered train first
+    order = _train_first(len(prob.t), c, n, prob.block_train, prob.block_residual(params0))
+    m_tr = n * c + prob.block_train  # train entries
+
+    def whitened(pred, params):
+        """The whitened residual of ``params`` (rows ``pred``), train entries first."""
+        blk = prob.block_residual(params)
+        e_rows = standardize(prob.y - pred).reshape(-1)
+        return (e_rows if blk is None else np.concatenate([e_rows, blk]))[order]
 
     def heldout_gap(ea):
         """Held-out G, corrected for terms fitted on the held-out rows (IMU poses)."""
-        m = ea[n:].size
-        return float(np.sum(ea[n:] ** 2) / max(m - ho_dof, 1) - 1)
+        m = ea[m_tr:].size
+        return float(np.sum(ea[m_tr:] ** 2) / max(m - ho_dof, 1) - 1)
     timings["nominal_fit_s"] = time.perf_counter() - t_start
 
     t0 = time.perf_counter()
     jn_all, sigs_all = prob.jacobians(params0, sigma)
-    rows_tr = slice(0, n * c)
+    jn_all = jn_all[order]
+    sigs_all = [dataclasses.replace(s, jac=s.jac[:, order, :]) for s in sigs_all]
+    rows_tr = slice(0, m_tr)
     jn = jn_all[rows_tr]
-    sigs = [train_slice(s, n * c) for s in sigs_all]
+    sigs = [train_slice(s, m_tr) for s in sigs_all]
     s_full = {s.name: s for s in sigs_all}
-    e_all = standardize(resid_all).reshape(-1)
+    e_all = whitened(pred0, params0)
     e = e_all[rows_tr]
     timings["jacobians_s"] = time.perf_counter() - t0
 
@@ -302,16 +314,17 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
     # the test positions' offset signatures and the columns fitted outside the Jacobian
     map_kw = dict(noise_dof=noise_dof, lines=prob.lines,
                   segments=prob.position_signatures(sigma),
-                  nuisance=prob.nuisance_columns(sigma), aux=prob.aux_signatures(sigma))
+                  nuisance=prob.nuisance_columns(sigma), aux=prob.aux_signatures(sigma),
+                  block=prob.block_cells())
     mdesign = map_design(prob.t[:n], prob.channels, n_params=jn.shape[1] + nuisance, jn=jn,
                          **map_kw)
-    cells = gap_map_cells(e.reshape(n, c), prob.t[:n], prob.channels,
+    cells = gap_map_cells(e, prob.t[:n], prob.channels,
                           n_params=jn.shape[1] + nuisance, jn=jn, design=mdesign, **map_kw)
     noise_rows = prob.noise_screen(params0)
-    n_ho = len(e_all) - n * c
+    n_ho = len(e_all) - m_tr
     extra = prob.heldout_extra
-    band = _null_band(jn_all, n * c, n_ho, extra, noise_dof * c)
-    g_nom = heldout_gap(e_all.reshape(-1, c)) if n_ho else float("nan")
+    band = _null_band(jn_all, m_tr, n_ho, extra, noise_dof * c)
+    g_nom = heldout_gap(e_all) if n_ho else float("nan")
     if n_ho and prob.design_shift:
         cells.append(_heldout_cell(g_nom, band, n_ho - ho_dof, noise_dof * c, prob.split_kind))
     p_all = np.array([x["p"] for x in cells] + [r.p for r in rows] + [x["p"] for x in noise_rows])
@@ -340,7 +353,7 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
         x["q"] = float(q)
         x["significant"] = rejected(x["p"], q, level)
     q_mean = q_all[: len(cells) + len(rows)]
-    cells += lag_cells(e.reshape(n, c), prob.channels,  # reported, not decided on
+    cells += lag_cells(e[: n * c].reshape(n, c), prob.channels,  # reported, not decided on
                        aux=prob.aux_rows)
     cells += prob.full_rate_tau_cells(params0)  # reported, not decided on
     # excess energy of the whole-record windows (level 0), all channels
@@ -367,32 +380,32 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
     def run_refit(combo):
         pred, coeffs, p_refit = prob.refit(params0, [(r.sig, r.grid_index) for r in combo],
                                            sigma)
-        ea = standardize(prob.y - pred)
+        ea = whitened(pred, p_refit)
         g_aug = heldout_gap(ea) if n_ho else float("nan")
         span = np.concatenate([jn] + [r.sig.jac[r.grid_index] for r in combo], axis=1)
         span_all = np.concatenate([jn_all] + [s_full[r.sig.name].jac[r.grid_index]
                                               for r in combo], axis=1)
-        band_aug = _null_band(span_all, n * c, n_ho, extra, noise_dof * c)
-        post_cells = gap_map_cells(ea[:n], prob.t[:n], prob.channels,
+        band_aug = _null_band(span_all, m_tr, n_ho, extra, noise_dof * c)
+        post_cells = gap_map_cells(ea[:m_tr], prob.t[:n], prob.channels,
                                    n_params=jn.shape[1] + nuisance + sum(r.dof for r in combo),
                                    jn=span, **map_kw)
         qq = bh_qvalues(np.array([x["p"] for x in post_cells]))
         remaining = [dict(x, q=float(q)) for x, q in zip(post_cells, qq) if q < alpha]
-        resid_after[tuple(r.sig.name for r in combo)] = ea
+        resid_after[tuple(r.sig.name for r in combo)] = standardize(prob.y - pred)
         std_errors, estimable = _refit_uncertainty(combo, coeffs)
         refit = Refit(effects=[r.sig.name for r in combo], coefficients=coeffs,
                       std_errors=std_errors, estimable=estimable,
                       units={nm: u for r in combo for nm, u in zip(r.sig.names, r.sig.units)},
                       nominal_after=prob.display_nominal(p_refit),
                       onestep={r.sig.name: _onestep_display(r) for r in combo},
-                      gap_train_after=float(np.mean(ea[:n] ** 2) - 1),
+                      gap_train_after=float(np.mean(ea[:m_tr] ** 2) - 1),
                       heldout_gap_before=g_nom, heldout_gap_after=g_aug,
                       reduction=(1 - g_aug / g_nom) if n_ho and g_nom > band[1] else None,
                       heldout_null_band_after=list(band_aug),
                       closure=bool(g_aug <= band_aug[1]) if n_ho else None,
                       remaining_cells=remaining,
                       reading=prob.refit_reading(tuple(r.sig.name for r in combo)))
-        return refit, ea[:n].reshape(-1), span
+        return refit, ea[:m_tr], span
 
     refits = []
     resid_after = {}
@@ -482,5 +495,16 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
 
 def train_slice(sig, m):
     return dataclasses.replace(sig, jac=sig.jac[:, :m, :])
+
+
+def _train_first(n_rows: int, c: int, n_train: int, block_train: int, block) -> np.ndarray:
+    """The order that puts the train entries first: the train rows (``n_train c``), the
+    second block's train entries, the held-out rows, the block's held-out entries (``block``:
+    the block's entries, or ``None``)."""
+    rows = np.arange(n_rows * c)
+    m = 0 if block is None else len(block)
+    blk = n_rows * c + np.arange(m)
+    return np.concatenate([rows[: n_train * c], blk[:block_train], rows[n_train * c:],
+                           blk[block_train:]])
 
 

@@ -68,6 +68,7 @@ class MapDesign:
     tau_cells: list  # (m, clusters, channel, mean, scale g, edf h)
     fisher: bool
     overlapping: bool = True  # the tau cells' Allan form (fully overlapping or not)
+    n_extra: int = 0  # entries of a second residual block after the n c rows (score cells)
 
     @property
     def n_cells(self) -> int:
@@ -79,6 +80,8 @@ def _score_cell(u, cols, *, min_visible=VISIBLE_MIN):
     """Projected basis, pseudo-inverse information and dof of a score cell with raw columns
     ``cols`` (``n c x k``): directions whose visible fraction after projecting out ``u`` is
     below ``min_visible`` are absorbed (not tested)."""
+    if cols.shape[0] < u.shape[0]:  # a rows' cell: zero on the second block
+        cols = np.concatenate([cols, np.zeros((u.shape[0] - cols.shape[0], cols.shape[1]))])
     jt = project_out(u, cols)
     _, dof, _, cov, _, _ = _lm(jt, np.zeros(len(cols)), float(np.max(np.sum(cols ** 2, 0))),
                                rtol=min_visible)
@@ -113,7 +116,7 @@ def tau_band_moments(u, n: int, c: int, ch: int, m: int):
 def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise_dof: float,
                lines: dict[str, float], jn: np.ndarray, min_window: int = 16,
                levels: int = 5, segments=None, nuisance=None, min_clusters: int = 9,
-               aux=None, overlapping: bool = True) -> MapDesign:
+               aux=None, overlapping: bool = True, block=None) -> MapDesign:
     """The cells of :func:`gap_map_cells` for ``n = len(t)`` samples of ``channels``.
 
     ``segments``: the record's test positions, ``[(label, condition, w)]`` with ``w``
@@ -123,9 +126,12 @@ def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise
     channels, ``[(label, aux channel, w)]`` with ``w`` the whitened signature of an offset on the
     rows of one bin (e.g. a temperature range): one 1-dof cell per bin and channel and the joint
     test of one auxiliary channel's bins per channel (axis ``aux``); ``overlapping``: the tau
-    cells' Allan form (fully overlapping, or the non-overlapping one of :func:`allan_form`)."""
+    cells' Allan form (fully overlapping, or the non-overlapping one of :func:`allan_form`);
+    ``block``: score cells of a second residual block whose entries follow the rows' in ``jn``
+    (the IMU's turns), ``[(axis, label, channel name, columns (entries, k))]``."""
     n, c = len(t), len(channels)
-    frac = 1.0 - n_params / max(n * c, 1)
+    n_extra = jn.shape[0] - n * c
+    frac = 1.0 - n_params / max(n * c + n_extra, 1)
     windows = []
     for lev in range(levels):
         nw = n >> lev
@@ -152,8 +158,12 @@ def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise
     aux = list(aux or [])
     score_cells += _member_cells(u, aux, c, "aux", "aux")
     score_cells += _group_cells(u, aux, c, "aux", "bins", suffix=" (all bins)", key="aux")
+    for axis, label, channel, cols in block or ():
+        jt, cov, dof = _score_cell(u, np.concatenate([np.zeros((n * c, cols.shape[1])), cols]))
+        if dof:
+            score_cells.append((axis, label, channel, jt, cov, dof, {}))
     tau_cells = []
-    uc = u.reshape(n, c, -1)
+    uc = u[: n * c].reshape(n, c, -1)
     sums = [np.concatenate([np.zeros((uc.shape[2], 1)), np.cumsum(uc[:, ch, :].T, axis=1)],
                            axis=1) for ch in range(c)] if overlapping else None
     m = 2
@@ -162,12 +172,12 @@ def map_design(t: np.ndarray, channels: tuple[str, ...], *, n_params: int, noise
             if overlapping:
                 mean, var = projected_overlapping_allan_moments(sums[ch], n, m)
             else:
-                mean, var = tau_band_moments(u, n, c, ch, m)
+                mean, var = tau_band_moments(u[: n * c], n, c, ch, m)
             if mean > 0 and var > 0:
                 tau_cells.append((m, n // m, ch, mean, var / (2 * mean), 2 * mean ** 2 / var))
         m *= 2
     return MapDesign(n, c, np.asarray(t, float), tuple(channels), noise_dof, windows,
-                     score_cells, tau_cells, n >= 16, overlapping)
+                     score_cells, tau_cells, n >= 16, overlapping, n_extra)
 
 
 def projected_overlapping_allan_moments(sums: np.ndarray, n: int, m: int) -> tuple[float, float]:
@@ -212,8 +222,11 @@ def _group_cells(u, members, c, axis, count, *, suffix="", key=None):
 
 def map_statistics(design: MapDesign, e: np.ndarray):
     """Statistics, p-values and (for the largest-line cells) periodogram peaks of the gap map for
-    residuals ``e`` (``B x n x c``): arrays ``(B, cells)`` in :func:`gap_map_cells`' order."""
-    bsz, n, c = e.shape
+    residuals ``e`` (``B x n x c``, or ``B x (n c + n_extra)`` with a second block's entries
+    after the rows'): arrays ``(B, cells)`` in :func:`gap_map_cells`' order."""
+    bsz, n, c = e.shape[0], design.n, design.c
+    flat = e.reshape(bsz, -1)
+    e = flat[:, : n * c].reshape(bsz, n, c)
     stat, pv, extra = [], [], []
     cs = np.concatenate([np.zeros((bsz, 1, c)), np.cumsum(e * e, axis=1)], axis=1)
     if design.windows:
@@ -223,7 +236,6 @@ def map_statistics(design: MapDesign, e: np.ndarray):
         pv += list(np.reshape(_f_sf(x / e0, e0, design.noise_dof), x.shape).T)
         extra += [np.zeros(bsz)] * x.shape[1]
     if design.score_cells:
-        flat = e.reshape(bsz, n * c)
         sc_all = flat @ np.concatenate([x[3] for x in design.score_cells], axis=1)
         i = 0
         lms, dofs = [], []
@@ -266,8 +278,9 @@ def map_statistics(design: MapDesign, e: np.ndarray):
 def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_params: int,
                   noise_dof: float, lines: dict[str, float], jn: np.ndarray,
                   min_window: int = 16, levels: int = 5, design: MapDesign | None = None,
-                  segments=None, nuisance=None, aux=None) -> list[dict]:
-    """The Stage-1 map of a whitened residual ``e`` (``n x c``).
+                  segments=None, nuisance=None, aux=None, block=None) -> list[dict]:
+    """The Stage-1 map of a whitened residual ``e`` (``n x c``; or flat, ``n c`` rows then a
+    second block's entries, whose cells ``block`` names: :func:`map_design`).
 
     - time x channel: windowed sums of squares over dyadic windows, against
       ``E0 = n_w (1 - p/n)`` with an F reference when the noise level was estimated with
@@ -291,12 +304,12 @@ def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_
     Cells: dicts with axis, cell, channel, statistic, dof, expected, p. ``design``: the
     :func:`map_design` of these arguments (computed here when not given).
     """
-    n, c = e.shape
+    n, c = len(t), len(channels)
     if design is None:
         design = map_design(t, channels, n_params=n_params, noise_dof=noise_dof, lines=lines,
                             jn=jn, min_window=min_window, levels=levels, segments=segments,
-                            nuisance=nuisance, aux=aux)
-    stat, pv, extra = (x[0] for x in map_statistics(design, e[None]))
+                            nuisance=nuisance, aux=aux, block=block)
+    stat, pv, extra = (x[0] for x in map_statistics(design, np.reshape(e, (1, -1))))
     cells = []
     i = 0
     for lev, k, a, b, ch, e0 in design.windows:
@@ -306,7 +319,8 @@ def gap_map_cells(e: np.ndarray, t: np.ndarray, channels: tuple[str, ...], *, n_
                           t1=float(t[b - 1]), level=lev))
         i += 1
     for axis, label, ch, jt, _, dof, info in design.score_cells:
-        cells.append(dict(axis=axis, cell=label, channel=channels[ch], statistic=float(stat[i]),
+        cells.append(dict(axis=axis, cell=label, channel=ch if isinstance(ch, str) else
+                          channels[ch], statistic=float(stat[i]),
                           dof=dof, expected=dof, excess=float(stat[i]) - dof, p=float(pv[i]),
                           **info, **({"z": float(extra[i])} if jt.shape[1] == 1 else {})))
         i += 1

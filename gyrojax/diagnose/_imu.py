@@ -71,6 +71,7 @@ from ..record import BenchRecord
 from ._noise_tests import full_rate_tau_cells, outlier_score, quantization_score
 from ._problem import AbstractGapProblem
 from ._signatures import Signature, check_effects, coefficient_effect, effect_family_name
+from ._turns import build_turns, rescale_block, turn_level, turn_misclosure
 
 __all__ = ["IMUProblem", "IMU_LIBRARY"]
 
@@ -120,7 +121,9 @@ class IMUProblem(AbstractGapProblem):
     OPTIONS = {"per_coefficient": "screen every coefficient of the catalogue as an effect of "
                                   "its own (family:parameter)",
                "block_s": "block-mean length in s (default: at most max_rows rows)",
-               "max_rows": "the most block-mean rows (default 1500)"}
+               "max_rows": "the most block-mean rows (default 1500)",
+               "turns": "use the turns between still poses as a second residual block "
+                        "(default: where the record holds them)"}
     NOISE_UNITS = {"wx": (1.0, "rad/s"), "wy": (1.0, "rad/s"), "wz": (1.0, "rad/s"),
                    "ax": (1.0, "m/s^2"), "ay": (1.0, "m/s^2"), "az": (1.0, "m/s^2")}
     CATALOGUE_NOTE = ("earth_rate is the whole Earth rate: k_earth (its vertical part) and, per "
@@ -141,7 +144,7 @@ class IMUProblem(AbstractGapProblem):
 
     def __init__(self, record: BenchRecord, *, holdout: float = 0.25, noise_std=None,
                  effects=None, block_s: float | None = None, max_rows: int = 1500,
-                 per_coefficient: bool = False):
+                 per_coefficient: bool = False, turns: bool = True):
         # single coefficients (family:parameter) are checked below
         check_effects([effect_family_name(e) for e in effects or ()], IMU_LIBRARY, "imu")
         bad = [c for c in record.channels if c not in IMU_CHANNELS and not is_aux(c)]
@@ -226,6 +229,19 @@ class IMUProblem(AbstractGapProblem):
             raw = self._aux_raw[:, self.aux_names.index(self.temp_name)]
             self.thermal = (temp - temp[: self.n_train].mean(),
                             _local_slope(t_raw, raw, self.t, half))
+        # the turns between still poses: a second residual block (its level: fit_nominal)
+        # each entry's level (rad; set by fit_nominal), its scale over the gyro-noise prior,
+        # the dof of that scale and the basis the null draws re-estimate it through
+        self.turn_std, self.turn_scale, self.turn_dof, self._turn_q = None, 1.0, np.inf, None
+        self.turn_start = {}  # the gyro scale and misalignment terms that fit the turns
+        self.turns = build_turns(
+            self.record, self.segments, self.omega == 0, self.u0,
+            self.t[self.n_train] if self.n_train < n else np.inf,
+            self._thermal_at) if turns and self.has_accel else None
+        if self.turns is not None and self.turns.n_train < 2:
+            self.notes.append(f"the {self.turns.m} turn(s) between poses not used: "
+                              f"{self.turns.n_train} end before the held-out rows")
+            self.turns = None
         # poses with no train row are fitted on the held-out rows (profiled)
         self.heldout_poses = sorted(set(self.seg[self.n_train:]) - set(self.seg[: self.n_train]))
         self.heldout_dof = len(self._pose_terms(self.heldout_poses))
@@ -340,9 +356,11 @@ class IMUProblem(AbstractGapProblem):
         """The compiled model, its directional Jacobian and its fit for ``n_pose`` poses on
         this record's conditions and channels (cached across problems; a candidate design's
         poses count compiles the first two only)."""
-        key = (n_pose, self.cond, tuple(int(i) for i in self.ch_idx))
+        ch = tuple(int(i) for i in self.ch_idx)
+        # the conditions by value: an unknown latitude is NaN, and NaN != NaN
+        key = (n_pose, repr((self.cond.latitude_deg, self.cond.gravity, self.cond.rate_hz)), ch)
         if key not in _COMPILED:
-            _COMPILED[key] = _build(*key)
+            _COMPILED[key] = _build(n_pose, self.cond, ch)
         return _COMPILED[key]
 
     def _full(self, base, names, t, seg, vec=None, design=None, thermal=None):
@@ -361,14 +379,21 @@ class IMUProblem(AbstractGapProblem):
                 self._thermal_at(t) if thermal is None else thermal)
         return full, idx, args
 
-    def _call(self, which, names, base, t, seg, vec=None, design=None, thermal=None):
+    def _call(self, which, names, base, t, seg, vec=None, design=None, thermal=None,
+              turns=False):
         """Model (``which=0``) or its Jacobian in the free parameters ``names`` (``which=1``) at
         ``base`` with ``names`` set from ``vec`` (per-scale units; default zeros). One compiled
         model per poses count, conditions and channels serves every name set: it takes the
-        whole mean-model vector, and the Jacobian is the tangents along ``names`` alone."""
+        whole mean-model vector, and the Jacobian is the tangents along ``names`` alone.
+        ``turns``: the turns' misclosures ``(2 m,)`` (rad; :mod:`._turns`) instead of the
+        rows."""
         names = tuple(names)
         full, idx, args = self._full(base, names, t, seg, vec, design, thermal)
-        model, jvps, _ = self._compiled(len(args[3][0]))
+        model, jvps, _, turn, turn_jvps = self._compiled(len(args[3][0]))
+        if turns:  # the turns' misclosures instead of the rows: (2 m, ...)
+            m2 = 2 * self.turns.m
+            args = (args[0], args[3], self.turns.arrays)
+            model, jvps = (lambda *a: turn(*a)[:m2]), (lambda *a: turn_jvps(*a)[:m2])
         if which == 0:
             return np.asarray(model(jnp.asarray(full), *args))
         # one tangent per name, JVP_WIDTH at a time (the last chunk padded): one compilation
@@ -402,11 +427,12 @@ class IMUProblem(AbstractGapProblem):
         return out if extra is None else out + extra
 
     # -- fits ------------------------------------------------------------------------------
-    def _gn(self, params, free, rows):
+    def _gn(self, params, free, rows, turns: bool = False):
         """Levenberg-Marquardt (optimistix, :func:`~gyrojax.estimate.solve_least_squares`) on
         ``free`` over ``rows``: one compiled fit per poses count over the whole mean-model
-        vector, the other terms masked (held) and the other rows weighted 0. The model is
-        nearly linear, so a few steps do; a fit that does not converge says so in
+        vector, the other terms masked (held) and the other rows weighted 0. ``turns``: the
+        train turns' misclosures join the fit, weighted by their level (once it is known). The
+        model is nearly linear, so a few steps do; a fit that does not converge says so in
         :attr:`notes`."""
         names = tuple(free)
         full, idx, model_args = self._full(params, names, self.t, self.seg,
@@ -415,9 +441,12 @@ class IMUProblem(AbstractGapProblem):
         rw = np.zeros(len(self.t))
         rw[rows] = 1.0
         fit = self._compiled(len(self.segments))[2]
+        block = None
+        if turns and self.turns is not None and self.turn_std is not None:
+            block = (self.turns.arrays, jnp.asarray(self.turns.weights(self.turn_std)))
         value, sol = fit(jnp.asarray(full), jnp.asarray(where), jnp.asarray(valid),
                          jnp.asarray(rw), jnp.asarray(self.y),
-                         jnp.asarray(1.0 / self._scale_rows()), *model_args)
+                         jnp.asarray(1.0 / self._scale_rows()), block, *model_args)
         note = convergence_note(sol, "the IMU fit of " + (
             "the nominal model" if set(names) <= set(self.nominal_names + self.pose_names)
             else ", ".join(n for n in names if not _is_pose(n)
@@ -448,6 +477,9 @@ class IMUProblem(AbstractGapProblem):
         return p
 
     def fit_nominal(self):
+        """The nominal model on the train rows, then its AR noise model; with turns, their
+        levels (:meth:`_fit_turn_level`), and the nominal model again on rows and turns
+        together (and its AR noise model)."""
         p = self._base()
         tr = np.arange(self.n_train)
         train_poses = self.pose_names if not self.heldout_poses else tuple(
@@ -455,7 +487,98 @@ class IMUProblem(AbstractGapProblem):
         p = self._gn(p, self.nominal_names + train_poses, tr)
         p = self._fit_heldout_poses(p)
         self._fit_ar(p)
+        if self.turns is not None:
+            self._fit_turn_level(p)
+            p = self._gn(p, self.nominal_names + train_poses, tr, turns=True)
+            p = self._fit_heldout_poses(p)
+            self._fit_ar(p)
         return p
+
+    # -- the turns: a second residual block ------------------------------------------------
+    def _fit_turn_level(self, p):
+        """The turns' levels: the gyros' white noise over each turn
+        (:attr:`~._turns.TurnBlock.prior_std`), scaled to the full model's residual
+        (:func:`~._turns.turn_level`, the nominal model and every catalogued mean effect, the
+        warm-up at its middle decay time, linearised); where the turns leave too few dof for
+        that, they are dropped with a note. A large gyro scale or misalignment error (20 %)
+        turns a 100-deg turn's misclosure far from linear, so the full model is linearised
+        where those nine terms fit the turns (the gyro calibration's fit, every other term
+        held): :attr:`turn_start`, which the refits start from too."""
+        n, c, m2 = self.n_train, len(self.channels), 2 * self.turns.n_train
+        prior = np.repeat(self.turns.prior_std, 2)
+        self.turn_std = prior
+        gyro = tuple(x for x in self.space.names if x[:2] in ("sg", "mg"))
+        full = self._gn(dict(p, tau_w=self.tau_grid_s[len(self.tau_grid_s) // 2]), gyro,
+                        np.arange(0), turns=True)
+        names = self.nominal_names + self.pose_names
+        gcols = self.whiten(self.full_model_columns(full)[:n]) / self._ar_sigma[None, :, None]
+        gres = self.whiten((self.y - self.predict(full))[:n]) / self._ar_sigma
+        bcols = np.concatenate([self._call(1, names, full, self.t, self.seg,
+                                           self._vector(full, names), turns=True),
+                                self._full_effect_columns(full, turns=True)], axis=1)[:m2]
+        bres = -self._call(0, names, full, self.t, self.seg, self._vector(full, names),
+                           turns=True)[:m2]
+        scale, dof, q = turn_level(gcols.reshape(n * c, -1), gres.reshape(-1),
+                                   bcols / prior[:m2, None], bres / prior[:m2])
+        if not np.isfinite(scale):
+            self.notes.append(
+                f"the {self.turns.m} turns between poses not used: the full model leaves "
+                f"{dof:.1f} dof on the {self.turns.n_train} train turns' misclosures, too few "
+                "to estimate their noise level (a hand turn's misclosure holds more than the "
+                "gyros' white noise)")
+            self.turns, self.turn_std = None, None
+            return
+        self.turn_scale, self.turn_dof, self._turn_q = scale, dof, q
+        self.turn_std = scale * prior
+        self.turn_start = {x: full[x] for x in gyro}
+
+    @property
+    def block_train(self) -> int:
+        """Train entries of the turns' block (two per train turn; 0 without turns)."""
+        return 0 if self.turns is None else 2 * self.turns.n_train
+
+    def block_residual(self, params):
+        """The turns' whitened misclosure entries ``(2 m,)``, train turns first (``None``
+        without turns): minus the misclosure over its level, as the rows' data minus model."""
+        if self.turns is None:
+            return None
+        names = self.nominal_names + self.pose_names
+        return -self._call(0, names, params, self.t, self.seg, self._vector(params, names),
+                           turns=True) / self.turn_std
+
+    def block_rescale(self, z):
+        """Null draws ``(b, n c + 2 m_train)`` with the turns' level re-estimated as on the
+        data (:func:`~._turns.rescale_block`)."""
+        return rescale_block(z, self._turn_q, self.block_train, self.turn_dof)
+
+    def block_cells(self):
+        """The gap map's turn cells: each train turn (2 dof), the turns mostly about each body
+        axis, and all train turns, as ``(axis, label, channel, columns (2 m_train, k))``."""
+        if self.turns is None:
+            return []
+        tb, m2 = self.turns, self.block_train
+        eye = np.eye(m2)
+        labels = tb.labels()
+        out = [("turn", labels[j], "turns", eye[:, 2 * j: 2 * j + 2])
+               for j in range(tb.n_train)]
+        for ax in "xyz":
+            js = [j for j in range(tb.n_train) if tb.axis[j] == ax]
+            if js:
+                cols = eye[:, [2 * j + i for j in js for i in (0, 1)]]
+                out.append(("turn", f"turns about {ax} ({len(js)})", "turns", cols))
+        out.append(("turn", f"all train turns ({tb.n_train})", "turns", eye))
+        return out
+
+    @property
+    def noise_fit(self) -> dict:
+        """The turns' level (deg) and its dof, where the turns are used."""
+        if self.turns is None:
+            return {}
+        return {"turns": {"count": self.turns.m, "train": self.turns.n_train,
+                          "std_deg": float(np.degrees(np.median(self.turn_std))),
+                          "scale": float(self.turn_scale), "dof": float(self.turn_dof),
+                          "source": "the gyros' white noise over each turn, scaled to the full "
+                                    "model's residual"}}
 
     def _fit_heldout_poses(self, p):
         names = self._pose_terms(self.heldout_poses)
@@ -464,20 +587,25 @@ class IMUProblem(AbstractGapProblem):
         return self._gn(p, names, np.arange(self.n_train, len(self.t)))
 
     # -- prewhitening ----------------------------------------------------------------------
-    def _full_effect_columns(self, params, t=None, seg=None):
+    def _full_effect_columns(self, params, t=None, seg=None, turns=False):
         """Raw (unwhitened) Jacobian columns of every catalogued mean effect at the null, all
-        warm-up grid values included: ``(rows, channels, k)``."""
+        warm-up grid values included: ``(rows, channels, k)`` (``turns``: the turns'
+        misclosures', ``(2 m, k)``)."""
         t = self.t if t is None else t
         seg = self.seg if seg is None else seg
-        cols = self._effect_columns(params, t, seg)
+        cols = self._effect_columns(params, t, seg, turns=turns)
         cols = [c for e in self.effects for n in self.effect_names[e] for c in cols[n]]
+        if turns:
+            return np.stack(cols, axis=1) if cols else np.zeros((2 * self.turns.m, 0))
         return np.stack(cols, axis=2) if cols else np.zeros((len(t), len(self.channels), 0))
 
-    def _effect_columns(self, params, t, seg, design=None, thermal=None, whiten=None):
+    def _effect_columns(self, params, t, seg, design=None, thermal=None, whiten=None,
+                        turns=False):
         """Jacobian columns ``(rows, channels)`` of every catalogued mean-effect coefficient at
-        the null (raw, or through ``whiten``): name -> one column per warm-up decay time (one
-        for the others). One batched JVP (and whitening) per decay time and one for the rest,
-        whatever the catalogue's granularity."""
+        the null (raw, or through ``whiten``; ``turns``: of the turns' misclosures, ``(2 m,)``):
+        name -> one column per warm-up decay time (one for the others). One batched JVP (and
+        whitening) per decay time and one for the rest, whatever the catalogue's
+        granularity."""
         effects = [e for e in self.effects if self.effect_names[e]]
         warm = [n for e in effects if _grid_effect(e) for n in self.effect_names[e]]
         plain = [n for e in effects if not _grid_effect(e) for n in self.effect_names[e]]
@@ -485,7 +613,8 @@ class IMUProblem(AbstractGapProblem):
         for names, taus in ((plain, (None,)), (warm, self.tau_grid_s)):
             for tau in taus if names else ():
                 base = dict(params) | ({"tau_w": tau} if tau else {})
-                j = self._call(1, names, base, t, seg, design=design, thermal=thermal)
+                j = self._call(1, names, base, t, seg, design=design, thermal=thermal,
+                               turns=turns)
                 j = j if whiten is None else whiten(j)
                 for i, n in enumerate(names):
                     out.setdefault(n, []).append(j[..., i])
@@ -582,14 +711,20 @@ class IMUProblem(AbstractGapProblem):
         names = self.nominal_names + self.pose_names
         jn = self._call(1, names, params, t, seg, self._vector(params, names))
         jn = (self.whiten(jn) / sigma[None, :, None]).reshape(-1, len(names))
-        return jn, self._signatures(params, sigma, t, seg, self.whiten)
+        if self.turns is not None:  # the turns' block: rows after the still rows'
+            jn = np.concatenate([jn, self._call(1, names, params, t, seg, self._vector(
+                params, names), turns=True) / self.turn_std[:, None]])
+        return jn, self._signatures(params, sigma, t, seg, self.whiten,
+                                    turns=self.turns is not None)
 
-    def _signatures(self, params, sigma, t, seg, whiten, design=None, thermal=None):
+    def _signatures(self, params, sigma, t, seg, whiten, design=None, thermal=None,
+                    turns=False):
         """One :class:`Signature` per catalogued mean effect with coefficients (whitened by
         ``whiten``, scaled by ``sigma`` and the prior scales; warm-up: one slice per decay
-        time). A pair of per-coefficient warm-ups refits at one decay time (the model has one
-        ``tau_w``)."""
+        time; ``turns``: the turns' block appended to the rows). A pair of per-coefficient
+        warm-ups refits at one decay time (the model has one ``tau_w``)."""
         cols = self._effect_columns(params, t, seg, design, thermal, whiten)
+        block = self._effect_columns(params, t, seg, turns=True) if turns else None
         out = []
         for e in self.effects:
             names = self.effect_names[e]
@@ -601,9 +736,14 @@ class IMUProblem(AbstractGapProblem):
             factor = np.array([1.0 / CHAIN_SCALE if _is_pose(n) else
                                self.space[n].display_factor / self.space[n].scale
                                for n in names])
-            slices = [np.stack([cols[n][g] for n in names], axis=2) / sigma[None, :, None]
+            slices = [(np.stack([cols[n][g] for n in names], axis=2)
+                       / sigma[None, :, None]).reshape(-1, len(names))
                       for g in range(len(cols[names[0]]))]
-            slices = [j.reshape(-1, len(names)) * factor * pri for j in slices]
+            if block is not None:  # the turns' rows after the still rows'
+                slices = [np.concatenate([j, np.stack([block[n][g] for n in names], axis=1)
+                                          / self.turn_std[:, None]])
+                          for g, j in enumerate(slices)]
+            slices = [j * factor * pri for j in slices]
             grid = tuple(x / 3600 for x in self.tau_grid_s) if _grid_effect(e) else ()
             out.append(Signature(e, fam, names, tuple(self._unit(n) for n in names),
                                  pri, np.stack(slices), grid, "decay time" if grid else "",
@@ -630,7 +770,10 @@ class IMUProblem(AbstractGapProblem):
             free += list(sig.names)
             if _grid_effect(sig.name):
                 p["tau_w"] = self.tau_grid_s[g]
-        p = self._gn(p, tuple(free), np.arange(self.n_train))
+            # a gyro scale or misalignment term starts where it fits the turns (the optimum
+            # does not move; the Levenberg-Marquardt steps from 0 to 20 % do)
+            p |= {x: v for x, v in self.turn_start.items() if x in sig.names}
+        p = self._gn(p, tuple(free), np.arange(self.n_train), turns=True)
         p = self._fit_heldout_poses(p)
         coeffs = {n: self._display(p, n) for sig, _ in sig_choices for n in sig.names}
         if any(effect_family_name(sig.name) == "earth_rate" for sig, _ in sig_choices):
@@ -1078,6 +1221,11 @@ def _all_params(n_pose):
 
 
 _FIT_STEPS = 30  # optimistix steps of an IMU fit
+# a fit with the turns adds (_TURN_RIDGE v)^2 per fitted entry v (per-scale units) to its sum
+# of squares in noise units: it pins the valley of a common rotation of the gyro and
+# accelerometer frames (without it the Xsens refits crept along it for 60 steps), and pulls a
+# term with standard error se (per-scale units) by 1e-4 se^2 of its value
+_TURN_RIDGE = 1e-2
 
 
 def _build(n_pose, cond, ch_idx):
@@ -1107,22 +1255,40 @@ def _build(n_pose, cond, ch_idx):
         return jax.vmap(lambda d: jax.jvp(lambda v: f(v, *args), (vec,), (d,))[1],
                         out_axes=-1)(dirs)
 
-    def fit(full, where, valid, rw, y, w, *args):
+    def turn(vec, tau_w, geo, arrays):
+        """The turns' misclosures (:func:`~._turns.turn_misclosure`) at ``vec``."""
+        p, x = _params(vec, allp, base | {"tau_w": tau_w}, n_pose)
+        return turn_misclosure(p, x["a"], x["b"], geo[0], geo[1], geo[2], arrays)
+
+    def turn_jvps(vec, dirs, *args):
+        """The misclosures' Jacobian along the rows of ``dirs``, last axis."""
+        return jax.vmap(lambda d: jax.jvp(lambda v: turn(v, *args), (vec,), (d,))[1],
+                        out_axes=-1)(dirs)
+
+    def fit(full, where, valid, rw, y, w, turns, *args):
         """The entries ``where`` of ``full`` (those ``valid`` marks; the rest padding) fitted to
-        the rows ``rw`` marks of ``y`` (per-channel weights ``w``): (the fitted entries, the
-        solution)."""
+        the rows ``rw`` marks of ``y`` (per-channel weights ``w``) and, where ``turns`` is
+        ``(arrays, weights)`` (not ``None``), to the turns' misclosures weighted by
+        ``weights``: (the fitted entries, the solution)."""
         def resid(v, data):
-            full, where, valid, rw, y, w, *rest = data
+            full, where, valid, rw, y, w, turns, *rest = data
             x = full.at[where].add(v * valid)
-            return ((y - f(x, *rest)) * w[None, :] * rw[:, None]).reshape(-1)
+            out = ((y - f(x, *rest)) * w[None, :] * rw[:, None]).reshape(-1)
+            if turns is not None:
+                # with the turns, a common rotation of the gyro and accelerometer frames (their
+                # misalignments' antisymmetric parts, with the poses) changes nothing: a small
+                # ridge on the fitted entries pins that valley (_TURN_RIDGE)
+                out = jnp.concatenate([out, turn(x, rest[0], rest[3], turns[0]) * turns[1],
+                                       _TURN_RIDGE * v * valid])
+            return out
 
         start = full[where] * valid
-        data = (full.at[where].multiply(1.0 - valid), where, valid, rw, y, w, *args)
+        data = (full.at[where].multiply(1.0 - valid), where, valid, rw, y, w, turns, *args)
         sol = solve_least_squares(resid, start, data, max_steps=_FIT_STEPS,
                                   solver=ScaledLevenbergMarquardt(gram=True))
         return sol.value * valid, sol
 
-    return jax.jit(f), jax.jit(jvps), jax.jit(fit)
+    return jax.jit(f), jax.jit(jvps), jax.jit(fit), jax.jit(turn), jax.jit(turn_jvps)
 
 
 def _padded(idx, at_least: int = 0):

@@ -78,7 +78,8 @@ def _calibrated_level(designs, mdesign, weights, alpha, n_draws, draw, *, seed, 
     """The BH level whose global false-alarm rate is ``alpha`` under the linearised null, and
     the draws' smallest q-values (see the module docstring).
 
-    ``draw(rng, b)`` gives ``b`` whitened null residuals (``b x n x c``, :func:`_null_sampler`);
+    ``draw(rng, b)`` gives ``b`` whitened null residuals (``b x n x c``, or flat with a second
+    block's entries after the rows': :meth:`~gyrojax.diagnose.AbstractGapProblem.null_sampler`);
     the map (:func:`map_statistics`) and the library (:func:`library_pvalues`) are evaluated
     on every draw; ``outside(rng, b)`` (:func:`_outside_pvalues`) adds the null p-values of
     the tests outside them. The level is the ``k``-th smallest of the draws' smallest q-values,
@@ -98,7 +99,7 @@ def _calibrated_level(designs, mdesign, weights, alpha, n_draws, draw, *, seed, 
         b = min(block, n_draws - start)
         z = draw(rng, b)
         _, p_map, _ = map_statistics(mdesign, z)
-        p_lib = library_pvalues(sig_designs, z.reshape(b, n * c).T).T
+        p_lib = library_pvalues(sig_designs, z.reshape(b, -1).T).T
         p_cells, p_noise = outside(rng, b) if outside is not None else (
             np.zeros((b, 0)), np.zeros((b, 0)))
         p = np.concatenate([p_map, p_cells, p_lib, p_noise], axis=1)

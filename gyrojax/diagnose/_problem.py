@@ -133,6 +133,26 @@ class AbstractGapProblem(abc.ABC):
     design_shift: bool = False
     #: :meth:`jacobians` takes ``grid={effect: index}`` to evaluate one grid value per effect
     design_grid_choice: bool = False
+    #: train entries of a second residual block with its own noise level (the IMU's turns
+    #: between poses), 0 where there is none. With one, :meth:`jacobians` appends the block's
+    #: whitened entries (all of them, train first) after the rows', and the hooks below give
+    #: its residual, its map cells and its level's re-estimate in the null draws
+    block_train: int = 0
+
+    def block_residual(self, params: dict):
+        """The second block's whitened residual entries at ``params``, train first, or
+        ``None`` where the problem has no such block."""
+        return None
+
+    def block_cells(self) -> list:
+        """The gap map's cells on the second block: ``(axis, label, channel, columns
+        (block_train, k))``."""
+        return []
+
+    def block_rescale(self, z):
+        """Null draws ``(b, n c + block_train)`` (unit white, projected) with the block's level
+        re-estimated as on the data."""
+        return z
 
     @property
     def split_kind(self) -> str:
@@ -194,8 +214,9 @@ class AbstractGapProblem(abc.ABC):
         return []
 
     def null_sampler(self, u, n: int, c: int, estimated: bool) -> Callable | None:
-        """``draw(rng, b) -> (b, n, c)`` whitened null residuals for the calibrated level, or
-        ``None`` where a simulation would not describe the problem.
+        """``draw(rng, b) -> (b, n, c)`` whitened null residuals for the calibrated level
+        (``(b, n c + block_train)`` with a second block), or ``None`` where a simulation would
+        not describe the problem.
 
         The default draws white noise per channel, takes it off the nominal span ``u`` and, when
         the data's level was estimated, re-estimates it from first differences; a problem with
@@ -203,12 +224,15 @@ class AbstractGapProblem(abc.ABC):
         platform draws its own)."""
         if self.nuisance_dof:
             return None
+        mb = self.block_train
 
         def draw(rng, b):
-            z = rng.standard_normal((b, n * c))
+            z = rng.standard_normal((b, n * c + mb))
             z -= (z @ u) @ u.T
-            z = z.reshape(b, n, c)
+            if mb:  # the second block's level, re-estimated as on the data
+                z = self.block_rescale(z)
+            grid = z[:, : n * c].reshape(b, n, c)
             if estimated:
-                z /= first_difference_level(z)[:, None, :]
-            return z
+                grid = grid / first_difference_level(grid)[:, None, :]
+            return np.concatenate([grid.reshape(b, -1), z[:, n * c:]], axis=1) if mb else grid
         return draw

@@ -179,6 +179,11 @@ class GapReport:
                              "attribution, it does not make one)")
         sig = ", ".join(f"{ch} {shown}" for ch, shown in zip(self.channels, self.noise["shown"]))
         lines.append(f"Noise level: {sig} ({self.noise['source']}); train gap {self.gap['train']:.3g}")
+        turns = self.noise.get("turns")
+        if turns:
+            lines.append(f"Turns: {turns['count']} between still poses ({turns['train']} train), "
+                         f"each a residual block entry pair at {turns['std_deg']:.3g} deg "
+                         f"(median; {turns['source']})")
         ratio = math.sqrt(max(1.0 + self.gap["train"], 0.0))
         if ratio > UNITS_CHECK_RATIO:
             lines.append(f"Note: the nominal fit's residual is {ratio:.3g} times the noise level "

@@ -20,7 +20,7 @@ def _consistency(row: Screen, prob, n, c, cells) -> float:
         return float("nan")
     finest = max(x["level"] for x in tc)
     fine = [x for x in tc if x["level"] == finest]
-    pred = (row.projected @ row.beta).reshape(n, c)
+    pred = (row.projected @ row.beta)[: n * c].reshape(n, c)  # the rows (no second block)
     chans = list(prob.channels)
     obs, pr = [], []
     for x in fine:

@@ -35,8 +35,8 @@ from ..rotations import rotvec_to_matrix
 from ._linalg import value_and_jacfwd
 from ._lstsq import ScaledLevenbergMarquardt, solve_least_squares
 
-__all__ = ["Segment", "detect_static", "turn_chains", "design_chain", "calibrate_accelerometer",
-           "calibrate_gyro",
+__all__ = ["Segment", "detect_static", "recorded_turns", "turn_chains", "design_chain",
+           "calibrate_accelerometer", "calibrate_gyro",
            "AccelCalibration", "GyroCalibration", "leave_one_position_out", "time_ordered_split",
            "segment_means"]
 
@@ -399,7 +399,7 @@ def _gyro_matrix(theta):
     return jnp.array([[1 + s[0], m[0], m[1]], [m[2], 1 + s[1], m[3]], [m[4], m[5], 1 + s[2]]])
 
 
-def _propagate(u0, w_true, dt):
+def propagate_up(u0, w_true, dt):
     """Body-frame up vector through a turn: ``u_{j+1} = exp(-[w_j dt]x) u_j`` (Rodrigues)."""
 
     def step(u, w):
@@ -423,7 +423,7 @@ def _up_vectors(theta_a, fmeans):
 def _gyro_resid(theta, args):
     u0, u1, wt, live, dt = args
     wtrue = jnp.einsum("ij,tlj->tli", jnp.linalg.inv(_gyro_matrix(theta)), wt) * live
-    return (jax.vmap(_propagate, in_axes=(0, 0, None))(u0, wtrue, dt) - u1).reshape(-1)
+    return (jax.vmap(propagate_up, in_axes=(0, 0, None))(u0, wtrue, dt) - u1).reshape(-1)
 
 
 @jax.jit
@@ -538,8 +538,33 @@ def _turn_matrices(wt, dt):
     space, from the turn's body rates ``wt`` ``(turns, samples, 3)`` (bias removed; zero rate
     pads a shorter turn)."""
     basis = jnp.eye(3)
-    prop = jax.vmap(jax.vmap(_propagate, in_axes=(0, None, None)), in_axes=(None, 0, None))
+    prop = jax.vmap(jax.vmap(propagate_up, in_axes=(0, None, None)), in_axes=(None, 0, None))
     return jnp.swapaxes(prop(basis, wt, dt), 1, 2)
+
+
+def recorded_turns(record: BenchRecord, segments, members=None, *,
+                   max_turn_s: float = 30.0) -> list[tuple[int, int, int, int]]:
+    """The turns the record holds between consecutive member poses: ``(k0, k1, i0, i1)``, the
+    poses before and after and the samples ``i0:i1`` between them. A turn is held where the
+    record has the three gyro channels, the interval lasts at most ``max_turn_s`` and none of
+    its samples is masked or across a time gap. `members` ``(poses,)`` bool: the poses that may
+    take part (default all)."""
+    n = len(segments)
+    members = np.ones(n, bool) if members is None else np.asarray(members, bool)
+    idx = np.flatnonzero(members)
+    if not all(c in record.channels for c in ("wx", "wy", "wz")) or idx.size < 2:
+        return []
+    t = np.asarray(record.t, float)
+    dt = float(np.median(np.diff(t)))
+    gap = np.zeros(len(t), bool)
+    gap[1:] = np.diff(t) > 1.5 * dt
+    unrecorded = gap | masked(record)
+    out = []
+    for k0, k1 in zip(idx[:-1], idx[1:]):
+        i0, i1 = segments[k0].i1, segments[k1].i0
+        if (t[i1] - t[i0 - 1]) <= max_turn_s and not unrecorded[i0:i1 + 1].any():
+            out.append((int(k0), int(k1), int(i0), int(i1)))
+    return out
 
 
 def turn_chains(record: BenchRecord, segments, ups, members=None, *,
@@ -574,19 +599,10 @@ def turn_chains(record: BenchRecord, segments, ups, members=None, *,
     if idx.size == 0:
         return head, a, b, []
     t = np.asarray(record.t, float)
-    ch = list(record.channels)
-    gyro = all(c in ch for c in ("wx", "wy", "wz"))
     dt = float(np.median(np.diff(t)))
-    pairs = []
-    if gyro:
+    pairs = recorded_turns(record, segments, members, max_turn_s=max_turn_s)
+    if pairs:
         w = np.stack([np.asarray(record.channel(c), float) for c in ("wx", "wy", "wz")], 1)
-        gap = np.zeros(len(t), bool)
-        gap[1:] = np.diff(t) > 1.5 * dt
-        unrecorded = gap | masked(record)
-        for k0, k1 in zip(idx[:-1], idx[1:]):
-            i0, i1 = segments[k0].i1, segments[k1].i0
-            if (t[i1] - t[i0 - 1]) <= max_turn_s and not unrecorded[i0:i1 + 1].any():
-                pairs.append((k0, k1, i0, i1))
     turn = {}
     if pairs:
         # padded to a few shapes (zero rate is no turn): one compilation serves many records

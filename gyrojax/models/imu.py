@@ -48,7 +48,8 @@ from ..params import ParameterSpace, param
 from ..record import BenchRecord, freeze
 from ..rotations import rotvec_to_matrix
 
-__all__ = ["IMURig", "IMUConditions", "imu_measure", "simulate_imu", "IMU_CHANNELS",
+__all__ = ["IMURig", "IMUConditions", "imu_measure", "true_rate", "true_force",
+           "simulate_imu", "IMU_CHANNELS",
            "MEAN_EFFECTS", "NOISE_EFFECTS", "Pose", "cube_poses", "gyro_matrix", "accel_matrix",
            "pose_frame"]
 
@@ -241,6 +242,36 @@ def imu_measure(params, up: Float[ArrayLike, "n 3"], t: Float[ArrayLike, " n"],
         wm = wm + _vec(params, "tg") * d_t + _vec(params, "rg") * rate_t
         fm = fm + _vec(params, "ta") * d_t + _vec(params, "ra") * rate_t
     return jnp.concatenate([wm, fm], axis=1)
+
+
+def true_force(params, f_meas, t, thermal=None):
+    """The specific force that :func:`imu_measure`'s accelerometer model turns into ``f_meas``:
+    ``A_a^-1 (f_meas - b_a - d_a t - w_a exp(-t / tau_w) [- t_a dT - r_a dT/dt])``, exact.
+    ``f_meas`` ``(..., 3)`` m/s^2, ``t`` ``(...)`` s, ``thermal`` two ``(...)`` arrays or
+    ``None``; returns ``(..., 3)`` m/s^2."""
+    t = jnp.asarray(t, float)[..., None]
+    raw = (jnp.asarray(f_meas, float) - _vec(params, "ba") - _vec(params, "da") * t
+           - _vec(params, "wa") * jnp.exp(-t / params["tau_w"]))
+    if thermal is not None:
+        d_t, rate_t = (jnp.asarray(x, float)[..., None] for x in thermal)
+        raw = raw - _vec(params, "ta") * d_t - _vec(params, "ra") * rate_t
+    return raw @ jnp.linalg.inv(accel_matrix(params)).T
+
+
+def true_rate(params, w_meas, f, t, thermal=None):
+    """The body rate that :func:`imu_measure`'s gyro model turns into ``w_meas``: ``A_g^-1
+    (w_meas - b_g - G f - d_g t - w_g exp(-t / tau_w) [- t_g dT - r_g dT/dt])``, exact (the
+    model is linear in the rate). ``w_meas``, ``f`` ``(..., 3)`` (rad/s, the specific force in
+    m/s^2), ``t`` ``(...)`` (s), ``thermal`` two ``(...)`` arrays or ``None``; returns
+    ``(..., 3)`` rad/s."""
+    t = jnp.asarray(t, float)[..., None]
+    g = jnp.stack([_vec(params, f"gs{a}") for a in AX])
+    raw = (jnp.asarray(w_meas, float) - _vec(params, "bg") - jnp.asarray(f, float) @ g.T
+           - _vec(params, "dg") * t - _vec(params, "wg") * jnp.exp(-t / params["tau_w"]))
+    if thermal is not None:
+        d_t, rate_t = (jnp.asarray(x, float)[..., None] for x in thermal)
+        raw = raw - _vec(params, "tg") * d_t - _vec(params, "rg") * rate_t
+    return raw @ jnp.linalg.inv(gyro_matrix(params)).T
 
 
 class Pose(eqx.Module):
