@@ -72,6 +72,9 @@ def main(argv=None):
     ap = blind_parser(__doc__, cases=60)
     ap.add_argument("--ool-cases", type=int, default=40,
                     help="extra out-of-library cases per multi-position suite (goal G9)")
+    ap.add_argument("--suite", action="append", choices=list(SUITES),
+                    help="run only this suite (repeatable; default: all three), with its own "
+                         "seeds: the same cases as in a run of all")
     ap.add_argument("--null-suite", action="append",
                     choices=list(SUITES | TABLE_SUITES | PER_COEFFICIENT),
                     help="the design(s) of the null run (repeatable; default: every suite)")
@@ -115,7 +118,8 @@ def main(argv=None):
                  + " or leave --prior out")
     work = work_dir(args, "gyrojax-blind-imu-")
     if args.cases > 0:
-        suites(args, work, SUITES, args.cases)
+        suites(args, work, {k: SUITES[k] for k in args.suite} if args.suite else SUITES,
+               args.cases)
     if args.table_cases > 0:
         suites(args, os.path.join(work, "table"), TABLE_SUITES, args.table_cases,
                "gap_blind_imu_table", "--table-cases")
@@ -429,8 +433,8 @@ def aux_localisation(args, work):
 
 def suites(args, work, which, n_cases, key="gap_blind_imu", flag=""):
     scores, meta = {}, {}
-    first_k = list(SUITES | TABLE_SUITES).index(next(iter(which)))
-    for k, (label, design) in enumerate(which.items(), start=first_k):
+    for label, design in which.items():
+        k = list(SUITES | TABLE_SUITES).index(label)  # the suite's seeds, whichever run
         d = os.path.join(work, f"suite{k}")
         t0 = time.perf_counter()
         bench_imu.generate(d, n_cases, seed=args.seed + k, design=design, null_fraction=0.3)
