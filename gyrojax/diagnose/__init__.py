@@ -17,7 +17,7 @@ __all__ = ["AbstractGapProblem", "Candidate", "ESGProblem", "ESG_LIBRARY", "ESG_
            "ljung_box", "mix_log_bf", "nominal_basis", "nominal_coefficients", "onset_grid",
            "platform_library", "project_out", "screen_designs", "shape_log_bf_scores",
            "shell_design_log_bf", "shell_log_bf", "signature_directions", "table_runs",
-           "train_slice", "Verdict", "visibility_flag", "visible", "zellner_log_bf"]
+           "train_first", "train_slice", "Verdict", "visibility_flag", "visible", "zellner_log_bf"]
 
 from ._bayes import SHELL_DESIGN_LAMBDAS as SHELL_DESIGN_LAMBDAS
 from ._bayes import design_log_bf as design_log_bf
@@ -30,6 +30,7 @@ from ._diagnose import default_prior as default_prior
 from ._diagnose import diagnose as diagnose
 from ._diagnose import given_options as given_options
 from ._diagnose import library as library
+from ._diagnose import train_first as train_first
 from ._diagnose import train_slice as train_slice
 from ._esg import ESG_LIBRARY as ESG_LIBRARY
 from ._esg import TRANSIENT_TIMES_H as ESG_TRANSIENT_TIMES_H

@@ -279,7 +279,7 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
     ho_dof = prob.heldout_dof
     # the whitened residual as one vector: the rows (n c train, then held-out) and, where the
     # problem has a second block (the IMU's turns), its entries; reordered train first
-    order = _train_first(len(prob.t), c, n, prob.block_train, prob.block_residual(params0))
+    order = train_first(prob, params0)
     m_tr = n * c + prob.block_train  # train entries
 
     def whitened(pred, params):
@@ -497,14 +497,17 @@ def train_slice(sig, m):
     return dataclasses.replace(sig, jac=sig.jac[:, :m, :])
 
 
-def _train_first(n_rows: int, c: int, n_train: int, block_train: int, block) -> np.ndarray:
-    """The order that puts the train entries first: the train rows (``n_train c``), the
-    second block's train entries, the held-out rows, the block's held-out entries (``block``:
-    the block's entries, or ``None``)."""
-    rows = np.arange(n_rows * c)
-    m = 0 if block is None else len(block)
-    blk = n_rows * c + np.arange(m)
-    return np.concatenate([rows[: n_train * c], blk[:block_train], rows[n_train * c:],
-                           blk[block_train:]])
+def train_first(prob, params) -> np.ndarray:
+    """The order of a problem's whitened entries (its Jacobians' rows: the rows' ``N c``, then
+    a second block's) that puts the train entries first: the train rows (``n_train c``), the
+    block's train entries (``block_train``), the held-out rows, the block's held-out entries.
+    Its first ``n_train c + block_train`` entries are the train part."""
+    c = len(prob.channels)
+    rows = np.arange(len(prob.t) * c)
+    block = prob.block_residual(params)
+    blk = len(rows) + np.arange(0 if block is None else len(block))
+    n = prob.n_train * c
+    return np.concatenate([rows[:n], blk[: prob.block_train], rows[n:],
+                           blk[prob.block_train:]])
 
 

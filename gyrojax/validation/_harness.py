@@ -9,6 +9,7 @@ standard error.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -63,7 +64,7 @@ def _train_jacobians(record, rig, sigma, split, **problem_kw):
     """The whitened nominal Jacobian and the catalogue's signatures on the train rows of
     ``split``, at the nominal fit of ``record`` (``sigma``: see :func:`separability`)."""
     from .. import rigs
-    from ..diagnose import given_options, train_slice
+    from ..diagnose import given_options, train_first
 
     prob = rigs.get(rig).problem_for(record, **given_options(dict(problem_kw, split=split)))
     params0 = prob.fit_nominal()
@@ -71,8 +72,8 @@ def _train_jacobians(record, rig, sigma, split, **problem_kw):
         resid = (prob.y - prob.predict(params0))[: prob.n_train]
         sigma = prob.noise_level(resid)[0]
     jn, sigs = prob.jacobians(params0, sigma)
-    m = prob.n_train * len(prob.channels)
-    return jn[:m], [train_slice(s, m) for s in sigs]
+    tr = train_first(prob, params0)[: prob.n_train * len(prob.channels) + prob.block_train]
+    return jn[tr], [dataclasses.replace(s, jac=s.jac[:, tr, :]) for s in sigs]
 
 
 def oracle_detection_thresholds(record, rig: str, sigma, lambdas, *, split=None,
