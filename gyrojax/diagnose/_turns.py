@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..estimate.multiposition import recorded_turns
+from ..estimate.multiposition import recorded_turns, up_step
 from ..models.imu import true_force, true_rate
 
 __all__ = ["TurnBlock", "build_turns", "turn_misclosure", "propagate_turns", "turn_level"]
@@ -145,20 +145,11 @@ def turn_misclosure(params, tilt_a, tilt_b, u0, e1, e2, arrays):
     return jnp.stack([jnp.sum(d * e1[k1], 1), jnp.sum(d * e2[k1], 1)], 1).reshape(-1)
 
 
-def _step(v, phi):
-    """One sample's step of the up vector ``v`` ``(3,)`` in body axes through the body
-    rotation ``phi`` ``(3,)`` (rad): ``exp(-[phi]x) v`` (Rodrigues, as
-    :func:`~gyrojax.estimate.multiposition.propagate_up`)."""
-    a = jnp.sqrt(jnp.sum(phi ** 2) + 1e-300)
-    k = phi / a
-    return v * jnp.cos(a) - jnp.cross(k, v) * jnp.sin(a) + k * jnp.dot(k, v) * (1 - jnp.cos(a))
-
-
 def _forward(u0, phi):
     """The up vectors before each step ``(m, L, 3)`` and after the last ``(m, 3)``."""
     def scan_one(u, ph):
         def body(v, p):
-            return _step(v, p), v
+            return up_step(v, p), v
         end, before = jax.lax.scan(body, u, ph)
         return before, end
     return jax.vmap(scan_one)(u0, phi)
@@ -183,8 +174,8 @@ def _propagate_turns_jvp(primals, tangents):
     du0, dphi = tangents
     before, end = _forward(u0, phi)
     # B_i: d step / d phi and R_i: d step / d v at each sample (no tangent in them)
-    b = jax.vmap(jax.vmap(jax.jacfwd(_step, argnums=1)))(before, phi)
-    r = jax.vmap(jax.vmap(jax.jacfwd(_step, argnums=0)))(before, phi)
+    b = jax.vmap(jax.vmap(jax.jacfwd(up_step, argnums=1)))(before, phi)
+    r = jax.vmap(jax.vmap(jax.jacfwd(up_step, argnums=0)))(before, phi)
 
     def suffix(acc, ri):  # S_{i-1} = S_i R_i, from the last sample back
         return acc @ ri, acc

@@ -399,18 +399,17 @@ def _gyro_matrix(theta):
     return jnp.array([[1 + s[0], m[0], m[1]], [m[2], 1 + s[1], m[3]], [m[4], m[5], 1 + s[2]]])
 
 
+def up_step(u, phi):
+    """One step of a body-frame vector fixed in space through the body rotation ``phi``
+    ``(3,)`` (rad): ``exp(-[phi]x) u`` (Rodrigues)."""
+    a = jnp.sqrt(jnp.sum(phi ** 2) + 1e-300)
+    k = phi / a
+    return u * jnp.cos(a) - jnp.cross(k, u) * jnp.sin(a) + k * jnp.dot(k, u) * (1 - jnp.cos(a))
+
+
 def propagate_up(u0, w_true, dt):
-    """Body-frame up vector through a turn: ``u_{j+1} = exp(-[w_j dt]x) u_j`` (Rodrigues)."""
-
-    def step(u, w):
-        phi = w * dt
-        a = jnp.sqrt(jnp.sum(phi ** 2) + 1e-300)
-        k = phi / a
-        u_new = (u * jnp.cos(a) - jnp.cross(k, u) * jnp.sin(a)
-                 + k * jnp.dot(k, u) * (1 - jnp.cos(a)))
-        return u_new, None
-
-    u, _ = jax.lax.scan(step, u0, w_true)
+    """Body-frame up vector through a turn: ``u_{j+1} = exp(-[w_j dt]x) u_j`` (:func:`up_step`)."""
+    u, _ = jax.lax.scan(lambda u, w: (up_step(u, w * dt), None), u0, w_true)
     return u
 
 
