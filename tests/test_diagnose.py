@@ -1807,6 +1807,39 @@ def test_ambiguous_verdict_reports_each_members_heldout_gap_and_whether_it_separ
     assert "heldout_gap_after_by_effect" not in v and "heldout_separates" not in v
 
 
+def test_ambiguous_verdict_names_the_effects_that_earn_their_place_beside_the_set():
+    """An ambiguous set explains one part of the gap; an effect outside it that earned its
+    place after the top member's refit (the forward selection's chain) is named beside it
+    (``also``), with the held-out gap the chain reached; a member of the set is never listed
+    twice, and without a chain the verdict is the set alone."""
+    from types import SimpleNamespace
+
+    from gyrojax.diagnose._records import Verdict
+    from gyrojax.diagnose._screening import ambiguity_set
+    from gyrojax.diagnose._verdict import _verdict
+
+    rows = [SimpleNamespace(sig=SimpleNamespace(name=n), flag="visible", q=1e-9, p=1e-9,
+                            posterior=w, log_bf=20.0, dof_grid=np.ones(1))
+            for n, w in (("scale_factor", 0.5), ("misalignment", 0.5), ("g_sensitivity", 0.0))]
+
+    def refit(effects, after):
+        return {"effects": effects, "gap_train_after": 0.1, "heldout_gap_before": 1.2,
+                "heldout_gap_after": after, "closure": False, "remaining_cells": []}
+
+    amb = ambiguity_set(rows)
+    assert [r.sig.name for r in amb] == ["scale_factor", "misalignment"]
+    chain = [refit(["scale_factor"], 0.42), refit(["scale_factor", "g_sensitivity"], 0.21)]
+    v = _verdict(True, rows, amb, [chain[0], refit(["misalignment"], 35.0)], chain, rows[0],
+                 0.05, [], 1.2, (0.0, 0.08))
+    assert v["kind"] == "ambiguous" and v["also"] == ["g_sensitivity"]
+    assert v["effects"] == ["scale_factor", "misalignment", "g_sensitivity"]
+    assert "g_sensitivity earns its place" in v["reason"] and "0.42 -> 0.21" in v["reason"]
+    assert Verdict(**v).also == ["g_sensitivity"]
+    v = _verdict(True, rows, amb, [chain[0]], chain[:1], rows[0], 0.05, [], 1.2, (0.0, 0.08))
+    assert v["also"] == [] and v["effects"] == ["scale_factor", "misalignment"]
+    assert v["reason"] == "no single effect holds 90 % of the posterior; see design_advice"
+
+
 def test_verdict_names_a_set_of_effects_with_each_ones_share_of_the_gap():
     """Several effects at once (the Xsens record's figures: held-out gap 123 -> 40.5 with the
     scale factors, -> 0.48 with misalignment too). The set is named ``partial`` where it

@@ -421,12 +421,15 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
         # is rescored on its residual with the chosen effects' signatures in the span (a
         # conditional score test); the best joins where it is significant and, where the
         # held-out part can show it, lowers the held-out gap (_verdict.earns_place)
+        # (after an ambiguous top, its alternatives -- the ambiguity set's other members --
+        # are not candidates: they explain the same part of the gap; what joins explains more)
         if top is not None and top.sig.name in singles:
             combo = [top]
+            alternatives = [r for r in amb if r is not top] if len(amb) > 1 else []
             refit, e_post, span = singles[top.sig.name]
             chain = [refit]
             while refit.remaining_cells and len(combo) < max_effects:
-                found = _next_effect(e_post, span, rows, combo, alpha)
+                found = _next_effect(e_post, span, rows, combo + alternatives, alpha)
                 if found is None:
                     break
                 second = second or found

@@ -166,8 +166,8 @@ class Verdict(_Record):
       ``unexplained``; ``effects``: the effects named (attributed: the cause, one effect or a
       set each of which earned its place after the others were fitted; partial: a set that
       explains most of the gap and leaves significant cells; ambiguous: the set it cannot tell
-      apart; confounded: the effect the nominal parameters absorb; unexplained: the nearest
-      effect, if any); ``reason``: why, in words (``None`` for an attribution).
+      apart, then the effects in ``also``; confounded: the effect the nominal parameters
+      absorb; unexplained: the nearest effect, if any); ``reason``: why, in words (``None`` for an attribution).
     - ``heldout_gap_before``, ``heldout_null_band`` and ``heldout_gap_after`` (the named
       effects' refit; ``None`` where none applies).
     - ``posterior`` and ``p`` over the ambiguity set (``None`` where not part of the verdict),
@@ -180,6 +180,9 @@ class Verdict(_Record):
       its null band, else ``"train"``; ``shares``: effect -> share of the nominal model's gap,
       in the order they joined; ``total``); ``remainder``: where the significant cells left
       lie (axis, channels, time windows). :meth:`headline` says both in one line.
+    - ``also``: ambiguous: the effects outside the set that earned their place after the
+      refit of the set's top member (a conditional score test and, where the held-out part
+      can show it, a lower held-out gap), as for an attribution's set.
     - ``notes``: the rig's notes on the record (units, noise model ...).
     """
 
@@ -199,6 +202,7 @@ class Verdict(_Record):
     notes: list[str] = dataclasses.field(default_factory=list)
     explained: dict | None = None
     remainder: str | None = None
+    also: list[str] = dataclasses.field(default_factory=list)
 
     def headline(self) -> str | None:
         """"earth_rate explains 99.8 % of the held-out gap; remainder: ..." for an attributed

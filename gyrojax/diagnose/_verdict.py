@@ -234,6 +234,10 @@ def _pair_also(pair, chosen, g_nom) -> str:
             "stay significant")
 
 
+def _fmt_gap(g) -> str:
+    return "n/a" if g is None or not np.isfinite(g) else f"{g:.3g}"
+
+
 def _cell_names(cells) -> list[str]:
     """Gap-map cells as the verdict lists them: ``"<axis> <cell> <channel>"``."""
     return [f"{x['axis']} {x['cell']} {x['channel']}" for x in cells]
@@ -368,10 +372,19 @@ def _verdict(detected, rows, amb, refits, chain, top, alpha, cells, g_nom, band,
     single = [rf for rf in refits if len(rf["effects"]) == 1]
     best = min(single, key=lambda rf: rf["gap_train_after"]) if single else None
     if len(amb) > 1:
-        return {"kind": "ambiguous", "effects": names,
+        # the effects that earned their place after the top member's refit, beside the set
+        also = [rf["effects"][-1] for rf in (chain or [])[1:] if rf["effects"][-1] not in names]
+        more = ""
+        if also:
+            more = (f"; beside the set, {' and '.join(also)} "
+                    f"{'earns its' if len(also) == 1 else 'earn their'} place after the top "
+                    f"member's refit (held-out gap {_fmt_gap(chain[0]['heldout_gap_after'])} -> "
+                    f"{_fmt_gap(chain[-1]['heldout_gap_after'])})")
+        return {"kind": "ambiguous", "effects": names + also, "also": also,
                 "heldout_gap_after": best["heldout_gap_after"] if best else None, **base,
                 "posterior": {r.sig.name: r.posterior for r in amb},
-                "reason": "no single effect holds 90 % of the posterior; see design_advice",
+                "reason": "no single effect holds 90 % of the posterior; see design_advice"
+                          + more,
                 **_heldout_by_member(names, single, base)}
     if not chain:
         return {"kind": "unexplained", "effects": [], "heldout_gap_after": None, **base,
