@@ -167,7 +167,8 @@ class Verdict(_Record):
       set each of which earned its place after the others were fitted; partial: a set that
       explains most of the gap and leaves significant cells; ambiguous: the set it cannot tell
       apart, then the effects in ``also``; confounded: the effect the nominal parameters
-      absorb; unexplained: the nearest effect, if any); ``reason``: why, in words (``None`` for an attribution).
+      absorb; unexplained: the nearest effect, if any); ``reason``: why, in words (``None``
+      for an attribution).
     - ``heldout_gap_before``, ``heldout_null_band`` and ``heldout_gap_after`` (the named
       effects' refit; ``None`` where none applies).
     - ``posterior`` and ``p`` over the ambiguity set (``None`` where not part of the verdict),
