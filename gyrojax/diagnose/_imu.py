@@ -71,7 +71,14 @@ from ..record import BenchRecord
 from ._noise_tests import full_rate_tau_cells, outlier_score, quantization_score
 from ._problem import AbstractGapProblem
 from ._signatures import Signature, check_effects, coefficient_effect, effect_family_name
-from ._turns import build_turns, rescale_block, turn_level, turn_misclosure
+from ._turns import (
+    build_turns,
+    rescale_block,
+    turn_jacobian,
+    turn_level,
+    turn_misclosure,
+    turn_parts,
+)
 
 __all__ = ["IMUProblem", "IMU_LIBRARY"]
 
@@ -442,8 +449,10 @@ class IMUProblem(AbstractGapProblem):
         rw[rows] = 1.0
         fit = self._compiled(len(self.segments))[2]
         block = None
-        if turns and self.turns is not None and self.turn_std is not None:
-            block = (self.turns.arrays, jnp.asarray(self.turns.weights(self.turn_std)))
+        if self.turns is not None:  # weight 0 until the turns join: one compiled fit for both
+            on = turns and self.turn_std is not None
+            w = self.turns.weights(self.turn_std) if on else np.zeros(2 * self.turns.arrays[0].shape[0])
+            block = (self.turns.arrays, jnp.asarray(w), jnp.asarray(_TURN_RIDGE if on else 0.0))
         value, sol = fit(jnp.asarray(full), jnp.asarray(where), jnp.asarray(valid),
                          jnp.asarray(rw), jnp.asarray(self.y),
                          jnp.asarray(1.0 / self._scale_rows()), block, *model_args)
@@ -1094,6 +1103,11 @@ def _params(vec, names, base, n_pose):
     """Parameter dict and pose terms from the free vector ``vec`` (per-scale units) over
     ``base``."""
     p = dict(base)
+    if tuple(names) == _all_params(n_pose):  # the compiled model's vector: slices, not scatters
+        ns = len(_ALL_SCALAR)
+        p |= dict(zip(_ALL_SCALAR, vec[:ns] * _SCALAR_SCALES))
+        grid = vec[ns:].reshape(n_pose, 6)
+        return p, {x: grid[:, j] * _pose_scale(_term_name(0, x)) for j, x in enumerate("abcsCS")}
     pose = base.get("_pose", {})
     terms = {x: jnp.asarray([pose.get(_term_name(k, x), 0.0) for k in range(n_pose)])
              for x in "abcsCS"}
@@ -1214,6 +1228,10 @@ _ALL_SCALAR = tuple(n for n in _SPACE.names if _SPACE[n].effect in (None,) + MEA
                     and n != "tau_w")
 
 
+_SCALAR_SCALES = np.array([_SPACE[n].scale for n in _ALL_SCALAR])
+
+
+@functools.cache
 def _all_params(n_pose):
     """The compiled model's vector: every mean-model parameter, then each pose's four terms and
     the two horizontal-Earth-rate terms of a chain starting there."""
@@ -1255,10 +1273,23 @@ def _build(n_pose, cond, ch_idx):
         return jax.vmap(lambda d: jax.jvp(lambda v: f(v, *args), (vec,), (d,))[1],
                         out_axes=-1)(dirs)
 
+    def parts(vec, tau_w, geo, arrays):
+        p, x = _params(vec, allp, base | {"tau_w": tau_w}, n_pose)
+        return turn_parts(p, x["a"], x["b"], geo[0], geo[1], geo[2], arrays)
+
+    @jax.custom_jvp
     def turn(vec, tau_w, geo, arrays):
-        """The turns' misclosures (:func:`~._turns.turn_misclosure`) at ``vec``."""
+        """The turns' misclosures (:func:`~._turns.turn_misclosure`) at ``vec``; its derivative
+        in ``vec`` alone (the rest is data), through :func:`~._turns.turn_jacobian`."""
         p, x = _params(vec, allp, base | {"tau_w": tau_w}, n_pose)
         return turn_misclosure(p, x["a"], x["b"], geo[0], geo[1], geo[2], arrays)
+
+    @turn.defjvp
+    def _turn_jvp(primals, tangents):
+        vec, tau_w, geo, arrays = primals
+        value, jac = turn_jacobian(lambda v, a: parts(v, tau_w, geo, a), vec, geo[1], geo[2],
+                                   arrays)
+        return value, jac @ tangents[0]
 
     def turn_jvps(vec, dirs, *args):
         """The misclosures' Jacobian along the rows of ``dirs``, last axis."""
@@ -1268,8 +1299,9 @@ def _build(n_pose, cond, ch_idx):
     def fit(full, where, valid, rw, y, w, turns, *args):
         """The entries ``where`` of ``full`` (those ``valid`` marks; the rest padding) fitted to
         the rows ``rw`` marks of ``y`` (per-channel weights ``w``) and, where ``turns`` is
-        ``(arrays, weights)`` (not ``None``), to the turns' misclosures weighted by
-        ``weights``: (the fitted entries, the solution)."""
+        ``(arrays, weights, ridge)`` (not ``None``), to the turns' misclosures weighted by
+        ``weights``, with the ridge ``ridge`` (all 0: the rows alone, the same compiled fit):
+        (the fitted entries, the solution)."""
         def resid(v, data):
             full, where, valid, rw, y, w, turns, *rest = data
             x = full.at[where].add(v * valid)
@@ -1279,7 +1311,7 @@ def _build(n_pose, cond, ch_idx):
                 # misalignments' antisymmetric parts, with the poses) changes nothing: a small
                 # ridge on the fitted entries pins that valley (_TURN_RIDGE)
                 out = jnp.concatenate([out, turn(x, rest[0], rest[3], turns[0]) * turns[1],
-                                       _TURN_RIDGE * v * valid])
+                                       turns[2] * v * valid])
             return out
 
         start = full[where] * valid

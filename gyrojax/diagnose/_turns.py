@@ -32,7 +32,8 @@ import numpy as np
 from ..estimate.multiposition import recorded_turns, up_step
 from ..models.imu import true_force, true_rate
 
-__all__ = ["TurnBlock", "build_turns", "turn_misclosure", "propagate_turns", "turn_level"]
+__all__ = ["TurnBlock", "build_turns", "turn_misclosure", "turn_parts", "turn_jacobian",
+           "propagate_turns", "turn_level"]
 
 TURN_PAD = 64  # samples: turns are padded to a multiple (few compiled shapes across records)
 TURN_COUNT_PAD = 8  # turns: the count is padded to a multiple
@@ -127,11 +128,10 @@ def build_turns(record, segments, members, ups, t_split: float, thermal_at,
     return TurnBlock(k0, k1, t0, t1, ang, axis, n_train, prior, arrays)
 
 
-def turn_misclosure(params, tilt_a, tilt_b, u0, e1, e2, arrays):
-    """``(2 m_padded,)``: each turn's propagated up vector minus the pose after's, on that pose's
-    tilt frame ``(e1, e2)`` (rad), per turn ``[along e1, along e2]``. `params`: the error model
-    (:func:`~gyrojax.models.imu.imu_measure`'s dict); `tilt_a`, `tilt_b` ``(poses,)``: the pose
-    terms (rad); `u0`, `e1`, `e2` ``(poses, 3)``: first-guess up vectors and tilt frames."""
+def turn_parts(params, tilt_a, tilt_b, u0, e1, e2, arrays):
+    """The turns' inputs to their propagation: ``(phi, ua, ub)``, each sample's body rotation
+    ``(m, L, 3)`` (rate the error model makes true times step, zero on the padding) and the up
+    vectors of the poses before and after ``(m, 3)``. Arguments as :func:`turn_misclosure`."""
     w, f, t, live, d_t, r_t, k0, k1, dt = arrays
 
     def up(k):
@@ -140,9 +140,45 @@ def turn_misclosure(params, tilt_a, tilt_b, u0, e1, e2, arrays):
 
     thermal = (d_t, r_t)
     rate = true_rate(params, w, true_force(params, f, t, thermal), t, thermal) * live
-    prop = propagate_turns(up(k0), rate * dt)
-    d = prop - up(k1)
-    return jnp.stack([jnp.sum(d * e1[k1], 1), jnp.sum(d * e2[k1], 1)], 1).reshape(-1)
+    return rate * dt, up(k0), up(k1)
+
+
+def _tilt_frames(e1, e2, arrays):
+    """``(m, 2, 3)``: the tilt frame of each turn's pose after."""
+    k1 = arrays[7]
+    return jnp.stack([e1[k1], e2[k1]], 1)
+
+
+def turn_misclosure(params, tilt_a, tilt_b, u0, e1, e2, arrays):
+    """``(2 m_padded,)``: each turn's propagated up vector minus the pose after's, on that pose's
+    tilt frame ``(e1, e2)`` (rad), per turn ``[along e1, along e2]``. `params`: the error model
+    (:func:`~gyrojax.models.imu.imu_measure`'s dict); `tilt_a`, `tilt_b` ``(poses,)``: the pose
+    terms (rad); `u0`, `e1`, `e2` ``(poses, 3)``: first-guess up vectors and tilt frames."""
+    phi, ua, ub = turn_parts(params, tilt_a, tilt_b, u0, e1, e2, arrays)
+    d = propagate_turns(ua, phi) - ub
+    return jnp.einsum("mci,mi->mc", _tilt_frames(e1, e2, arrays), d).reshape(-1)
+
+
+def turn_jacobian(parts, vec, e1, e2, arrays):
+    """``(misclosures (2 m,), their Jacobian in vec (2 m, len(vec)))``, where ``parts(vec,
+    arrays)`` is :func:`turn_parts` at the parameter vector ``vec``. Each turn's two entries
+    depend on its own samples: the end's sensitivities to the rotations and the start
+    (:func:`_sensitivities`, no tangent in them) become two cotangents per turn, pulled back to
+    ``vec`` by one reverse pass per turn (batched). That costs about two propagations where K
+    tangents pushed forward through every turn's samples cost K (a fit's Jacobian: K = 96)."""
+    phi, ua, ub = parts(vec, arrays)
+    end, a, s0 = _sensitivities(ua, phi)
+    e = _tilt_frames(e1, e2, arrays)
+    value = jnp.einsum("mci,mi->mc", e, end - ub).reshape(-1)
+    cots = (jnp.einsum("mci,mlij->mclj", e, a), jnp.einsum("mci,mij->mcj", e, s0), -e)
+    *per, dt = arrays
+
+    def rows(own, c_phi, c_ua, c_ub):  # one turn: its arrays (1, ...) and two cotangents
+        _, pull = jax.vjp(lambda v: parts(v, (*own, dt)), vec)
+        return jax.vmap(lambda *c: pull(tuple(x[None] for x in c))[0])(c_phi, c_ua, c_ub)
+
+    jac = jax.vmap(rows)(tuple(x[:, None] for x in per), *cots)
+    return value, jac.reshape(-1, vec.shape[0])
 
 
 def _forward(u0, phi):
@@ -155,25 +191,11 @@ def _forward(u0, phi):
     return jax.vmap(scan_one)(u0, phi)
 
 
-@jax.custom_jvp
-def propagate_turns(u0, phi):
-    """``(m, 3)``: each turn's up vector ``u0`` ``(m, 3)`` carried through its samples' body
-    rotations ``phi`` ``(m, L, 3)`` (rate times step, zero rotation pads), sample by sample
-    as :func:`~gyrojax.estimate.multiposition.propagate_up`.
-
-    Its derivative is written out: the end's change is ``sum_i S_i B_i dphi_i + S_0 du0``, with
-    ``B_i`` one step's Jacobian in its rotation and ``S_i`` the product of the steps after it,
-    both free of the tangent, so a fit's Jacobian over K parameters costs one contraction over
-    the samples instead of K tangents pushed through the sequential scan."""
-    return _forward(u0, phi)[1]
-
-
-@propagate_turns.defjvp
-def _propagate_turns_jvp(primals, tangents):
-    u0, phi = primals
-    du0, dphi = tangents
+def _sensitivities(u0, phi):
+    """``(end, a, s0)``: the propagated up vectors ``(m, 3)``, the end's Jacobian in each
+    sample's rotation ``a`` ``(m, L, 3, 3)`` (``S_i B_i``: ``B_i`` one step's Jacobian in its
+    rotation, ``S_i`` the product of the steps after it) and in the start ``s0`` ``(m, 3, 3)``."""
     before, end = _forward(u0, phi)
-    # B_i: d step / d phi and R_i: d step / d v at each sample (no tangent in them)
     b = jax.vmap(jax.vmap(jax.jacfwd(up_step, argnums=1)))(before, phi)
     r = jax.vmap(jax.vmap(jax.jacfwd(up_step, argnums=0)))(before, phi)
 
@@ -181,8 +203,27 @@ def _propagate_turns_jvp(primals, tangents):
         return acc @ ri, acc
     eye = jnp.broadcast_to(jnp.eye(3), u0.shape[:1] + (3, 3))
     s0, s = jax.lax.scan(suffix, eye, jnp.swapaxes(r, 0, 1), reverse=True)
-    s = jnp.swapaxes(s, 0, 1)  # S_i: the steps after sample i
-    a = s @ b
+    return end, jnp.swapaxes(s, 0, 1) @ b, s0
+
+
+@jax.custom_jvp
+def propagate_turns(u0, phi):
+    """``(m, 3)``: each turn's up vector ``u0`` ``(m, 3)`` carried through its samples' body
+    rotations ``phi`` ``(m, L, 3)`` (rate times step, zero rotation pads), sample by sample
+    as :func:`~gyrojax.estimate.multiposition.propagate_up`.
+
+    Its derivative is written out: the end's change is ``sum_i S_i B_i dphi_i + S_0 du0``
+    (:func:`_sensitivities`, free of the tangent), so a fit's Jacobian over K parameters costs
+    one contraction over the samples instead of K tangents pushed through the sequential
+    scan."""
+    return _forward(u0, phi)[1]
+
+
+@propagate_turns.defjvp
+def _propagate_turns_jvp(primals, tangents):
+    u0, phi = primals
+    du0, dphi = tangents
+    end, a, s0 = _sensitivities(u0, phi)
     out = jnp.einsum("mlij,mlj->mi", a, dphi) + jnp.einsum("mij,mj->mi", s0, du0)
     return end, out
 
