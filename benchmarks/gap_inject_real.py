@@ -21,6 +21,10 @@ Scores, per record, effect and lambda:
   it is already names it (then naming says little), and the share over the cases where it
   does not; and the share over the separable cases (the effect is in no class of effects the
   record as it is cannot tell apart, ``GapReport.ambiguity["classes"]``);
+- held-out closes: a refit of the record as it is brings its held-out gap into its null band;
+  where none does, an effect added to the verdict must lower a held-out gap that a remainder
+  no catalogued effect explains dominates, and naming is reported over the records where one
+  does as well;
 - top: the injected effect has the highest posterior;
 - recovery: the refit of that effect alone on the injected record less the same refit on the
   record as it is, projected on the injected coefficients (1 = all of it), over the
@@ -199,6 +203,10 @@ def _worker(args):
         alike = {e for c in base.ambiguity["classes"] if len(c) > 1 for e in c}
         level0 = base.multiplicity.get("level", base.alpha)
         det0 = {c.name: bool(c.q is not None and c.q < level0) for c in base.ranking}
+        # whether a refit of the record as it is brings its held-out gap into its null band:
+        # where none does, the held-out veto weighs an added effect against a remainder no
+        # catalogued effect explains
+        closes = any(rf.closure for rf in base.refits)
         times = []
         print(f"{name}: {base.verdict.kind} {base.verdict.effects}, {t_base:.0f} s")
         for effect in args.effects:
@@ -220,6 +228,7 @@ def _worker(args):
                 top = max(rep.ranking, key=lambda c: c.posterior).name
                 rows.append(dict(
                     record=name, effect=effect, lam=lam, identifiable=ident[effect],
+                    closes=closes,
                     detected=bool(cand.q is not None and cand.q < level),
                     detected0=bool(det0[effect]),
                     named=effect in (rep.verdict.effects or []), named0=effect in named0,
@@ -230,7 +239,8 @@ def _worker(args):
                 print(f"  {effect} lambda {lam:g}: detected {r['detected']}, named "
                       f"{r['named']}, top {r['top']}, recovery {r['recovery']}, {r['verdict']}")
         verdict = f"{base.verdict.kind} ({', '.join(base.verdict.effects or [])})"
-        per_record[name] = (verdict, t_base, float(np.median(times)) if times else float("nan"))
+        per_record[name] = (verdict, t_base, float(np.median(times)) if times else float("nan"),
+                            closes)
     write_json({"rows": rows, "record": per_record[name]}, args.worker_json)
 
 
@@ -246,11 +256,15 @@ def _lines(rows, per_record, args, total_s):
              "named = in the verdict's effects (in brackets: named by the record as it is; not "
              "separable: in a class of effects the record as it is cannot tell apart); "
              "recovery = median of the refit's change over the injected coefficients (1 = all "
-             "of it).", "",
-             "| record | verdict as it is | diagnosis s (as it is / median injected) |",
-             "|---|---|---|"]
-    for name, (verdict, t_base, t_inj) in per_record.items():
-        lines.append(f"| `{name}` | {verdict} | {t_base:.0f} / {t_inj:.0f} |")
+             "of it); held-out closes = a refit of the record as it is brings its held-out gap "
+             "into its null band (where none does, the held-out veto weighs an added effect "
+             "against a remainder no catalogued effect explains).", "",
+             "| record | verdict as it is | held-out closes | diagnosis s (as it is / median "
+             "injected) |",
+             "|---|---|---|---|"]
+    for name, (verdict, t_base, t_inj, *closes) in per_record.items():
+        shut = "-" if not closes else ("yes" if closes[0] else "no")
+        lines.append(f"| `{name}` | {verdict} | {shut} | {t_base:.0f} / {t_inj:.0f} |")
     lines += ["", "| record | effect | lambda | detected (as it is) | named (as it is) | top "
               "| recovery |",
               "|---|---|---|---|---|---|---|"]
@@ -272,7 +286,8 @@ def _lines(rows, per_record, args, total_s):
                              f"{r['top']} | {rec} |")
     lines += ["", "| lambda | detected | not detected as it is, detected | named | not named "
               "as it is, named | separable, named | separable and not named as it is, named "
-              "| top | recovery (median) |", "|---|---|---|---|---|---|---|---|---|"]
+              "| held-out closes, named | top | recovery (median) |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for lam in args.lambdas:
         sel = [r for r in rows if r["lam"] == lam and r["identifiable"]]
         recs = [r["recovery"] for r in sel if r["recovery"] is not None]
@@ -280,7 +295,8 @@ def _lines(rows, per_record, args, total_s):
         med = f"{np.median(recs):.2f} (n={len(recs)})" if recs else "-"
         named = [_share(r["named"] for r in sub) for sub in (
             sel, [r for r in sel if not r["named0"]], [r for r in sel if r["separable"]],
-            [r for r in sel if r["separable"] and not r["named0"]])]
+            [r for r in sel if r["separable"] and not r["named0"]],
+            [r for r in sel if r.get("closes")])]
         lines.append(f"| {lam:g} | {fmt_rate(_share(r['detected'] for r in sel))} | "
                      f"{fmt_rate(_share(fresh))} | "
                      + " | ".join(fmt_rate(x) for x in named)
