@@ -1099,25 +1099,13 @@ def horizontal_earth_rate(cond) -> float:
     return 0.0 if np.isnan(lat) else float(units.EARTH_RATE * np.cos(np.radians(lat)))
 
 
-def _params(vec, names, base, n_pose):
-    """Parameter dict and pose terms from the free vector ``vec`` (per-scale units) over
-    ``base``."""
-    p = dict(base)
-    if tuple(names) == _all_params(n_pose):  # the compiled model's vector: slices, not scatters
-        ns = len(_ALL_SCALAR)
-        p |= dict(zip(_ALL_SCALAR, vec[:ns] * _SCALAR_SCALES))
-        grid = vec[ns:].reshape(n_pose, 6)
-        return p, {x: grid[:, j] * _pose_scale(_term_name(0, x)) for j, x in enumerate("abcsCS")}
-    pose = base.get("_pose", {})
-    terms = {x: jnp.asarray([pose.get(_term_name(k, x), 0.0) for k in range(n_pose)])
-             for x in "abcsCS"}
-    for i, n in enumerate(names):
-        if _is_pose(n):
-            k, x = _pose_term(n)
-            terms[x] = terms[x].at[k].set(vec[i] * _pose_scale(n))
-        else:
-            p[n] = vec[i] * _SPACE[n].scale
-    return p, terms
+def _params(vec, base, n_pose):
+    """Parameter dict and pose terms from the compiled model's vector ``vec`` (per-scale units,
+    ordered as :func:`_all_params`) over ``base``: slices of the vector, no per-entry writes."""
+    ns = len(_ALL_SCALAR)
+    p = dict(base) | dict(zip(_ALL_SCALAR, vec[:ns] * _SCALAR_SCALES))
+    grid = vec[ns:].reshape(n_pose, 6)
+    return p, {x: grid[:, j] * _pose_scale(_term_name(0, x)) for j, x in enumerate("abcsCS")}
 
 
 @functools.partial(jax.jit, static_argnums=3)
@@ -1247,13 +1235,12 @@ _TURN_RIDGE = 1e-2
 
 
 def _build(n_pose, cond, ch_idx):
-    allp = _all_params(n_pose)
     ch = np.asarray(ch_idx)
     base = {n: 0.0 for n in _SPACE.names}
     horizontal = horizontal_earth_rate(cond)
 
     def f(vec, tau_w, t, seg, geo, thermal):
-        p, x = _params(vec, allp, base | {"tau_w": tau_w}, n_pose)
+        p, x = _params(vec, base | {"tau_w": tau_w}, n_pose)
         u0, e1, e2, omega, gain, head, ca, cb = geo
         u = u0[seg] + x["a"][seg][:, None] * e1[seg] + x["b"][seg][:, None] * e2[seg]
         u = u / jnp.linalg.norm(u, axis=1, keepdims=True)
@@ -1274,14 +1261,14 @@ def _build(n_pose, cond, ch_idx):
                         out_axes=-1)(dirs)
 
     def parts(vec, tau_w, geo, arrays):
-        p, x = _params(vec, allp, base | {"tau_w": tau_w}, n_pose)
+        p, x = _params(vec, base | {"tau_w": tau_w}, n_pose)
         return turn_parts(p, x["a"], x["b"], geo[0], geo[1], geo[2], arrays)
 
     @jax.custom_jvp
     def turn(vec, tau_w, geo, arrays):
         """The turns' misclosures (:func:`~._turns.turn_misclosure`) at ``vec``; its derivative
         in ``vec`` alone (the rest is data), through :func:`~._turns.turn_jacobian`."""
-        p, x = _params(vec, allp, base | {"tau_w": tau_w}, n_pose)
+        p, x = _params(vec, base | {"tau_w": tau_w}, n_pose)
         return turn_misclosure(p, x["a"], x["b"], geo[0], geo[1], geo[2], arrays)
 
     @turn.defjvp
