@@ -315,6 +315,20 @@ def test_ln100_pair_earth_rate_explains_the_z_gyros_flip():
     assert v.explained["of"] == "held-out" and v.explained["shares"]["earth_rate"] >= 0.995
     assert v.headline().startswith("earth_rate")
     assert "time (" not in v.remainder or "wz" not in v.remainder.split("time (")[1].split(")")[0]
+    # the forward selection says why it stopped: the warm-up passed its conditional score test
+    # after the verdict's effects but raised the held-out gap out of its band (the refit it
+    # tried is in the report)
+    c = rep.conditional
+    assert c["after"] == v.effects == ["earth_rate", "time_drift"]
+    assert c["stopped"].startswith("warmup_transient passed its conditional score test")
+    (tried,) = [r for r in rep.refits if r.effects == v.effects + ["warmup_transient"]]
+    assert tried.closure is False and tried.heldout_gap_after > v.heldout_gap_after
+    best = c["scores"][0]
+    assert best["effect"] == "warmup_transient" and best["p_bonferroni"] < rep.alpha
+    assert {x["effect"] for x in c["scores"]} == {"g_sensitivity", "warmup_transient"}
+    assert ("After earth_rate + time_drift, the forward selection stopped: warmup_transient "
+            "passed its conditional score test but not the held-out part") in rep.markdown()
+    assert rep.to_json()["conditional"]["after"] == ["earth_rate", "time_drift"]
 
 
 @pytest.mark.slow

@@ -961,7 +961,7 @@ def test_pipeline_pieces_by_hand():
     from scipy import stats
 
     from gyrojax.diagnose._advice import _design_advice, _mde
-    from gyrojax.diagnose._diagnose import _next_effect
+    from gyrojax.diagnose._diagnose import _conditional_scores, _next_effect
     from gyrojax.diagnose._multiplicity import _bh_weights, rejected
     from gyrojax.diagnose._rows import _consistency
     from gyrojax.diagnose._verdict import (
@@ -986,11 +986,16 @@ def test_pipeline_pieces_by_hand():
     span = np.concatenate([jn, cols[0]], axis=1)
     best = max(screen(e, span, sigs[1:]), key=lambda r: r.lm)
     assert best.sig.name == "s2" and best.p < 0.05
-    assert _next_effect(e, span, rows, [first], 2 * best.p) is None  # Bonferroni over 3
-    assert _next_effect(e, span, rows, [first], 4 * best.p).sig.name == "s2"
+    resc = _conditional_scores(e, span, rows, [first])
+    assert len(resc) == 3 and max(resc, key=lambda r: r.lm).lm == pytest.approx(best.lm)
+    assert _next_effect(resc, 2 * best.p) is None  # Bonferroni over 3
+    assert _next_effect(resc, 4 * best.p).sig.name == "s2"
     s2 = next(r for r in rows if r.sig.name == "s2")  # chosen effects are not rescored
-    found = _next_effect(e, np.concatenate([span, cols[2]], axis=1), rows, [first, s2], 0.05)
+    resc2 = _conditional_scores(e, np.concatenate([span, cols[2]], axis=1), rows, [first, s2])
+    assert {r.sig.name for r in resc2} == {"s1", "s3"}
+    found = _next_effect(resc2, 0.05)
     assert found is None or found.sig.name not in ("s0", "s2")
+    assert _next_effect([], 0.05) is None
 
     n, c = 10, 2
     proj = rng.standard_normal((n * c, 1))
@@ -1809,7 +1814,7 @@ def test_ambiguous_verdict_reports_each_members_heldout_gap_and_whether_it_separ
 
 def test_ambiguous_verdict_names_the_effects_that_earn_their_place_beside_the_set():
     """An ambiguous set explains one part of the gap; an effect outside it that earned its
-    place after the top member's refit (the forward selection's chain) is named beside it
+    place after a member's refit (the forward selection's chain) is named beside it
     (``also``), with the held-out gap the chain reached; a member of the set is never listed
     twice, and without a chain the verdict is the set alone."""
     from types import SimpleNamespace
@@ -1833,11 +1838,38 @@ def test_ambiguous_verdict_names_the_effects_that_earn_their_place_beside_the_se
                  0.05, [], 1.2, (0.0, 0.08))
     assert v["kind"] == "ambiguous" and v["also"] == ["g_sensitivity"]
     assert v["effects"] == ["scale_factor", "misalignment", "g_sensitivity"]
-    assert "g_sensitivity earns its place" in v["reason"] and "0.42 -> 0.21" in v["reason"]
+    assert "g_sensitivity earns its place after scale_factor's refit" in v["reason"]
+    assert "0.42 -> 0.21" in v["reason"] and v["heldout_gap_after"] == 0.42
     assert Verdict(**v).also == ["g_sensitivity"]
     v = _verdict(True, rows, amb, [chain[0]], chain[:1], rows[0], 0.05, [], 1.2, (0.0, 0.08))
     assert v["also"] == [] and v["effects"] == ["scale_factor", "misalignment"]
     assert v["reason"] == "no single effect holds 90 % of the posterior; see design_advice"
+
+
+def test_the_chain_after_an_ambiguous_set_starts_from_the_member_that_predicts_the_held_out():
+    """The MPU-6050 poses' pair: the scale factors' and the misalignments' refits fit the train
+    part alike (equal posteriors) but leave held-out gaps 0.31 and 34.9. The forward selection
+    starts from the scale factors' refit whichever member the posterior puts first; without a
+    held-out part (NaN), or with one member refitted, from the top member."""
+    from types import SimpleNamespace
+
+    from gyrojax.diagnose._diagnose import chain_head
+
+    def row(name):
+        return SimpleNamespace(sig=SimpleNamespace(name=name))
+
+    mis, sf, gs = row("misalignment"), row("scale_factor"), row("g_sensitivity")
+    singles = {"misalignment": SimpleNamespace(heldout_gap_after=34.9),
+               "scale_factor": SimpleNamespace(heldout_gap_after=0.31)}
+    assert chain_head([mis, sf], singles, mis) is sf
+    assert chain_head([sf, mis], singles, sf) is sf
+    assert chain_head([gs], {"g_sensitivity": singles["misalignment"]}, gs) is gs
+    assert chain_head([mis, sf], {"misalignment": singles["misalignment"]}, mis) is mis
+    nan = {k: SimpleNamespace(heldout_gap_after=float("nan")) for k in singles}
+    assert chain_head([mis, sf], nan, mis) is mis
+    # equal held-out gaps: the top member
+    tie = {k: SimpleNamespace(heldout_gap_after=0.5) for k in singles}
+    assert chain_head([mis, sf], tie, mis) is mis and chain_head([sf, mis], tie, sf) is sf
 
 
 def test_verdict_names_a_set_of_effects_with_each_ones_share_of_the_gap():

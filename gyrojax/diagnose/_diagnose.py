@@ -107,20 +107,36 @@ def _check_record(record: BenchRecord, holdout: float):
                          "need at least 60 - record longer or lower --holdout")
 
 
-def _next_effect(e, span, rows, chosen, alpha):
-    """The conditional score test of the effects not in ``chosen``: rescore them on the residual
-    ``e`` of the refit with ``chosen``, the span of the nominal and chosen Jacobians projected
-    out; the best, where it is significant after Bonferroni over the rest and has a signature
-    left, else ``None``."""
+def _conditional_scores(e, span, rows, chosen):
+    """The conditional score tests of the effects not in ``chosen`` (with a signature): each
+    rescored on the residual ``e`` of the refit with ``chosen``, the span of the nominal and
+    chosen Jacobians (``span``) projected out. A list of screening rows, empty if none is left."""
     names = {r.sig.name for r in chosen}
     others = [r.sig for r in rows if r.sig.name not in names and r.dof > 0]
-    if not others:
+    return screen(e, span, others) if others else []
+
+
+def _next_effect(resc, alpha):
+    """Of the conditional score tests ``resc`` (:func:`_conditional_scores`), the best, where it
+    is significant after Bonferroni over them all and has a signature left, else ``None``."""
+    if not resc:
         return None
-    resc = screen(e, span, others)
     best = max(resc, key=lambda r: r.lm)
-    p_bonf = min(1.0, best.p * len(others))
+    p_bonf = min(1.0, best.p * len(resc))
     return best if p_bonf < alpha and best.flag not in ("no signature",
                                                         "structurally confounded") else None
+
+
+def _conditional_record(resc, chain, stop, alpha) -> dict:
+    """The report's ``conditional`` entry: after the forward selection's last refit
+    (``chain[-1]``), why it stopped (``stop``) and each remaining effect's conditional score
+    test (statistic, dof, p, Bonferroni p over them), largest statistic first."""
+    n = max(len(resc), 1)
+    return {"after": list(chain[-1]["effects"]), "stopped": stop, "alpha": alpha,
+            "scores": [{"effect": r.sig.name, "score": float(r.lm), "dof": int(r.dof),
+                        "p": float(r.p), "p_bonferroni": float(min(1.0, r.p * n)),
+                        "visibility": r.flag}
+                       for r in sorted(resc, key=lambda r: -r.lm)]}
 
 
 class _StageTimes(dict):
@@ -410,6 +426,7 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
     refits = []
     resid_after = {}
     second = None
+    conditional = None  # the forward selection's stop and last conditional score tests
     chain = []  # the nested refits of the effects that earned their place, top effect first
     if detected:
         singles = {}
@@ -424,23 +441,41 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
         # (after an ambiguous top, its alternatives -- the ambiguity set's other members --
         # are not candidates: they explain the same part of the gap; what joins explains more)
         if top is not None and top.sig.name in singles:
-            combo = [top]
-            alternatives = [r for r in amb if r is not top] if len(amb) > 1 else []
-            refit, e_post, span = singles[top.sig.name]
+            head = chain_head(amb, {k: v[0] for k, v in singles.items()}, top)
+            combo = [head]
+            alternatives = [r for r in amb if r is not head] if len(amb) > 1 else []
+            refit, e_post, span = singles[head.sig.name]
             chain = [refit]
-            while refit.remaining_cells and len(combo) < max_effects:
-                found = _next_effect(e_post, span, rows, combo + alternatives, alpha)
+            resc = None  # the conditional score tests on the chain's last refit
+            while True:
+                if not refit.remaining_cells:
+                    stop = "no significant gap-map cell left"
+                    break
+                if len(combo) >= max_effects:
+                    stop = f"max_effects={max_effects} effects named"
+                    break
+                resc = _conditional_scores(e_post, span, rows, combo + alternatives)
+                found = _next_effect(resc, alpha)
                 if found is None:
+                    stop = "no further effect significant in its conditional score test"
                     break
                 second = second or found
                 partner = next(r for r in rows if r.sig.name == found.sig.name)
                 nxt = run_refit(combo + [partner])
                 refits.append(nxt[0])
                 if not earns_place(refit, nxt[0]):
+                    stop = (f"{found.sig.name} passed its conditional score test but not the "
+                            f"held-out part (held-out gap {refit.heldout_gap_after:.3g} -> "
+                            f"{nxt[0].heldout_gap_after:.3g}, null band <= "
+                            f"{nxt[0].heldout_null_band_after[1]:.3g})")
                     break
                 combo.append(partner)
                 chain.append(nxt[0])
                 refit, e_post, span = nxt
+                resc = None
+            if resc is None:
+                resc = _conditional_scores(e_post, span, rows, combo + alternatives)
+            conditional = _conditional_record(resc, chain, stop, alpha)
     timings["refit_s"] = time.perf_counter() - t0
 
     verdict = _verdict(detected, rows, amb, refits, chain, top, level, cells, g_nom, band,
@@ -486,7 +521,7 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
                    "classes": indistinguishable_classes(
                        contained, [r.sig.name for r in sorted(rows, key=lambda r: -r.posterior)
                                if r.dof > 0])},
-        second=second.sig.name if second is not None else None,
+        second=second.sig.name if second is not None else None, conditional=conditional,
         refits=refits, design_advice=advice, verdict=Verdict(**verdict), alpha=alpha,
         timings=timings,
         multiplicity=multiplicity, prior=prior,
@@ -494,6 +529,20 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
         split=prob.split_kind,
         residual_all=resid_all / sigma, t=prob.t,
         residual_after=resid_after.get(tuple(verdict.get("effects") or ())))
+
+
+def chain_head(amb, singles, top):
+    """The effect the forward selection starts from: the posterior's ``top`` effect; where the
+    ambiguity set ``amb`` holds several members and the record has a held-out part, the member
+    whose refit (``singles``: effect name -> :class:`Refit`) leaves the lowest held-out gap. The
+    members explain the same part of the train gap equally well; the one whose refit predicts
+    the held-out part is the one whose residual the next effects are tested on (a member whose
+    refit spoils the prediction would weigh every later effect against its own error)."""
+    refitted = [r for r in amb if r.sig.name in singles]
+    if len(refitted) < 2 or singles[top.sig.name].heldout_gap_after is None \
+            or not np.isfinite(singles[top.sig.name].heldout_gap_after):
+        return top
+    return min(refitted, key=lambda r: (singles[r.sig.name].heldout_gap_after, r is not top))
 
 
 def train_slice(sig, m):

@@ -58,6 +58,11 @@ class GapReport:
       largest correlation with another effect and whether that is <= 0.9 (separable).
     - `verdict`: kind (no-gap | attributed | partial | ambiguous | confounded | unexplained),
       effects and, for an attribution, each effect's share of the gap (:class:`Verdict`).
+    - `conditional`: where the forward selection (several effects at once) ran, after its last
+      refit: ``after`` (the effects refitted), ``stopped`` (why no further effect joined, in
+      words) and ``scores`` (each other effect's conditional score test: ``effect``, ``score``,
+      ``dof``, ``p``, ``p_bonferroni`` over them, ``visibility``; largest score first); else
+      ``None``.
     """
 
     rig: str
@@ -84,6 +89,7 @@ class GapReport:
     split: str = "time-ordered (held-out = the record's end)"
     multiplicity: dict = dataclasses.field(default_factory=dict)
     prior: str = "design"  # the posteriors' Bayes-factor prior (diagnose's ``prior``)
+    conditional: dict | None = None
 
     @property
     def kind(self) -> str:
@@ -127,6 +133,7 @@ class GapReport:
             "where": [{k: v for k, v in x.items()} for x in self.where],
             "candidates": self.candidates_json(),
             "ambiguity": self.ambiguity, "second_effect": self.second,
+            "conditional": self.conditional,
             "noise_effects": self.noise_effects,
             "refits": self.refits, "design_advice": self.design_advice,
             "verdict": self.verdict, "alpha": self.alpha, "multiplicity": self.multiplicity,
@@ -282,6 +289,14 @@ class GapReport:
                              f"{rf.heldout_gap_before:.3g} | "
                              f"{rf.heldout_gap_after:.3g} | {red} | {rf.closure} | "
                              f"{len(rf.remaining_cells)} |")
+        if self.conditional:
+            c = self.conditional
+            lines += ["", f"After {' + '.join(c['after'])}, the forward selection stopped: "
+                      f"{c['stopped']}. Conditional score tests of the other effects, the "
+                      "refitted ones' signatures projected out:", ""]
+            lines += ["| effect | score | dof | p | p (Bonferroni) |", "|---|---|---|---|---|"]
+            lines += [f"| {x['effect']} | {x['score']:.4g} | {x['dof']} | {x['p']:.2g} | "
+                      f"{x['p_bonferroni']:.2g} |" for x in c["scores"]]
         if self.design_advice:
             shown, count = [], {}  # the best ADVICE_SHOWN designs per effect
             for a in self.design_advice:

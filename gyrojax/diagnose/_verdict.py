@@ -372,16 +372,20 @@ def _verdict(detected, rows, amb, refits, chain, top, alpha, cells, g_nom, band,
     single = [rf for rf in refits if len(rf["effects"]) == 1]
     best = min(single, key=lambda rf: rf["gap_train_after"]) if single else None
     if len(amb) > 1:
-        # the effects that earned their place after the top member's refit, beside the set
+        # the effects that earned their place beside the set, after the refit of the member
+        # the forward selection started from (decision 0030: the one that best predicts the
+        # held-out part)
         also = [rf["effects"][-1] for rf in (chain or [])[1:] if rf["effects"][-1] not in names]
         more = ""
         if also:
             more = (f"; beside the set, {' and '.join(also)} "
-                    f"{'earns its' if len(also) == 1 else 'earn their'} place after the top "
-                    f"member's refit (held-out gap {_fmt_gap(chain[0]['heldout_gap_after'])} -> "
+                    f"{'earns its' if len(also) == 1 else 'earn their'} place after "
+                    f"{chain[0]['effects'][0]}'s refit (held-out gap "
+                    f"{_fmt_gap(chain[0]['heldout_gap_after'])} -> "
                     f"{_fmt_gap(chain[-1]['heldout_gap_after'])})")
+        head = chain[0] if chain else best
         return {"kind": "ambiguous", "effects": names + also, "also": also,
-                "heldout_gap_after": best["heldout_gap_after"] if best else None, **base,
+                "heldout_gap_after": head["heldout_gap_after"] if head else None, **base,
                 "posterior": {r.sig.name: r.posterior for r in amb},
                 "reason": "no single effect holds 90 % of the posterior; see design_advice"
                           + more,
