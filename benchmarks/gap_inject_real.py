@@ -32,9 +32,10 @@ Scores, per record, effect and lambda:
 
 Writes the section ``gap_inject_real`` of RESULTS.md.
 
-    python benchmarks/gap_inject_real.py                       # 5 records x 5 effects x 4 lambda
+    python benchmarks/gap_inject_real.py                       # 5 records x 5 effects x 6 lambda
     python benchmarks/gap_inject_real.py --records ln100_pair --lambdas 32
     python benchmarks/gap_inject_real.py --rows-out rows.json   # keep every case's scores
+    python benchmarks/gap_inject_real.py --jobs 2               # two records at once
     python benchmarks/gap_inject_real.py --from-rows rows.json  # the section again, no rerun
 """
 
@@ -64,7 +65,7 @@ from gyrojax.validation._scoring import orthonormal_basis, rate  # noqa: E402
 
 RECORDS = ("ln100_pair", "mpu6050_multipos_calibration", "mpu9150_0", "xsens", "adis_1")
 EFFECTS = ("scale_factor", "misalignment", "g_sensitivity", "time_drift", "warmup_transient")
-LAMBDAS = (8.0, 16.0, 32.0, 64.0)
+LAMBDAS = (8.0, 16.0, 32.0, 64.0, 128.0, 256.0)
 SPACE = IMURig().param_space
 
 
@@ -146,8 +147,12 @@ def main(argv=None):
     ap.add_argument("--rows-out", help="also write every case's scores (JSON) to this file")
     ap.add_argument("--from-rows", help="write the section from a --rows-out file, diagnosing "
                                         "nothing")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="records diagnosed at once, each in its own process (default 1)")
     ap.add_argument("--worker-json", help=argparse.SUPPRESS)  # one record, rows to this file
     args = ap.parse_args(argv)
+    if args.jobs < 1:
+        ap.error(f"--jobs {args.jobs}: give at least 1")
     if args.worker_json:
         return _worker(args)
     if args.from_rows:
@@ -160,24 +165,45 @@ def main(argv=None):
     # every record in a fresh process: each record's diagnoses compile programs of their own,
     # and one process holding the programs of several long records ran out of the kernel's
     # memory maps (LLVM "Cannot allocate memory", then a segfault)
-    rows, per_record, t_all = [], {}, time.perf_counter()
-    for k, name in enumerate(args.records):
-        with tempfile.TemporaryDirectory() as tmp:
-            path = os.path.join(tmp, "rows.json")
-            cmd = [sys.executable, __file__, "--records", name, "--effects", *args.effects,
-                   "--lambdas", *map(str, args.lambdas), "--seed", str(args.seed + k),
-                   "--worker-json", path]
-            subprocess.run(cmd, check=True)
+    # (--jobs of them at once; each record keeps its seed, so the cases do not depend on it)
+    t_all = time.perf_counter()
+    done = {}  # record index -> the worker's rows and record tuple
+    with tempfile.TemporaryDirectory() as tmp:
+        pending = list(enumerate(args.records))
+        running = {}
+        while pending or running:
+            while pending and len(running) < args.jobs:
+                k, name = pending.pop(0)
+                path = os.path.join(tmp, f"rows{k}.json")
+                cmd = [sys.executable, __file__, "--records", name, "--effects", *args.effects,
+                       "--lambdas", *map(str, args.lambdas), "--seed", str(args.seed + k),
+                       "--worker-json", path]
+                running[k] = (subprocess.Popen(cmd), path, name)
+            k = _wait_any(running)
+            proc, path, name = running.pop(k)
+            if proc.returncode:
+                for other, *_ in running.values():
+                    other.kill()
+                raise subprocess.CalledProcessError(proc.returncode, proc.args)
             with open(path) as fh:
-                got = json.load(fh)
-        rows += got["rows"]
-        per_record[name] = tuple(got["record"])
-        if args.rows_out:
-            write_json({"rows": rows, "record": per_record,
-                        "total_s": time.perf_counter() - t_all}, args.rows_out)
-        # after every record: a long run stopped early keeps what it measured
-        publish(args.out, "gap_inject_real", _lines(rows, per_record, args,
-                                                    time.perf_counter() - t_all))
+                done[k] = json.load(fh)
+            rows = [r for i in sorted(done) for r in done[i]["rows"]]
+            per_record = {args.records[i]: tuple(done[i]["record"]) for i in sorted(done)}
+            if args.rows_out:
+                write_json({"rows": rows, "record": per_record,
+                            "total_s": time.perf_counter() - t_all}, args.rows_out)
+            # after every record: a long run stopped early keeps what it measured
+            publish(args.out, "gap_inject_real", _lines(rows, per_record, args,
+                                                        time.perf_counter() - t_all))
+
+
+def _wait_any(running) -> int:
+    """The key of the first of ``running``'s worker processes to end (polled)."""
+    while True:
+        for k, (proc, *_rest) in running.items():
+            if proc.poll() is not None:
+                return k
+        time.sleep(0.5)
 
 
 def _worker(args):
@@ -240,8 +266,19 @@ def _worker(args):
                       f"{r['named']}, top {r['top']}, recovery {r['recovery']}, {r['verdict']}")
         verdict = f"{base.verdict.kind} ({', '.join(base.verdict.effects or [])})"
         per_record[name] = (verdict, t_base, float(np.median(times)) if times else float("nan"),
-                            closes)
+                            closes, _stop_text(base.conditional))
     write_json({"rows": rows, "record": per_record[name]}, args.worker_json)
+
+
+def _stop_text(conditional) -> str | None:
+    """One line of a report's ``conditional`` entry: after which effects the forward selection
+    stopped, why, and the conditional score tests left (score / dof, Bonferroni p)."""
+    if not conditional:
+        return None
+    scores = ", ".join(f"{x['effect']} {x['score']:.1f} / {x['dof']} (p {x['p_bonferroni']:.2g})"
+                       for x in conditional["scores"] if x["dof"] > 0)
+    return (f"after {' + '.join(conditional['after'])}: {conditional['stopped']}; "
+            f"conditional scores: {scores or 'none left'}")
 
 
 def _lines(rows, per_record, args, total_s):
@@ -262,9 +299,16 @@ def _lines(rows, per_record, args, total_s):
              "| record | verdict as it is | held-out closes | diagnosis s (as it is / median "
              "injected) |",
              "|---|---|---|---|"]
-    for name, (verdict, t_base, t_inj, *closes) in per_record.items():
-        shut = "-" if not closes else ("yes" if closes[0] else "no")
+    for name, (verdict, t_base, t_inj, *more) in per_record.items():
+        shut = "-" if not more else ("yes" if more[0] else "no")
         lines.append(f"| `{name}` | {verdict} | {shut} | {t_base:.0f} / {t_inj:.0f} |")
+    stops = {name: rec[4] for name, rec in per_record.items() if len(rec) > 4 and rec[4]}
+    if stops:
+        lines += ["", "Where the forward selection stopped on each record as it is, and the "
+                  "conditional score tests of the effects left (the injected effect joins a "
+                  "verdict after these; an effect the record already carries, vetoed by the "
+                  "held-out part, is tried first while its score is the largest):", ""]
+        lines += [f"- `{name}`: {text}" for name, text in stops.items()]
     lines += ["", "| record | effect | lambda | detected (as it is) | named (as it is) | top "
               "| recovery |",
               "|---|---|---|---|---|---|---|"]
@@ -301,6 +345,24 @@ def _lines(rows, per_record, args, total_s):
                      f"{fmt_rate(_share(fresh))} | "
                      + " | ".join(fmt_rate(x) for x in named)
                      + f" | {fmt_rate(_share(r['top'] for r in sel))} | {med} |")
+    # where naming arrives on each record: the lambda real noise asks for
+    lines += ["", "Named, per identifiable case and lambda (the smallest lambda from which it "
+              "stays named, if any, last):", "",
+              "| record | effect | named as it is | "
+              + " | ".join(f"{x:g}" for x in args.lambdas) + " | named from |",
+              "|---|---|---|" + "---|" * len(args.lambdas) + "---|"]
+    for name in per_record:
+        for effect in args.effects:
+            got = {r["lam"]: r for r in rows if r["record"] == name and r["effect"] == effect
+                   and r["identifiable"]}
+            if not got:
+                continue
+            marks = [("yes" if got[x]["named"] else "no") if x in got else "" for x in args.lambdas]
+            lams = [x for x in args.lambdas if x in got]
+            since = next((x for i, x in enumerate(lams) if all(got[y]["named"] for y in lams[i:])),
+                         None)
+            lines.append(f"| `{name}` | {effect} | {next(iter(got.values()))['named0']} | "
+                         + " | ".join(marks) + f" | {'-' if since is None else f'{since:g}'} |")
     return lines
 
 
