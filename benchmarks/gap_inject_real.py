@@ -48,6 +48,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
 
 import numpy as np
 
@@ -168,25 +169,15 @@ def main(argv=None):
     # (--jobs of them at once; each record keeps its seed, so the cases do not depend on it)
     t_all = time.perf_counter()
     done = {}  # record index -> the worker's rows and record tuple
-    with tempfile.TemporaryDirectory() as tmp:
-        pending = list(enumerate(args.records))
-        running = {}
-        while pending or running:
-            while pending and len(running) < args.jobs:
-                k, name = pending.pop(0)
-                path = os.path.join(tmp, f"rows{k}.json")
-                cmd = [sys.executable, __file__, "--records", name, "--effects", *args.effects,
-                       "--lambdas", *map(str, args.lambdas), "--seed", str(args.seed + k),
-                       "--worker-json", path]
-                running[k] = (subprocess.Popen(cmd), path, name)
-            k = _wait_any(running)
-            proc, path, name = running.pop(k)
-            if proc.returncode:
-                for other, *_ in running.values():
-                    other.kill()
-                raise subprocess.CalledProcessError(proc.returncode, proc.args)
-            with open(path) as fh:
-                done[k] = json.load(fh)
+    with tempfile.TemporaryDirectory() as tmp, ThreadPoolExecutor(args.jobs) as pool:
+        futures = {pool.submit(_run_worker, args, k, name, os.path.join(tmp, f"rows{k}.json")): k
+                   for k, name in enumerate(args.records)}
+        for fut in as_completed(futures):
+            try:
+                done[futures[fut]] = fut.result()
+            except BaseException:
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
             rows = [r for i in sorted(done) for r in done[i]["rows"]]
             per_record = {args.records[i]: tuple(done[i]["record"]) for i in sorted(done)}
             if args.rows_out:
@@ -197,13 +188,15 @@ def main(argv=None):
                                                         time.perf_counter() - t_all))
 
 
-def _wait_any(running) -> int:
-    """The key of the first of ``running``'s worker processes to end (polled)."""
-    while True:
-        for k, (proc, *_rest) in running.items():
-            if proc.poll() is not None:
-                return k
-        time.sleep(0.5)
+def _run_worker(args, k, name, path) -> dict:
+    """Diagnose record ``name`` (index ``k``: its seed is ``args.seed + k``) in a fresh process;
+    its rows and record tuple, read back from ``path``."""
+    cmd = [sys.executable, __file__, "--records", name, "--effects", *args.effects,
+           "--lambdas", *map(str, args.lambdas), "--seed", str(args.seed + k),
+           "--worker-json", path]
+    subprocess.run(cmd, check=True)
+    with open(path) as fh:
+        return json.load(fh)
 
 
 def _worker(args):
