@@ -321,6 +321,8 @@ def test_ln100_pair_earth_rate_explains_the_z_gyros_flip():
     c = rep.conditional
     assert c["after"] == v.effects == ["earth_rate", "time_drift"]
     assert c["stopped"].startswith("warmup_transient passed its conditional score test")
+    (veto,) = c["vetoed"]  # set aside; nothing else significant with it as a nuisance
+    assert veto["effect"] == "warmup_transient" and veto["heldout_gap_after"] > veto["band"]
     (tried,) = [r for r in rep.refits if r.effects == v.effects + ["warmup_transient"]]
     assert tried.closure is False and tried.heldout_gap_after > v.heldout_gap_after
     best = c["scores"][0]

@@ -990,6 +990,9 @@ def test_pipeline_pieces_by_hand():
     assert len(resc) == 3 and max(resc, key=lambda r: r.lm).lm == pytest.approx(best.lm)
     assert _next_effect(resc, 2 * best.p) is None  # Bonferroni over 3
     assert _next_effect(resc, 4 * best.p).sig.name == "s2"
+    # Bonferroni over the step's tests, refused ones included: 3 tested + 2 refused
+    assert _next_effect(resc, 4 * best.p, n_tests=5) is None
+    assert _next_effect(resc, 6 * best.p, n_tests=5).sig.name == "s2"
     s2 = next(r for r in rows if r.sig.name == "s2")  # chosen effects are not rescored
     resc2 = _conditional_scores(e, np.concatenate([span, cols[2]], axis=1), rows, [first, s2])
     assert {r.sig.name for r in resc2} == {"s1", "s3"}

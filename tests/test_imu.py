@@ -523,6 +523,42 @@ def test_imu_diagnosis_names_gyro_scale_errors_through_the_turns():
     assert few.turns is None and any("11 turns between poses not used" in n for n in few.notes)
 
 
+def test_a_refused_effect_is_a_nuisance_for_the_next():
+    """A 24-pose record with gyro scale errors of 2500-5000 ppm, a drift of 300 deg/h/h on y
+    and z, and a g-sensitivity of 40 deg/h/g on the first 70 % of the record only (a signature
+    that does not transfer to the held-out end). After the scale factors' refit the
+    g-sensitivity scores highest, and its refit raises the held-out gap: refused. The
+    selection does not stop there (it did before decision 0032): the drift, rescored with the
+    refused g-sensitivity as a nuisance, joins, and its refit lowers the held-out gap by more
+    than half. The g-sensitivity stays out of the verdict."""
+    gs, dg = 40 * SPACE["gsxy"].display_factor, 300 * SPACE["dgy"].display_factor
+    base = BIAS | dict(sgx=5e-3, sgy=-5e-3, sgz=2.5e-3, dgy=dg, dgz=-dg)
+
+    def sim(extra):
+        return simulate_imu(SPACE.make(base | extra), cube_poses(24, 15.0),
+                            arw=0.2 * units.DEG / 60, vrw=1e-3, key=jax.random.PRNGKey(3),
+                            latitude_deg=45.0)
+
+    with_gs, without = sim(dict(gsxy=gs, gszx=-gs, gsyz=gs)), sim({})
+    t = np.asarray(without.t)
+    first = (t < t[0] + 0.7 * (t[-1] - t[0]))[:, None]
+    rec = dataclasses.replace(without, y=np.where(first, np.asarray(with_gs.y),
+                                                  np.asarray(without.y)))
+    rep = diagnose(rec, rig="imu", design_advice=False)
+    v = rep.verdict
+    assert v.effects[0] == "scale_factor"
+    assert "time_drift" in v.effects and "g_sensitivity" not in v.effects
+    gaps = {tuple(rf.effects): rf for rf in rep.refits}
+    alone = gaps[("scale_factor",)].heldout_gap_after
+    refused = gaps[("scale_factor", "g_sensitivity")]
+    assert refused.heldout_gap_after > 1.5 * alone  # refused: it spoils the prediction
+    assert refused.heldout_gap_after > refused.heldout_null_band_after[1]
+    order = [tuple(rf.effects) for rf in rep.refits]
+    drift = next(k for k in order if "time_drift" in k and "g_sensitivity" not in k)
+    assert order.index(("scale_factor", "g_sensitivity")) < order.index(drift)
+    assert gaps[drift].heldout_gap_after < 0.5 * alone
+
+
 def test_loaders_bad_files(tmp_path):
     """Wrong header/units, missing npz keys, non-numeric rows: errors name file, line and fix."""
     root = tmp_path / "real"

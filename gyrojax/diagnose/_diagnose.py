@@ -116,23 +116,28 @@ def _conditional_scores(e, span, rows, chosen):
     return screen(e, span, others) if others else []
 
 
-def _next_effect(resc, alpha):
+def _next_effect(resc, alpha, n_tests=None):
     """Of the conditional score tests ``resc`` (:func:`_conditional_scores`), the best, where it
-    is significant after Bonferroni over them all and has a signature left, else ``None``."""
+    is significant after Bonferroni over ``n_tests`` tests (default: ``len(resc)``; more where
+    effects refused earlier were tested in the same step) and has a signature left, else
+    ``None``."""
     if not resc:
         return None
     best = max(resc, key=lambda r: r.lm)
-    p_bonf = min(1.0, best.p * len(resc))
+    p_bonf = min(1.0, best.p * max(n_tests or 0, len(resc)))
     return best if p_bonf < alpha and best.flag not in ("no signature",
                                                         "structurally confounded") else None
 
 
-def _conditional_record(resc, chain, stop, alpha) -> dict:
+def _conditional_record(resc, chain, stop, alpha, vetoed=()) -> dict:
     """The report's ``conditional`` entry: after the forward selection's last refit
-    (``chain[-1]``), why it stopped (``stop``) and each remaining effect's conditional score
-    test (statistic, dof, p, Bonferroni p over them), largest statistic first."""
+    (``chain[-1]``), why it stopped (``stop``), the effects the held-out part refused after
+    that refit (``vetoed``: ``{effect, heldout_gap_before, heldout_gap_after, band}`` each, in
+    the order tried) and each remaining effect's conditional score test (statistic, dof, p,
+    Bonferroni p over them), largest statistic first."""
     n = max(len(resc), 1)
     return {"after": list(chain[-1]["effects"]), "stopped": stop, "alpha": alpha,
+            "vetoed": list(vetoed),
             "scores": [{"effect": r.sig.name, "score": float(r.lm), "dof": int(r.dof),
                         "p": float(r.p), "p_bonferroni": float(min(1.0, r.p * n)),
                         "visibility": r.flag}
@@ -205,12 +210,16 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
     - `noise_std`: measurement noise per channel (SI); default estimated from the residual.
     - `design_advice`: compute the design advisor for confounded, weak or ambiguous effects.
     - `order`: ESG model, ``"exact"`` (5.1) or the paper's first-order ``"first"`` (3.1).
-    - `max_refits`: the most members of the ambiguity set refitted one by one.
+    - `max_refits`: the most members of the ambiguity set refitted one by one, and the most
+      refits in a row the held-out part may refuse in the forward selection (below).
     - `max_effects`: the most catalogued effects one verdict names together. Where the top
       effect's refit leaves significant cells, the rest of the library is rescored on its
       residual (a conditional score test, Bonferroni over the rest); the best joins the refit
       where it is significant and, where the held-out part can show it, lowers the held-out
-      gap; and so on up to `max_effects`. The verdict is ``attributed`` to the first such set
+      gap; and so on up to `max_effects`. An effect the held-out part refuses is set aside and
+      the rest rescored with its signature as a nuisance; the best of them is tried next
+      (``GapReport.conditional``: the refused ones and why the selection stopped). The
+      verdict is ``attributed`` to the first such set
       that leaves no significant cell, ``partial`` where the set explains at least 90 % of the
       gap with cells left (``Verdict.explained``: each effect's share, ``remainder``: where the
       rest lies), else ``unexplained``.
@@ -447,6 +456,8 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
             refit, e_post, span = singles[head.sig.name]
             chain = [refit]
             resc = None  # the conditional score tests on the chain's last refit
+            vetoed = []  # effects the held-out part refused after the chain's last refit
+            tries = max_refits  # refits the held-out part may refuse before one joins
             while True:
                 if not refit.remaining_cells:
                     stop = "no significant gap-map cell left"
@@ -454,28 +465,45 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
                 if len(combo) >= max_effects:
                     stop = f"max_effects={max_effects} effects named"
                     break
-                resc = _conditional_scores(e_post, span, rows, combo + alternatives)
-                found = _next_effect(resc, alpha)
+                if resc is None:
+                    resc = _conditional_scores(e_post, span, rows, combo + alternatives)
+                    cand, span_v, refused = resc, span, []
+                found = _next_effect(cand, alpha, n_tests=len(resc))
                 if found is None:
                     stop = "no further effect significant in its conditional score test"
+                    break
+                if tries == 0:
+                    stop = f"max_refits={max_refits} refits refused in a row"
                     break
                 second = second or found
                 partner = next(r for r in rows if r.sig.name == found.sig.name)
                 nxt = run_refit(combo + [partner])
                 refits.append(nxt[0])
                 if not earns_place(refit, nxt[0]):
-                    stop = (f"{found.sig.name} passed its conditional score test but not the "
-                            f"held-out part (held-out gap {refit.heldout_gap_after:.3g} -> "
-                            f"{nxt[0].heldout_gap_after:.3g}, null band <= "
-                            f"{nxt[0].heldout_null_band_after[1]:.3g})")
-                    break
+                    # a signature the record carries that does not transfer must not block
+                    # the others, nor lend them its train part: the rest are rescored with
+                    # its signature as a nuisance (decision 0032)
+                    vetoed.append({"effect": found.sig.name,
+                                   "heldout_gap_before": refit.heldout_gap_after,
+                                   "heldout_gap_after": nxt[0].heldout_gap_after,
+                                   "band": float(nxt[0].heldout_null_band_after[1])})
+                    tries -= 1
+                    refused.append(partner)
+                    span_v = np.concatenate([span_v, partner.sig.jac[partner.grid_index]],
+                                            axis=1)
+                    cand = _conditional_scores(e_post, span_v, rows,
+                                               combo + alternatives + refused)
+                    continue
                 combo.append(partner)
                 chain.append(nxt[0])
                 refit, e_post, span = nxt
-                resc = None
+                resc, vetoed, tries = None, [], max_refits
             if resc is None:
                 resc = _conditional_scores(e_post, span, rows, combo + alternatives)
-            conditional = _conditional_record(resc, chain, stop, alpha)
+            if vetoed:
+                given = " with those as nuisance" if stop.startswith("no further") else ""
+                stop = f"{vetoed_text(vetoed)}; {stop.replace('no further', 'no other')}{given}"
+            conditional = _conditional_record(resc, chain, stop, alpha, vetoed)
     timings["refit_s"] = time.perf_counter() - t0
 
     verdict = _verdict(detected, rows, amb, refits, chain, top, level, cells, g_nom, band,
@@ -529,6 +557,15 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
         split=prob.split_kind,
         residual_all=resid_all / sigma, t=prob.t,
         residual_after=resid_after.get(tuple(verdict.get("effects") or ())))
+
+
+def vetoed_text(vetoed) -> str:
+    """The forward selection's refused effects (:func:`_conditional_record`'s ``vetoed``) in
+    words: each passed its conditional score test but not the held-out part."""
+    return "; ".join(f"{v['effect']} passed its conditional score test but not the held-out "
+                     f"part (held-out gap {v['heldout_gap_before']:.3g} -> "
+                     f"{v['heldout_gap_after']:.3g}, null band <= {v['band']:.3g})"
+                     for v in vetoed)
 
 
 def chain_head(amb, singles, top):

@@ -60,7 +60,11 @@ class GapReport:
       effects and, for an attribution, each effect's share of the gap (:class:`Verdict`).
     - `conditional`: where the forward selection (several effects at once) ran, after its last
       refit: ``after`` (the effects refitted), ``stopped`` (why no further effect joined, in
-      words) and ``scores`` (each other effect's conditional score test: ``effect``, ``score``,
+      words), ``vetoed`` (the effects that passed their conditional score test after that
+      refit but not the held-out part, in the order tried: ``effect``,
+      ``heldout_gap_before``, ``heldout_gap_after``, ``band``; the rest were rescored with
+      their signatures as a nuisance) and ``scores`` (each other effect's conditional score
+      test after that refit: ``effect``, ``score``,
       ``dof``, ``p``, ``p_bonferroni`` over them, ``visibility``; largest score first); else
       ``None``.
     """
