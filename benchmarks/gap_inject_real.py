@@ -300,7 +300,8 @@ def _lines(rows, per_record, args, total_s):
         lines += ["", "Where the forward selection stopped on each record as it is, and the "
                   "conditional score tests of the effects left (the injected effect joins a "
                   "verdict after these; an effect the record already carries, vetoed by the "
-                  "held-out part, is tried first while its score is the largest):", ""]
+                  "held-out part, is set aside and the rest are tested with it as a "
+                  "nuisance):", ""]
         lines += [f"- `{name}`: {text}" for name, text in stops.items()]
     lines += ["", "| record | effect | lambda | detected (as it is) | named (as it is) | top "
               "| recovery |",

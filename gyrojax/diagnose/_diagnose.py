@@ -456,8 +456,7 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
             refit, e_post, span = singles[head.sig.name]
             chain = [refit]
             resc = None  # the conditional score tests on the chain's last refit
-            vetoed = []  # effects the held-out part refused after the chain's last refit
-            tries = max_refits  # refits the held-out part may refuse before one joins
+            refused = []  # (row, refit) the held-out part refused after that refit, in order
             while True:
                 if not refit.remaining_cells:
                     stop = "no significant gap-map cell left"
@@ -466,13 +465,14 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
                     stop = f"max_effects={max_effects} effects named"
                     break
                 if resc is None:
-                    resc = _conditional_scores(e_post, span, rows, combo + alternatives)
-                    cand, span_v, refused = resc, span, []
+                    resc = cand = _conditional_scores(e_post, span, rows, combo + alternatives)
                 found = _next_effect(cand, alpha, n_tests=len(resc))
                 if found is None:
-                    stop = "no further effect significant in its conditional score test"
+                    stop = ("no other effect significant in its conditional score test with "
+                            "those as nuisance" if refused else
+                            "no further effect significant in its conditional score test")
                     break
-                if tries == 0:
+                if len(refused) == max_refits:
                     stop = f"max_refits={max_refits} refits refused in a row"
                     break
                 second = second or found
@@ -482,27 +482,24 @@ def diagnose(record: BenchRecord, *, rig="esg", conditions=None, effects=None,
                 if not earns_place(refit, nxt[0]):
                     # a signature the record carries that does not transfer must not block
                     # the others, nor lend them its train part: the rest are rescored with
-                    # its signature as a nuisance (decision 0032)
-                    vetoed.append({"effect": found.sig.name,
-                                   "heldout_gap_before": refit.heldout_gap_after,
-                                   "heldout_gap_after": nxt[0].heldout_gap_after,
-                                   "band": float(nxt[0].heldout_null_band_after[1])})
-                    tries -= 1
-                    refused.append(partner)
-                    span_v = np.concatenate([span_v, partner.sig.jac[partner.grid_index]],
-                                            axis=1)
-                    cand = _conditional_scores(e_post, span_v, rows,
-                                               combo + alternatives + refused)
+                    # the refused signatures as a nuisance (decision 0032)
+                    refused.append((partner, nxt[0]))
+                    given = [r for r, _ in refused]
+                    cand = _conditional_scores(
+                        e_post, np.concatenate([span] + [r.sig.jac[r.grid_index] for r in given],
+                                               axis=1), rows, combo + alternatives + given)
                     continue
                 combo.append(partner)
                 chain.append(nxt[0])
                 refit, e_post, span = nxt
-                resc, vetoed, tries = None, [], max_refits
+                resc, refused = None, []
             if resc is None:
                 resc = _conditional_scores(e_post, span, rows, combo + alternatives)
+            vetoed = [{"effect": r.sig.name, "heldout_gap_before": refit.heldout_gap_after,
+                       "heldout_gap_after": rf.heldout_gap_after,
+                       "band": float(rf.heldout_null_band_after[1])} for r, rf in refused]
             if vetoed:
-                given = " with those as nuisance" if stop.startswith("no further") else ""
-                stop = f"{vetoed_text(vetoed)}; {stop.replace('no further', 'no other')}{given}"
+                stop = f"{vetoed_text(vetoed)}; {stop}"
             conditional = _conditional_record(resc, chain, stop, alpha, vetoed)
     timings["refit_s"] = time.perf_counter() - t0
 
